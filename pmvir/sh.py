@@ -1,0 +1,89 @@
+"""Second-order spherical-harmonics shading in pmvir's basis (spec section 3, "pmvir-sh9").
+
+``S(N) = L0 + L1*Ny + L2*Nz + L3*Nx + L4*Nx*Ny + L5*Ny*Nz + L6*(Nz^2 - 1/3)
++ L7*Nx*Nz + L8*(Nx^2 - Ny^2)`` for a unit world-frame normal N. The functions
+work on NumPy arrays and on PyTorch tensors alike (the refinement differentiates
+through them).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+SH_BASIS_NAME = "pmvir-sh9"
+
+
+def sh9_basis(normals: Any) -> Any:
+    """The nine basis functions at unit normals.
+
+    Args:
+        normals: (..., 3) unit normals, NumPy array or torch tensor.
+
+    Returns:
+        (..., 9) basis values, same type and dtype as ``normals``.
+    """
+    if normals.shape[-1] != 3:
+        raise ValueError(f"expected (..., 3) normals, got {tuple(normals.shape)}")
+    x, y, z = normals[..., 0], normals[..., 1], normals[..., 2]
+    one = x * 0 + 1
+    terms = [one, y, z, x, x * y, y * z, z * z - 1.0 / 3.0, x * z, x * x - y * y]
+    if isinstance(normals, np.ndarray):
+        return np.stack(terms, axis=-1)
+    import torch
+
+    return torch.stack(terms, dim=-1)
+
+
+def sh9_shading(normals: Any, coeffs: Any) -> Any:
+    """Shading S(N) for normals (..., 3) and coefficients (..., 9) (broadcast), shape (...)."""
+    return (sh9_basis(normals) * coeffs).sum(-1)
+
+
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """``n`` unit directions spread evenly on the sphere (Fibonacci lattice), (n, 3) float64."""
+    if n < 1:
+        raise ValueError(f"need at least one direction, got {n}")
+    i = np.arange(n, dtype=np.float64) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * i
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def project_to_sh9(directions: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Least-squares pmvir-sh9 coefficients of a shading function sampled at unit directions.
+
+    Args:
+        directions: (M, 3) unit directions, M >= 9, spread over the sphere.
+        values: (M,) or (M, C) shading values.
+
+    Returns:
+        (9,) or (9, C) coefficients.
+    """
+    basis = sh9_basis(np.asarray(directions, dtype=np.float64))
+    coeffs, *_ = np.linalg.lstsq(basis, np.asarray(values, dtype=np.float64), rcond=None)
+    return coeffs
+
+
+#: Per-band factor from a Lambertian shading's coefficients to the coefficients of
+#: the distant radiance that produces it: shading S = E / pi with irradiance
+#: E_l = A_l * L_l (A_0 = pi, A_1 = 2 pi / 3, A_2 = pi / 4), so L_l = pi / A_l * S_l.
+_RADIANCE_FROM_SHADING = np.array([1.0, 1.5, 1.5, 1.5, 4.0, 4.0, 4.0, 4.0, 4.0])
+
+
+def radiance_from_shading(coeffs: np.ndarray) -> np.ndarray:
+    """pmvir-sh9 coefficients of the environment radiance whose Lambertian shading is ``coeffs``.
+
+    With albedo K, a Lambertian surface lit by radiance L(w) shows K * S(N) where
+    S = (1/pi) * integral of L(w) max(0, N.w) dw; this inverts that per SH band
+    (renderers that need the environment itself, e.g. for specular reflection).
+
+    Args:
+        coeffs: (..., 9) shading coefficients.
+
+    Returns:
+        (..., 9) radiance coefficients in the same polynomial basis.
+    """
+    return np.asarray(coeffs, dtype=np.float64) * _RADIANCE_FROM_SHADING
