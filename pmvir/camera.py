@@ -90,7 +90,7 @@ def look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0
     center = np.asarray(center, dtype=np.float64)
     z = np.asarray(target, dtype=np.float64) - center
     z /= np.linalg.norm(z)
-    x = np.cross(z, -np.asarray(up, dtype=np.float64))  # image x right, y down
+    x = np.cross(z, np.asarray(up, dtype=np.float64))  # image x right (forward x up), y down
     if np.linalg.norm(x) < 1e-9:  # looking along up: pick any perpendicular
         x = np.cross(z, np.array([1.0, 0.0, 0.0]))
     x /= np.linalg.norm(x)
