@@ -1,0 +1,424 @@
+"""Accuracy, completeness, albedo and illumination metrics against ground truth (spec section 5).
+
+* Distances are in units of the ground-truth mesh's bounding-box diagonal.
+* Accuracy: mean exact point-to-triangle distance from each estimated vertex to
+  the true surface (Open3D's RaycastingScene, Embree).
+* Completeness: mean distance from each of ``n_samples`` (default 1,000,000)
+  points sampled uniformly by area on the true surface to its nearest estimated
+  *vertex* (so it also measures how densely the estimate samples the surface).
+* Albedo RMSE: over estimated vertices and the three channels, between the
+  estimated linear albedo times one least-squares scale per channel and the true
+  albedo interpolated (barycentric) at the closest true surface point.
+* Illumination error: per frame (matched by file name), the RMSE over 10,000
+  Fibonacci directions N and the three channels between the estimated shading
+  ``S(N) * rgb_scale`` divided by the albedo scale and the true shading, divided
+  by the RMS of the true shading; the mean over frames is reported.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pmvir.errors import ConfigError, MeshError, PmvirError
+from pmvir.geometry.align import (
+    CameraAlignment,
+    align_by_cameras,
+    estimated_camera_centres,
+    match_names,
+    true_camera_centres,
+)
+from pmvir.io.illumination import Illumination, read_illumination
+from pmvir.io.ply import Mesh, read_mesh
+from pmvir.sh import fibonacci_sphere, sh9_shading
+
+#: Ground-truth surface samples for completeness (spec section 5: at least 1,000,000).
+N_GT_SAMPLES = 1_000_000
+#: Directions for the illumination error (spec section 5).
+N_LIGHT_DIRECTIONS = 10_000
+_EPS = 1e-12
+
+
+@dataclass(frozen=True)
+class EvaluationResult:
+    """Metrics of one estimate against ground truth. Distances in GT bounding-box diagonals.
+
+    Attributes:
+        accuracy, accuracy_median, accuracy_p90: mean / median / 90th percentile distance
+            from estimated vertices to the true surface.
+        completeness, completeness_median, completeness_p90: the same from true surface
+            samples to their nearest estimated vertex.
+        albedo_rmse: scale-corrected albedo RMSE (linear units), None without albedo on both meshes.
+        illumination_error: mean relative shading RMSE over matched frames, None when not computable.
+        n_vertices: estimated vertices. n_gt_samples: true surface samples.
+        gt_diagonal: the GT bounding-box diagonal, in world units.
+        albedo_scale: the per-channel least-squares scale applied to the estimated albedo.
+        illumination_per_frame: true frame file -> relative shading RMSE.
+        aligned: whether a camera-based similarity was applied to the estimate first.
+        alignment_rmse: camera-centre RMSE after alignment, in GT diagonals (None unless aligned).
+        alignment: the applied similarity as a dict (scale, R, t), None unless aligned.
+        notes: why a metric is None, which frames did not match, etc.
+    """
+
+    accuracy: float
+    accuracy_median: float
+    accuracy_p90: float
+    completeness: float
+    completeness_median: float
+    completeness_p90: float
+    albedo_rmse: float | None
+    illumination_error: float | None
+    n_vertices: int
+    n_gt_samples: int
+    gt_diagonal: float
+    albedo_scale: tuple[float, float, float] | None = None
+    illumination_per_frame: dict[str, float] = field(default_factory=dict)
+    aligned: bool = False
+    alignment_rmse: float | None = None
+    alignment: dict | None = None
+    notes: tuple[str, ...] = ()
+
+    def to_dict(self) -> dict:
+        """The JSON object ``pmvir evaluate`` prints: flat metrics plus a ``details`` object."""
+        out = {
+            "accuracy": self.accuracy,
+            "completeness": self.completeness,
+            "albedo_rmse": self.albedo_rmse,
+            "illumination_error": self.illumination_error,
+            "accuracy_median": self.accuracy_median,
+            "accuracy_p90": self.accuracy_p90,
+            "completeness_median": self.completeness_median,
+            "completeness_p90": self.completeness_p90,
+            "n_vertices": self.n_vertices,
+            "n_gt_samples": self.n_gt_samples,
+            "aligned": self.aligned,
+        }
+        if self.aligned:
+            out["alignment_rmse"] = self.alignment_rmse
+        out["details"] = {
+            "gt_diagonal": self.gt_diagonal,
+            "albedo_scale": None if self.albedo_scale is None else list(self.albedo_scale),
+            "illumination_per_frame": dict(self.illumination_per_frame),
+            "alignment": self.alignment,
+            "notes": list(self.notes),
+        }
+        return out
+
+
+def _check_mesh(mesh: Mesh, what: str) -> None:
+    if len(mesh.vertices) == 0:
+        raise MeshError(f"{what} mesh has no vertices")
+    if len(mesh.faces) == 0:
+        raise MeshError(f"{what} mesh has no faces; expected a triangle mesh")
+    if not np.isfinite(mesh.vertices).all():
+        raise MeshError(f"{what} mesh has NaN or infinite vertex coordinates")
+
+
+def bbox_diagonal(vertices: np.ndarray) -> float:
+    """Length of the axis-aligned bounding-box diagonal of (N, 3) points."""
+    v = np.asarray(vertices, dtype=np.float64)
+    return float(np.linalg.norm(v.max(0) - v.min(0)))
+
+
+def sample_surface(
+    vertices: np.ndarray, faces: np.ndarray, n: int, *, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points uniformly distributed by area on a triangle mesh.
+
+    Args:
+        vertices: (V, 3) positions. faces: (F, 3) indices.
+        n: number of samples, >= 1.
+        seed: seed of the NumPy generator (same seed, same samples).
+
+    Returns:
+        points (n, 3) float64; face_ids (n,) int64; barycentric weights (n, 3) float64
+        of the face's three vertices.
+
+    Raises:
+        MeshError: the mesh has zero total area.
+    """
+    if n < 1:
+        raise ConfigError(f"need at least one surface sample, got {n}")
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    areas = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    cdf = np.cumsum(areas)
+    if not cdf[-1] > 0:
+        raise MeshError("mesh has zero surface area; cannot sample it")
+    rng = np.random.default_rng(seed)
+    face_ids = np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right")
+    face_ids = np.minimum(face_ids, len(f) - 1)
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)  # uniform on the triangle (Osada et al. 2002)
+    bary = np.stack([1.0 - s, s * (1.0 - r2), s * r2], axis=1)
+    points = bary[:, :1] * a[face_ids] + bary[:, 1:2] * b[face_ids] + bary[:, 2:] * c[face_ids]
+    return points, face_ids, bary
+
+
+class SurfaceQuery:
+    """Exact closest points on a triangle mesh (Open3D RaycastingScene).
+
+    Coordinates are shifted to the mesh's bounding-box centre before Open3D's
+    float32 conversion, so precision is relative to the mesh size, not its position.
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        import open3d as o3d
+
+        self._o3d = o3d
+        v = np.asarray(vertices, dtype=np.float64)
+        self.origin = 0.5 * (v.min(0) + v.max(0))
+        self._scene = o3d.t.geometry.RaycastingScene()
+        self._scene.add_triangles(
+            o3d.core.Tensor(np.ascontiguousarray(v - self.origin, dtype=np.float32)),
+            o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)),
+        )
+
+    def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Closest surface points of (N, 3) query points.
+
+        Returns:
+            closest (N, 3) float64 world points; face_ids (N,) int64; barycentric
+            weights (N, 3) float64 of the face's vertices 0, 1, 2.
+        """
+        q = np.ascontiguousarray(np.asarray(points, dtype=np.float64) - self.origin, dtype=np.float32)
+        ans = self._scene.compute_closest_points(self._o3d.core.Tensor(q))
+        closest = ans["points"].numpy().astype(np.float64) + self.origin
+        face_ids = ans["primitive_ids"].numpy().astype(np.int64)
+        uv = ans["primitive_uvs"].numpy().astype(np.float64)  # p = (1-u-v) v0 + u v1 + v v2
+        bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
+        return closest, face_ids, bary
+
+
+def albedo_scale_rmse(est_albedo: np.ndarray, true_albedo: np.ndarray) -> tuple[np.ndarray, float]:
+    """One least-squares scale per channel, then the RMSE.
+
+    Args:
+        est_albedo, true_albedo: (N, 3) linear albedo at corresponding points.
+
+    Returns:
+        scale (3,) float64 minimising ``|scale_c * est_c - true_c|^2`` per channel
+        (0 where the estimate's channel is all zero), and the RMSE over all N x 3 values.
+    """
+    est = np.asarray(est_albedo, dtype=np.float64)
+    true = np.asarray(true_albedo, dtype=np.float64)
+    if est.shape != true.shape or est.ndim != 2 or est.shape[1] != 3:
+        raise ValueError(f"expected two (N, 3) albedo arrays, got {est.shape} and {true.shape}")
+    scale = (est * true).sum(0) / np.maximum((est * est).sum(0), _EPS)
+    return scale, float(np.sqrt(np.mean((est * scale - true) ** 2)))
+
+
+def shading_error(
+    est_sh: np.ndarray,
+    est_rgb: np.ndarray,
+    true_sh: np.ndarray,
+    true_rgb: np.ndarray,
+    albedo_scale: np.ndarray,
+    *,
+    est_from_true: np.ndarray | None = None,
+    n_directions: int = N_LIGHT_DIRECTIONS,
+) -> float:
+    """Relative RMSE between estimated and true shading ``S(N) * rgb_scale`` on the sphere.
+
+    Args:
+        est_sh, true_sh: (9,) pmvir-sh9 coefficients. est_rgb, true_rgb: (3,) colour scales.
+        albedo_scale: (3,) the scale that maps the estimated albedo onto the true one;
+            the estimated shading is divided by it (albedo and rgb_scale share that ambiguity).
+        est_from_true: optional (3, 3) rotation taking true-world directions to the
+            estimate's world (the inverse rotation of an alignment); identity when None.
+        n_directions: Fibonacci directions.
+
+    Returns:
+        RMSE over directions and channels divided by the RMS of the true shading.
+    """
+    dirs = fibonacci_sphere(n_directions)
+    est_dirs = dirs if est_from_true is None else dirs @ np.asarray(est_from_true, dtype=np.float64).T
+    true = sh9_shading(dirs, np.asarray(true_sh, np.float64))[:, None] * np.asarray(true_rgb, np.float64)
+    est = sh9_shading(est_dirs, np.asarray(est_sh, np.float64))[:, None] * np.asarray(est_rgb, np.float64)
+    est = est / np.asarray(albedo_scale, dtype=np.float64)
+    rms_true = float(np.sqrt(np.mean(true**2)))
+    return float(np.sqrt(np.mean((est - true) ** 2))) / max(rms_true, _EPS)
+
+
+def _summary(d: np.ndarray) -> tuple[float, float, float]:
+    return float(d.mean()), float(np.median(d)), float(np.percentile(d, 90))
+
+
+def evaluate(
+    est_mesh: Mesh,
+    gt_mesh: Mesh,
+    *,
+    est_illum: Illumination | None = None,
+    gt_illum: Illumination | None = None,
+    n_samples: int = N_GT_SAMPLES,
+    seed: int = 0,
+    alignment: CameraAlignment | None = None,
+) -> EvaluationResult:
+    """All metrics of spec section 5 for an estimated mesh (and lighting) against ground truth.
+
+    Args:
+        est_mesh: the estimate; its albedo (if any) is linear.
+        gt_mesh: the true surface; its albedo (if any) is the true linear albedo.
+        est_illum, gt_illum: per-frame SH lighting; the illumination error needs both
+            and the albedo scale (so albedo on both meshes).
+        n_samples: true surface samples for completeness (spec: >= 1,000,000).
+        seed: sampling seed.
+        alignment: a similarity from the estimate's frame to the true one; applied to
+            the estimated vertices (and the lighting's directions) before measuring.
+
+    Raises:
+        MeshError: a mesh is empty, has no faces, non-finite vertices or zero extent.
+    """
+    _check_mesh(est_mesh, "estimated")
+    _check_mesh(gt_mesh, "ground-truth")
+    diag = bbox_diagonal(gt_mesh.vertices)
+    if not diag > 0:
+        raise MeshError("ground-truth mesh has a zero-size bounding box")
+    notes: list[str] = []
+
+    est_v = est_mesh.vertices if alignment is None else alignment.transform.apply(est_mesh.vertices)
+    query = SurfaceQuery(gt_mesh.vertices, gt_mesh.faces)
+    closest, face_ids, bary = query.closest(est_v)
+    acc = np.linalg.norm(est_v - closest, axis=1) / diag
+
+    from scipy.spatial import cKDTree
+
+    samples, _, _ = sample_surface(gt_mesh.vertices, gt_mesh.faces, n_samples, seed=seed)
+    comp, _ = cKDTree(est_v).query(samples, k=1, workers=-1)
+    comp = comp / diag
+
+    albedo_rmse = scale = None
+    if est_mesh.albedo is None or gt_mesh.albedo is None:
+        notes.append(
+            "albedo_rmse: "
+            + ("estimated" if est_mesh.albedo is None else "ground-truth")
+            + " mesh has no albedo"
+        )
+    else:
+        tri = gt_mesh.faces[face_ids]
+        true_albedo = np.einsum("nk,nkc->nc", bary, gt_mesh.albedo.astype(np.float64)[tri])
+        scale, albedo_rmse = albedo_scale_rmse(est_mesh.albedo, true_albedo)
+
+    illum_error, per_frame = _illumination(est_illum, gt_illum, scale, alignment, notes)
+    return EvaluationResult(
+        *_summary(acc),
+        *_summary(comp),
+        albedo_rmse=albedo_rmse,
+        illumination_error=illum_error,
+        n_vertices=len(est_v),
+        n_gt_samples=int(n_samples),
+        gt_diagonal=diag,
+        albedo_scale=None if scale is None else tuple(float(s) for s in scale),
+        illumination_per_frame=per_frame,
+        aligned=alignment is not None,
+        alignment_rmse=None if alignment is None else alignment.rmse / diag,
+        alignment=None if alignment is None else alignment.transform.to_dict(),
+        notes=tuple(notes),
+    )
+
+
+def _illumination(
+    est: Illumination | None,
+    gt: Illumination | None,
+    scale: np.ndarray | None,
+    alignment: CameraAlignment | None,
+    notes: list[str],
+) -> tuple[float | None, dict[str, float]]:
+    if gt is None or est is None:
+        notes.append(
+            "illumination_error: no " + ("ground-truth" if gt is None else "estimated") + " SH illumination"
+        )
+        return None, {}
+    if scale is None:
+        notes.append("illumination_error: needs the albedo scale, which needs albedo on both meshes")
+        return None, {}
+    if np.any(scale <= _EPS):
+        notes.append(f"illumination_error: albedo scale {scale.tolist()} is not positive in every channel")
+        return None, {}
+    est_by_file = {f.file: f for f in est.frames}
+    pairs = match_names(list(est_by_file), [f.file for f in gt.frames])
+    gt_by_file = {f.file: f for f in gt.frames}
+    unmatched = sorted(set(gt_by_file) - {f for _, f in pairs})
+    if unmatched:
+        notes.append(
+            f"illumination_error: {len(unmatched)} true frame(s) without an estimate: {unmatched[:10]}"
+        )
+    if not pairs:
+        return None, {}
+    rot = None if alignment is None else alignment.transform.R.T
+    per_frame = {
+        true_file: shading_error(
+            est_by_file[name].sh,
+            est_by_file[name].rgb_scale,
+            gt_by_file[true_file].sh,
+            gt_by_file[true_file].rgb_scale,
+            scale,
+            est_from_true=rot,
+        )
+        for name, true_file in pairs
+    }
+    return float(np.mean(list(per_frame.values()))), per_frame
+
+
+def evaluate_paths(
+    estimate: str | Path,
+    gt_dir: str | Path,
+    *,
+    align: bool = False,
+    n_samples: int = N_GT_SAMPLES,
+    seed: int = 0,
+) -> EvaluationResult:
+    """Evaluate a result folder (``mesh.ply``, ``illumination.json``, ``poses/``) or a bare mesh file.
+
+    Args:
+        estimate: a RESULT_DIR or a .ply/.obj mesh file.
+        gt_dir: a capture's ``gt/`` folder (``mesh.ply``, optional ``illumination.json``);
+            with ``align`` its parent's ``capture.json`` gives the true camera poses.
+        align: fit a similarity from the estimated camera centres (``poses/images.txt``)
+            to the true ones and apply it first.
+
+    Raises:
+        MeshError, ManifestError, ConfigError, PmvirError: missing or malformed inputs.
+    """
+    estimate, gt_dir = Path(estimate), Path(gt_dir)
+    if not gt_dir.is_dir():
+        raise PmvirError(f"{gt_dir}: no such ground-truth folder (expected CAPTURE/gt with mesh.ply)")
+    if not (gt_dir / "mesh.ply").is_file():
+        raise MeshError(f"{gt_dir / 'mesh.ply'}: no ground-truth mesh")
+    gt_mesh = read_mesh(gt_dir / "mesh.ply")
+    gt_illum = (
+        read_illumination(gt_dir / "illumination.json") if (gt_dir / "illumination.json").is_file() else None
+    )
+
+    if estimate.is_dir():
+        est_mesh = read_mesh(estimate / "mesh.ply")
+        illum_path = estimate / "illumination.json"
+        est_illum = read_illumination(illum_path) if illum_path.is_file() else None
+        images_txt = estimate / "poses" / "images.txt"
+    elif estimate.is_file():
+        est_mesh, est_illum, images_txt = read_mesh(estimate), None, None
+    else:
+        raise PmvirError(f"{estimate}: no such result folder or mesh file")
+
+    alignment = None
+    if align:
+        if images_txt is None:
+            raise ConfigError(
+                f"--align needs a result folder with poses/images.txt, got the mesh file {estimate}"
+            )
+        alignment = align_by_cameras(
+            estimated_camera_centres(images_txt),
+            true_camera_centres(gt_dir.resolve().parent / "capture.json"),
+        )
+    return evaluate(
+        est_mesh,
+        gt_mesh,
+        est_illum=est_illum,
+        gt_illum=gt_illum,
+        n_samples=n_samples,
+        seed=seed,
+        alignment=alignment,
+    )
