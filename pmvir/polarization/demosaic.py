@@ -1,0 +1,298 @@
+"""Demosaicing a polarization mosaic to 4 angles x C colours at full resolution.
+
+The method follows the paper (section 4.1): the samples of each polarizer angle
+(one pixel of every 2x2 polarizer block) form a half-resolution image; for a
+colour sensor that image is itself a Bayer mosaic with the layout's pattern,
+because each 2x2 polarizer block sits under one colour filter. Each of those
+four Bayer images is colour-interpolated, and each of the resulting
+half-resolution planes is then interpolated back to full resolution
+(polarization interpolation). A monochrome sensor needs only the second step.
+
+Pixel registration: the samples of the angle at row ``dy``, column ``dx`` of
+the 2x2 block sit at full-resolution pixels ``(2 i + dy, 2 j + dx)``. Every
+upsampling here (:func:`_upsample2`) keeps each lattice sample at its own pixel
+and fills the pixels between with the mean of the two (edge) or four (diagonal)
+nearest samples, i.e. exact bilinear interpolation at the true sub-pixel
+offsets; so a constant and a linear ramp come back exactly away from the image
+border (within 2 pixels of the border, samples beyond it are taken to repeat
+the outermost ones). The work is done with OpenCV's threaded per-pixel
+operations (``addWeighted`` for the means, ``merge`` to interleave the four
+phases) straight into the output planes.
+
+Methods:
+
+* ``"bilinear"``: bilinear colour interpolation of each angle's half-resolution
+  Bayer image (red and blue: bilinear 2x upsampling of their quarter-resolution
+  lattice; green: mean of the four edge neighbours), then bilinear polarization
+  interpolation, all in float32.
+* ``"edge-aware"``: OpenCV's edge-aware Bayer demosaicing
+  (``COLOR_Bayer*2RGB_EA``) of each angle's image, on 16-bit data (the frame
+  is mapped affinely onto 0..65535, so the quantization step is 1/65535 of the
+  frame's range, 16 times finer than 12-bit data), then the same bilinear
+  polarization interpolation in float32. Frames under 8 pixels high or wide
+  (a 2x2 Bayer image per angle, which OpenCV mishandles) use bilinear.
+* A monochrome layout has no colour step: both methods are the bilinear
+  polarization interpolation.
+
+OpenCV names a Bayer code after the second row's second and third pixels, so
+its code for a pattern is "off by one" from the pattern's usual name: an
+RGGB sensor is ``COLOR_BayerBG2RGB``. :data:`_CV_BAYER` holds the mapping
+(checked by tests/polarization/test_demosaic.py).
+
+Relation to polanalyser: ``polanalyser.demosaicing(raw, COLOR_PolarRGB)`` does
+the same two bilinear steps on 8/16-bit integers (float input is rescaled to
+uint16 first) and returns a list ``[I0, I45, I90, I135]`` of (H, W, 3) BGR
+images. Its polarizer block is fixed to the IMX250MYR labels
+``[[90, 45], [135, 0]]`` and its Bayer pattern to RGGB; its Stokes/AoLP
+formulas (``calcLinearStokes``, ``cvtStokesToAoLP``) are the spec's. So for a
+ccw-labelled IMX250MYR frame its ``I_k`` is our ``intensities[:, :, k, ::-1]``
+(same angle order, colour axis reversed) and its AoLP is our AoP; for any
+other block, Bayer pattern or a "cw" capture it would mislabel the angles,
+which :class:`MosaicLayout` handles here.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from pmvir.polarization.layout import MosaicLayout
+
+DemosaicMethod = Literal["bilinear", "edge-aware"]
+
+#: OpenCV Bayer conversion name for each pattern (pattern letters are the
+#: colours at (0,0), (0,1), (1,0), (1,1)).
+_CV_BAYER = {"RGGB": "BayerBG", "GRBG": "BayerGB", "BGGR": "BayerRG", "GBRG": "BayerGR"}
+
+#: Chebyshev radius (full-resolution pixels) of the set of mosaic samples that
+#: can influence one output pixel, per (colour, method). Used to dilate
+#: saturation masks; tests check it against the measured impulse response.
+#: Bilinear: 1 for the polarization step, plus 2 for the colour step. OpenCV's
+#: edge-aware step measures 3 too; 4 is declared as a margin, since its code
+#: paths depend on the image content.
+_SUPPORT_RADIUS = {
+    (False, "bilinear"): 1,
+    (False, "edge-aware"): 1,
+    (True, "bilinear"): 3,
+    (True, "edge-aware"): 4,
+}
+
+
+#: OpenCV's Bayer demosaicing is wrong on 2x2 images: smaller frames fall back to bilinear.
+_EA_MIN_SIZE = 8
+
+
+def support_radius(layout: MosaicLayout, method: DemosaicMethod = "bilinear") -> int:
+    """Chebyshev radius, in full-resolution pixels, of one output pixel's footprint.
+
+    A mosaic sample farther than this (in rows or columns) from an output pixel
+    does not change any of that pixel's 4 x C values.
+    """
+    _check_method(method)
+    return _SUPPORT_RADIUS[(layout.is_colour, method)]
+
+
+def saturation_footprint(
+    saturated: np.ndarray, layout: MosaicLayout, *, method: DemosaicMethod = "bilinear"
+) -> np.ndarray:
+    """Output pixels whose demosaiced values used at least one saturated sample.
+
+    Args:
+        saturated: (H, W) bool, True where the raw sample is at or above the white level.
+        layout, method: as given to :func:`demosaic`.
+
+    Returns:
+        (H, W) bool: ``saturated`` dilated by a (2r + 1) x (2r + 1) square,
+        r = :func:`support_radius`.
+    """
+    if saturated.ndim != 2:
+        raise ValueError(f"expected an (H, W) saturation mask, got shape {saturated.shape}")
+    r = support_radius(layout, method)
+    kernel = np.ones((2 * r + 1, 2 * r + 1), dtype=np.uint8)
+    grown = cv2.dilate(saturated.astype(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return grown.astype(bool)
+
+
+def demosaic(
+    mosaic: np.ndarray,
+    layout: MosaicLayout,
+    *,
+    method: DemosaicMethod = "bilinear",
+    out: np.ndarray | None = None,
+) -> np.ndarray:
+    """Full-resolution intensities for every polarizer angle and colour.
+
+    Args:
+        mosaic: raw samples, shape (H, W), float32 in normalized units
+            ((sample - black) / (white - black), exposure-divided); H and W whole
+            multiples of ``layout.period``.
+        layout: where each angle and colour filter sits.
+        method: ``"bilinear"`` or ``"edge-aware"`` (see the module docstring).
+        out: optional array to write into and return, typically an earlier
+            result of this function for a frame of the same size (saves
+            allocating, and page-faulting, ~240 MB per 5-Mpixel colour frame).
+            Must be (H, W, 4, C) float32 with planar storage, i.e.
+            ``out.transpose(2, 3, 0, 1)`` C-contiguous.
+
+    Returns:
+        Intensities, shape (H, W, 4, C), float32, angle axis in ``ANGLES_DEG``
+        order (0, 45, 90, 135 degrees, ccw), colour axis R, G, B (C = 3) or a
+        single channel (C = 1). The array is a transposed view of planar
+        (4, C, H, W) storage: per-plane work is fast; ``np.ascontiguousarray``
+        gives an (H, W, 4, C)-ordered copy if one is needed.
+    """
+    _check_method(method)
+    if mosaic.ndim != 2:
+        raise ValueError(f"expected an (H, W) mosaic, got shape {mosaic.shape}")
+    if mosaic.dtype != np.float32:
+        raise TypeError(f"expected a float32 mosaic, got {mosaic.dtype}")
+    h, w = mosaic.shape
+    layout.check_size(h, w)
+    mosaic = np.ascontiguousarray(mosaic)
+    planes = _planes_for(out, (4, layout.channels, h, w))
+    block = layout.angle_index_block()
+    if not layout.is_colour:
+        columns = _column_phases(mosaic, 2)
+        for dy in range(2):
+            for dx in range(2):
+                _upsample2(columns[dx][dy::2], dy, dx, planes[block[dy, dx], 0])
+    elif method == "bilinear" or min(h, w) < _EA_MIN_SIZE:
+        columns = _column_phases(mosaic, 4)
+        for dy in range(2):
+            for dx in range(2):
+                _bilinear_colour(columns, layout, dy, dx, planes[block[dy, dx]])
+    else:
+        _edge_aware_colour(mosaic, layout, planes)
+    return planes.transpose(2, 3, 0, 1)
+
+
+def _planes_for(out: np.ndarray | None, shape: tuple[int, int, int, int]) -> np.ndarray:
+    """Planar (4, C, H, W) storage: fresh, or the storage behind ``out``."""
+    if out is None:
+        return np.empty(shape, dtype=np.float32)
+    planes = out.transpose(2, 3, 0, 1)
+    if planes.shape != shape or planes.dtype != np.float32 or not planes.flags.c_contiguous:
+        raise ValueError(
+            f"out must be an (H, W, 4, C) = {shape[2:] + shape[:2]} float32 array with planar "
+            f"storage (a previous demosaic result); got {out.shape} {out.dtype}"
+        )
+    return planes
+
+
+def _check_method(method: str) -> None:
+    if method not in ("bilinear", "edge-aware"):
+        raise ValueError(f"method must be 'bilinear' or 'edge-aware', got {method!r}")
+
+
+def _column_phases(image: np.ndarray, period: int) -> list[np.ndarray]:
+    """The ``period`` column phases of an image: ``out[k] == image[:, k::period]``, contiguous."""
+    h, w = image.shape
+    return list(cv2.split(np.ascontiguousarray(image).reshape(h, w // period, period)))
+
+
+def _interleave2(p00: np.ndarray, p01: np.ndarray, p10: np.ndarray, p11: np.ndarray,
+                 out: np.ndarray) -> None:
+    """Write ``out[r::2, s::2] = p_rs`` for four (h, w) planes; out is a contiguous (2h, 2w) plane."""
+    h, w = p00.shape
+    quad = out.reshape(h, 2, w, 2)
+    for r, (left, right) in enumerate(((p00, p01), (p10, p11))):
+        res = cv2.merge([left, right], dst=quad[:, r])
+        if not np.shares_memory(res, out):  # pragma: no cover - OpenCV reallocated
+            quad[:, r] = res
+
+
+def _pair_means(q: np.ndarray, axis: int) -> np.ndarray:
+    """Means of neighbouring samples along ``axis``, edge samples repeated.
+
+    For q of shape (h, w) and axis 1 returns (h, w + 1) with
+    ``out[:, k] = (q[:, k - 1] + q[:, k]) / 2`` for 0 < k < w, ``out[:, 0] = q[:, 0]``
+    and ``out[:, w] = q[:, w - 1]``; axis 0 likewise on rows, (h + 1, w).
+    """
+    h, w = q.shape
+    if axis == 1:
+        out = np.empty((h, w + 1), dtype=np.float32)
+        if w > 1:
+            cv2.addWeighted(q[:, :-1], 0.5, q[:, 1:], 0.5, 0.0, dst=out[:, 1:w])
+        out[:, 0] = q[:, 0]
+        out[:, w] = q[:, w - 1]
+    else:
+        out = np.empty((h + 1, w), dtype=np.float32)
+        if h > 1:
+            cv2.addWeighted(q[:-1], 0.5, q[1:], 0.5, 0.0, dst=out[1:h])
+        out[0] = q[0]
+        out[h] = q[h - 1]
+    return out
+
+
+def _upsample2(q: np.ndarray, oy: int, ox: int, out: np.ndarray) -> None:
+    """Bilinear 2x upsampling of a lattice, registered: ``q[i, j]`` is ``out[2i + oy, 2j + ox]``.
+
+    Args:
+        q: lattice samples (h, w), float32 (rows may be strided).
+        oy, ox: the lattice's row / column phase in ``out`` (0 or 1).
+        out: contiguous (2h, 2w) float32 plane, overwritten. Pixels beyond the
+            outermost lattice rows/columns repeat the edge values.
+    """
+    h, w = q.shape
+    horiz = _pair_means(q, 1)[:, 1 - ox : 1 - ox + w]
+    vert_full = _pair_means(q, 0)
+    vert = vert_full[1 - oy : 1 - oy + h]
+    diag = _pair_means(vert, 1)[:, 1 - ox : 1 - ox + w]
+    rows_on = (q, horiz) if ox == 0 else (horiz, q)
+    rows_off = (vert, diag) if ox == 0 else (diag, vert)
+    if oy == 0:
+        _interleave2(*rows_on, *rows_off, out)
+    else:
+        _interleave2(*rows_off, *rows_on, out)
+
+
+def _bilinear_colour(columns: list[np.ndarray], layout: MosaicLayout, dy: int, dx: int,
+                     out: np.ndarray) -> None:
+    """Bilinear Bayer + polarization interpolation of the angle at (dy, dx); out (3, H, W)."""
+    h4, w4 = columns[0].shape[0] // 4, columns[0].shape[1]
+    colours = layout.colour_index_block()
+    # quarter[by][bx]: the angle's samples under the Bayer block (by, bx), (H/4, W/4)
+    quarter = [[columns[2 * bx + dx][2 * by + dy :: 4] for bx in range(2)] for by in range(2)]
+    half = np.empty((2 * h4, 2 * w4), dtype=np.float32)
+    for c in (0, 2):
+        (by, bx), = np.argwhere(colours == c)
+        _upsample2(quarter[by][bx], int(by), int(bx), half)
+        _upsample2(half, dy, dx, out[c])
+    # green: two diagonal lattices; the two other positions get the mean of
+    # their four edge neighbours (two from each green lattice).
+    filled = [[None, None], [None, None]]
+    for by in range(2):
+        for bx in range(2):
+            if colours[by, bx] == 1:
+                filled[by][bx] = quarter[by][bx]
+    for by in range(2):
+        for bx in range(2):
+            if colours[by, bx] != 1:
+                beside = quarter[by][1 - bx]  # green lattice in the same row
+                above = quarter[1 - by][bx]  # green lattice in the same column
+                horiz = _pair_means(beside, 1)[:, bx : bx + w4]
+                vert = _pair_means(above, 0)[by : by + h4]
+                filled[by][bx] = cv2.addWeighted(horiz, 0.5, vert, 0.5, 0.0)
+    _interleave2(filled[0][0], filled[0][1], filled[1][0], filled[1][1], half)
+    _upsample2(half, dy, dx, out[1])
+
+
+def _edge_aware_colour(mosaic: np.ndarray, layout: MosaicLayout, planes: np.ndarray) -> None:
+    """OpenCV edge-aware Bayer demosaicing of each angle's image, then bilinear upsampling."""
+    lo, hi, _, _ = cv2.minMaxLoc(mosaic)
+    span = hi - lo
+    scale = 65535.0 / span if span > 0 else 1.0
+    # lo -> 0, hi -> 65535, rounded (one threaded pass)
+    q16 = cv2.normalize(mosaic, None, 0, 65535, cv2.NORM_MINMAX, dtype=cv2.CV_16U)
+    columns = _column_phases(q16, 2)
+    code = getattr(cv2, f"COLOR_{_CV_BAYER[layout.bayer]}2RGB_EA")  # type: ignore[index]
+    block = layout.angle_index_block()
+    for dy in range(2):
+        for dx in range(2):
+            # cvtColor on a row-strided view gave different results (OpenCV 5.0): pass a copy
+            rgb = cv2.cvtColor(np.ascontiguousarray(columns[dx][dy::2]), code)
+            for c, plane in enumerate(cv2.split(rgb)):
+                f = cv2.addWeighted(plane, 1.0 / scale, plane, 0.0, lo, dtype=cv2.CV_32F)
+                _upsample2(f, dy, dx, planes[block[dy, dx], c])

@@ -1,0 +1,283 @@
+"""Linear Stokes parameters, AoP, DoP, I_int and I_min (spec section 2).
+
+For the four polarizer angles 0, 45, 90, 135 degrees (ccw from image +x toward
+image -y, see shared/spec/capture-format.md):
+
+* ``s0 = (I0 + I45 + I90 + I135) / 2``, ``s1 = I0 - I90``, ``s2 = I45 - I135``;
+* ``I_int = (I0 + I45 + I90 + I135) / 4`` per colour;
+* AoP ``phi = 0.5 * atan2(s2, s1)`` wrapped to [0, pi), radians, and DoP
+  ``rho = sqrt(s1^2 + s2^2) / s0`` clipped to [0, 1], both from the
+  colour-averaged intensities;
+* ``I_min = (1 - rho) * I_int`` per colour.
+
+The model behind them: an ideal linear polarizer at angle theta passes
+``I_theta = s0 / 2 * (1 + rho * cos(2 (theta - phi)))``.
+
+All functions are pure and return float32 (bool for masks).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from pmvir.polarization.layout import ANGLES_DEG
+
+#: Smallest s0 divided by when forming the DoP (normalized intensity units).
+DOP_EPS = 1e-8
+
+
+@dataclass(frozen=True)
+class PolarizationImages:
+    """Per-pixel polarization quantities of one frame.
+
+    Attributes:
+        i_int: mean over the four angles, (H, W, C) float32, linear normalized units.
+        i_min: unpolarized part ``(1 - dop) * i_int``, (H, W, C) float32.
+        aop: angle of polarization, (H, W) float32 radians in [0, pi), ccw.
+        dop: degree of polarization, (H, W) float32 in [0, 1].
+        valid: (H, W) bool; False where AoP/DoP are not measurements (noise
+            floor, saturation in the interpolation footprint, outside the mask).
+    """
+
+    i_int: np.ndarray
+    i_min: np.ndarray
+    aop: np.ndarray
+    dop: np.ndarray
+    valid: np.ndarray
+
+
+def intensities_from_polarization(s0: np.ndarray, aop: np.ndarray, dop: np.ndarray) -> np.ndarray:
+    """The forward model: what ideal polarizers at 0, 45, 90, 135 degrees pass.
+
+    ``I_theta = s0 / 2 * (1 + dop * cos(2 (theta - aop)))`` per colour.
+
+    Args:
+        s0: (H, W, C) total intensity per colour (or (H, W) for C = 1), float.
+        aop: (H, W) radians, ccw.
+        dop: (H, W) in [0, 1].
+
+    Returns:
+        (H, W, 4, C) float32 intensities, angles in ANGLES_DEG order.
+    """
+    s0 = np.asarray(s0, dtype=np.float32)
+    if s0.ndim == 2:
+        s0 = s0[..., None]
+    if s0.ndim != 3 or aop.shape != s0.shape[:2] or dop.shape != s0.shape[:2]:
+        raise ValueError(
+            f"expected s0 (H, W, C), aop and dop (H, W); got {s0.shape}, {aop.shape}, {dop.shape}"
+        )
+    theta = np.deg2rad(np.asarray(ANGLES_DEG, dtype=np.float64))
+    mod = 1.0 + dop[..., None] * np.cos(2.0 * (theta - aop[..., None]))  # (H, W, 4)
+    return (0.5 * s0[:, :, None, :] * mod[..., None]).astype(np.float32)
+
+
+def _check_intensities(intensities: np.ndarray) -> None:
+    if intensities.ndim != 4 or intensities.shape[2] != 4:
+        raise ValueError(f"expected (H, W, 4, C) intensities, got shape {intensities.shape}")
+
+
+def stokes_from_intensities(i: np.ndarray) -> np.ndarray:
+    """Linear Stokes vectors from four polarizer angles.
+
+    Args:
+        i: intensities at 0, 45, 90, 135 degrees on the last axis, shape (..., 4), float.
+
+    Returns:
+        (s0, s1, s2) stacked on the last axis, shape (..., 3), float32.
+    """
+    if i.shape[-1] != 4:
+        raise ValueError(f"expected (..., 4) intensities, got {i.shape}")
+    i = i.astype(np.float32, copy=False)
+    i0, i45, i90, i135 = (i[..., k] for k in range(4))
+    s0 = (i0 + i45 + i90 + i135) * np.float32(0.5)
+    return np.stack([s0, i0 - i90, i45 - i135], axis=-1)
+
+
+def colour_mean_stokes(intensities: np.ndarray) -> np.ndarray:
+    """Stokes vectors of the colour-averaged intensities.
+
+    Args:
+        intensities: (H, W, 4, C) float32, angles in ANGLES_DEG order.
+
+    Returns:
+        (H, W, 3) float32: s0, s1, s2 of ``mean over C`` of the intensities.
+    """
+    _check_intensities(intensities)
+    return stokes_from_intensities(intensities.mean(axis=3, dtype=np.float32))
+
+
+def mean_intensity(intensities: np.ndarray) -> np.ndarray:
+    """I_int, the mean over the four polarizer angles.
+
+    Args:
+        intensities: (H, W, 4, C) float32.
+
+    Returns:
+        (H, W, C) float32, same units as the input.
+    """
+    _check_intensities(intensities)
+    return intensities.mean(axis=2, dtype=np.float32)
+
+
+def aop_from_stokes(stokes: np.ndarray) -> np.ndarray:
+    """Angle of polarization ``0.5 * atan2(s2, s1)`` wrapped to [0, pi).
+
+    Args:
+        stokes: (..., 3) float (s0, s1, s2).
+
+    Returns:
+        (...) float32 radians in [0, pi), in the sense of the polarizer angles
+        (ccw from image +x toward image -y).
+    """
+    if stokes.shape[-1] != 3:
+        raise ValueError(f"expected (..., 3) Stokes vectors, got {stokes.shape}")
+    return _aop(stokes[..., 1].astype(np.float32), stokes[..., 2].astype(np.float32))
+
+
+def dop_from_stokes(stokes: np.ndarray, *, eps: float = DOP_EPS) -> np.ndarray:
+    """Degree of linear polarization ``sqrt(s1^2 + s2^2) / s0`` clipped to [0, 1].
+
+    Args:
+        stokes: (..., 3) float (s0, s1, s2).
+        eps: s0 is clamped to at least this before dividing (normalized units).
+
+    Returns:
+        (...) float32 in [0, 1]; meaningless (but finite) where s0 is at the noise floor.
+    """
+    if stokes.shape[-1] != 3:
+        raise ValueError(f"expected (..., 3) Stokes vectors, got {stokes.shape}")
+    s = stokes.astype(np.float32, copy=False)
+    return _dop(s[..., 0], s[..., 1], s[..., 2], eps)
+
+
+def _aop(s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
+    phi = np.arctan2(s2, s1)  # (-pi, pi]
+    phi *= np.float32(0.5)
+    np.add(phi, np.float32(np.pi), out=phi, where=phi < 0)
+    # float32 rounding can land a tiny negative angle exactly on pi
+    phi[phi >= np.float32(np.pi)] = 0.0
+    return phi
+
+
+def _dop(s0: np.ndarray, s1: np.ndarray, s2: np.ndarray, eps: float) -> np.ndarray:
+    num = s1 * s1
+    num += s2 * s2
+    np.sqrt(num, out=num)
+    num /= np.maximum(s0, np.float32(eps))
+    return np.clip(num, 0.0, 1.0, out=num)
+
+
+def unpolarized_intensity(i_int: np.ndarray, dop: np.ndarray) -> np.ndarray:
+    """I_min = (1 - rho) * I_int.
+
+    Args:
+        i_int: (H, W, C) float32.
+        dop: (H, W) float32 in [0, 1].
+
+    Returns:
+        (H, W, C) float32.
+    """
+    if i_int.shape[:2] != dop.shape:
+        raise ValueError(f"i_int {i_int.shape} and dop {dop.shape} disagree in size")
+    return (np.float32(1.0) - dop)[..., None] * i_int
+
+
+def valid_pixels(
+    s0: np.ndarray,
+    *,
+    noise_floor: float,
+    invalid: np.ndarray | None = None,
+) -> np.ndarray:
+    """Pixels whose AoP/DoP are measurements.
+
+    Args:
+        s0: (H, W) float32 total intensity (normalized units).
+        noise_floor: pixels whose mean intensity ``s0 / 2`` (= the colour mean of
+            I_int) is at or below this are invalid.
+        invalid: optional (H, W) bool of pixels already known bad (saturated
+            footprint, outside the mask).
+
+    Returns:
+        (H, W) bool.
+    """
+    valid = np.isfinite(s0) & (s0 * np.float32(0.5) > np.float32(noise_floor))
+    if invalid is not None:
+        if invalid.shape != s0.shape:
+            raise ValueError(f"invalid mask {invalid.shape} does not match s0 {s0.shape}")
+        valid &= ~invalid
+    return valid
+
+
+def polarization_images(
+    intensities: np.ndarray,
+    *,
+    noise_floor: float,
+    invalid: np.ndarray | None = None,
+) -> PolarizationImages:
+    """All spec section 2 quantities of one demosaiced frame.
+
+    Same results as :func:`colour_mean_stokes`, :func:`mean_intensity`,
+    :func:`aop_from_stokes`, :func:`dop_from_stokes`,
+    :func:`unpolarized_intensity` and :func:`valid_pixels` applied in turn
+    (tested), computed plane by plane (fast on :func:`demosaic`'s planar output).
+
+    Args:
+        intensities: (H, W, 4, C) float32 (e.g. from :func:`pmvir.polarization.demosaic.demosaic`).
+        noise_floor: see :func:`valid_pixels`.
+        invalid: optional (H, W) bool of pixels known bad before this step.
+
+    Returns:
+        The frame's :class:`PolarizationImages`; i_int and i_min C-contiguous.
+    """
+    _check_intensities(intensities)
+    planes = intensities.transpose(2, 3, 0, 1)  # (4, C, H, W)
+    c = planes.shape[1]
+    i_int = [_weighted_sum([planes[a, k] for a in range(4)], 0.25) for k in range(c)]
+    # the colour-averaged I0..I135 only enter through these sums:
+    s0 = _weighted_sum(i_int, 2.0 / c)  # (I0 + I45 + I90 + I135) / 2
+    s1 = _weighted_sum([planes[0, k] for k in range(c)], 1.0 / c)
+    s1 -= _weighted_sum([planes[2, k] for k in range(c)], 1.0 / c)
+    s2 = _weighted_sum([planes[1, k] for k in range(c)], 1.0 / c)
+    s2 -= _weighted_sum([planes[3, k] for k in range(c)], 1.0 / c)
+    aop = _aop(s1, s2)
+    dop = _dop(s0, s1, s2, DOP_EPS)
+    keep = np.float32(1.0) - dop
+    i_min = [p * keep for p in i_int]
+    return PolarizationImages(
+        i_int=_interleave(i_int),
+        i_min=_interleave(i_min),
+        aop=aop,
+        dop=dop,
+        valid=valid_pixels(s0, noise_floor=noise_floor, invalid=invalid),
+    )
+
+
+def _weighted_sum(planes: list[np.ndarray], weight: float) -> np.ndarray:
+    """``weight * sum(planes)`` as a new contiguous float32 (H, W) array.
+
+    Uses OpenCV's threaded arithmetic on contiguous planes (demosaic's output),
+    numpy otherwise.
+    """
+    w = np.float32(weight)
+    if all(p.flags.c_contiguous and p.dtype == np.float32 for p in planes):
+        if len(planes) == 1:
+            return cv2.multiply(planes[0], float(w))
+        out = cv2.addWeighted(planes[0], float(w), planes[1], float(w), 0.0)
+        for p in planes[2:]:
+            cv2.scaleAdd(p, float(w), out, dst=out)
+        return out
+    out = planes[0].astype(np.float32)  # a copy
+    for p in planes[1:]:
+        out += p
+    out *= w
+    return out
+
+
+def _interleave(planes: list[np.ndarray]) -> np.ndarray:
+    """C planes (H, W) -> C-contiguous (H, W, C)."""
+    if len(planes) == 1:
+        return np.ascontiguousarray(planes[0][..., None])
+    return cv2.merge(planes)
