@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-APT_PACKAGES := libusb-1.0-0 libgomp1 redis-server
+APT_PACKAGES := libusb-1.0-0 libgomp1 redis-server libllvm19
 DEMO_OUT ?= demo-out
 
 .PHONY: setup system-packages demo test bench clean
@@ -26,7 +26,7 @@ system-packages:
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[service,dev]'
+	$(PY) -m pip install -q -e '.[service,dev,mitsuba]'
 	touch $(STAMP)
 
 demo: setup
