@@ -1,0 +1,134 @@
+"""The options of ``pmvir synth`` / :func:`pmvir.synth.generate.synthesize`: one typed model.
+
+The CLI builds its flags from nothing else: each field's default and
+description here is what ``pmvir synth --help`` shows.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from pmvir.errors import ConfigError
+
+
+class SynthOptions(BaseModel):
+    """How a synthetic capture is made (everything but the geometry source and the output path)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    views: int = Field(default=36, ge=1, le=2000, description="Number of views (cameras on rings).")
+    size: tuple[int, int] = Field(
+        default=(612, 512), description="Image width and height in pixels (multiples of 4), e.g. 612x512."
+    )
+    material: Literal["lambert", "plastic", "conductor"] = Field(
+        default="plastic",
+        description="lambert: unpolarized diffuse; plastic: dielectric with diffuse (p) and specular (s) "
+        "polarization; conductor: metal-like specular reflection with strong s polarization.",
+    )
+    lighting: Literal["sh", "envmap"] = Field(
+        default="sh", description="Per-view second-order SH lighting, or a per-view turned environment map."
+    )
+    texture: Literal["procedural", "uniform"] = Field(
+        default="procedural",
+        description="Albedo: procedural (patches, fine detail and speckles) or uniform (0.6, 0.5, 0.4).",
+    )
+    ior: float = Field(
+        default=1.5,
+        gt=0.0,
+        description="Refractive index (plastic, > 1), or the real part of the " "conductor's complex index.",
+    )
+    extinction: float = Field(default=1.0, ge=0.0, description="Imaginary part k of the conductor's index.")
+    specular: float = Field(
+        default=1.0, ge=0.0, description="Scale of the plastic's specular reflection (1 = Fresnel only)."
+    )
+    noise: float = Field(
+        default=0.001,
+        ge=0.0,
+        le=0.5,
+        description="Read-noise standard deviation as a fraction of full scale "
+        "(0.001 = about 4 DN of 12 bits).",
+    )
+    full_well: float = Field(
+        default=10500.0, ge=0.0, description="Electrons at full scale, for shot noise (0: no shot noise)."
+    )
+    black_level: int = Field(default=64, ge=0, lt=4095, description="Black level of the 12-bit samples.")
+    exposure: float | None = Field(
+        default=None,
+        gt=0.0,
+        description="Sensor gain, full-scale units per radiance unit; default: chosen on the first view so "
+        "the median lit pixel's brightest channel is at 45 % of full scale.",
+    )
+    seed: int = Field(
+        default=0, ge=0, description="Seed of the albedo texture, lighting variation and noise."
+    )
+    renderer: Literal["builtin", "mitsuba"] = Field(
+        default="builtin",
+        description="builtin (ray casting, fast) or mitsuba (Mitsuba 3 path tracing, optional).",
+    )
+    supersample: int = Field(
+        default=2, ge=1, le=8, description="Builtin: NxN rays in each silhouette/depth-edge pixel (1: none)."
+    )
+    aop_frame: Literal["normal", "ray"] = Field(
+        default="normal",
+        description="Builtin: orient polarization by the camera-frame normal's azimuth (spec convention) "
+        "or perspective-exactly per ray.",
+    )
+    spp: int = Field(default=64, ge=1, description="Mitsuba: samples per pixel.")
+    roughness: float = Field(default=0.05, gt=0.0, description="Mitsuba: plastic's Beckmann roughness.")
+    mesh_up: Literal["x", "y", "z"] = Field(
+        default="z", description="Axis of a loaded mesh that points up (turned to world +z)."
+    )
+    focal_factor: float = Field(
+        default=1.2, gt=0.1, le=20.0, description="Focal length in pixels divided by the larger image side."
+    )
+    gt_views: bool = Field(
+        default=True, description="Write gt/views/<stem>.npz (depth, normals, noise-free AoP/DoP/I_int)."
+    )
+
+    @field_validator("size", mode="before")
+    @classmethod
+    def _parse_size(cls, v: Any) -> Any:
+        if isinstance(v, str):
+            parts = v.lower().split("x")
+            if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
+                raise ValueError(f"size must be WIDTHxHEIGHT, e.g. 612x512, got {v!r}")
+            return (int(parts[0]), int(parts[1]))
+        return v
+
+    @field_validator("size")
+    @classmethod
+    def _check_size(cls, v: tuple[int, int]) -> tuple[int, int]:
+        w, h = v
+        if w < 8 or h < 8 or w % 4 or h % 4:
+            raise ValueError(
+                f"size {w}x{h}: width and height must be multiples of 4 (the IMX250MYR super-pixel) and >= 8"
+            )
+        return v
+
+    @model_validator(mode="after")
+    def _check_ior(self) -> "SynthOptions":
+        if self.material == "plastic" and self.ior <= 1.0:
+            raise ValueError(f"plastic needs ior > 1, got {self.ior}")
+        return self
+
+    @property
+    def width(self) -> int:
+        return self.size[0]
+
+    @property
+    def height(self) -> int:
+        return self.size[1]
+
+
+def synth_options(**values: Any) -> SynthOptions:
+    """Validate options; a bad value raises ConfigError naming the field and the problem."""
+    try:
+        return SynthOptions(**values)
+    except ValidationError as exc:
+        parts = []
+        for err in exc.errors():
+            loc = ".".join(str(p) for p in err["loc"]) or "options"
+            parts.append(f"{loc}: {err['msg'].removeprefix('Value error, ')}")
+        raise ConfigError("invalid synth options: " + "; ".join(parts)) from None
