@@ -15,7 +15,7 @@ from pmvir import __version__
 from pmvir.errors import PmvirError
 
 #: Sub-command modules under pmvir.commands, in the order ``--help`` lists them.
-COMMANDS: tuple[str, ...] = ("decode", "evaluate", "reconstruct", "synth")
+COMMANDS: tuple[str, ...] = ("decode", "evaluate", "reconstruct", "synth", "serve", "worker", "submit")
 
 
 def build_parser() -> argparse.ArgumentParser:

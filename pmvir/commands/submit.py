@@ -1,0 +1,192 @@
+"""``pmvir submit CAPTURE --server URL``: run a capture on the service and fetch the result.
+
+Checks the capture locally (manifest, file headers), creates a job with the
+options (``--config`` JSON, ``--set key=value``, ``--stop-after``: the same
+PipelineConfig tree as ``pmvir reconstruct``), uploads the capture with
+retries (large files resumable) and a progress bar, starts the job, polls it
+with a progress bar, and downloads ``result.zip`` into ``--out`` (extracted).
+A small ``.zip`` capture goes up in one request. Ctrl-C while waiting cancels
+the job. Exit status: 0 succeeded, 1 the job failed or was canceled, 2 a
+problem with the capture, the options or the service.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import uuid
+import zipfile
+from pathlib import Path, PurePosixPath
+from typing import Any
+
+from pydantic import ValidationError
+
+from pmvir.capture import open_capture, validate_capture
+from pmvir.config import PipelineConfig
+from pmvir.errors import CaptureError, ConfigError
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "submit",
+        help="upload a capture to the service, wait for the job and download the result",
+        description="Upload CAPTURE (folder or .zip) to a pmvir service, start the job, show its progress, "
+        "and download the result into --out. The API key comes from --api-key or PMVIR_API_KEY.",
+    )
+    p.add_argument("capture", type=Path, help="capture folder, or a zipped capture")
+    p.add_argument("--server", required=True, help="service base URL, e.g. http://localhost:8000")
+    p.add_argument(
+        "--api-key", default=None, help="API key (default: the PMVIR_API_KEY environment variable)"
+    )
+    p.add_argument("--out", type=Path, default=None, help="result folder (default: <capture>-result)")
+    p.add_argument("--config", type=Path, help="JSON file with pipeline options (the PipelineConfig tree)")
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="set one option, e.g. --set decode.noise_floor=0.02 (VALUE is JSON, or a bare string)",
+    )
+    p.add_argument("--stop-after", choices=("decode", "geometry", "refine"), help="last stage to run")
+    p.add_argument("--label", default=None, help="a label for the job")
+    p.add_argument("--no-wait", action="store_true", help="start the job, print its id and exit")
+    p.add_argument("--poll", type=float, default=1.0, help="seconds between status polls (default 1)")
+    p.add_argument("--timeout", type=float, default=None, help="give up waiting after this many seconds")
+    p.add_argument("--retries", type=int, default=5, help="retries per request (default 5)")
+    p.add_argument(
+        "--zip-limit",
+        type=int,
+        default=64 << 20,
+        help="a .zip capture up to this many bytes is sent in one request (default 64 MiB)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=run)
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def build_options(args: argparse.Namespace) -> PipelineConfig:
+    """The job options from --config, --set and --stop-after, validated locally."""
+    tree: dict[str, Any] = {}
+    if args.config is not None:
+        try:
+            tree = json.loads(args.config.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ConfigError(f"{args.config}: cannot read options ({exc})") from exc
+        if not isinstance(tree, dict):
+            raise ConfigError(f"{args.config}: options must be a JSON object")
+    for item in args.overrides:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
+        node = tree
+        *parents, leaf = key.split(".")
+        for name in parents:
+            node = node.setdefault(name, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {item!r}: {name} is not a section")
+        node[leaf] = _parse_value(value)
+    if args.stop_after:
+        tree["stop_after"] = args.stop_after
+    try:
+        return PipelineConfig.model_validate(tree)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
+        raise ConfigError(f"invalid options: {problems}") from exc
+
+
+def _bar(total: float, desc: str, unit: str, quiet: bool, **kw: Any):  # noqa: ANN202
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit=unit, disable=quiet, file=sys.stderr, dynamic_ncols=True, **kw)
+
+
+def _upload(client: Any, job_id: str, root: Path, files: list[str], quiet: bool) -> None:
+    total = sum((root / f).stat().st_size for f in files)
+    with _bar(total, "upload", "B", quiet, unit_scale=True, unit_divisor=1024) as bar:
+        for rel in files:
+            client.upload_file(job_id, rel, root / rel, on_bytes=bar.update)
+
+
+def _files_of(cap: Any) -> list[str]:
+    files = ["capture.json"]
+    for f in cap.frames:
+        files.append(f.file)
+        if f.mask:
+            files.append(f.mask)
+    files += [g for g in ("gt/mesh.ply", "gt/illumination.json") if (cap.root / g).is_file()]
+    return files
+
+
+def _wait(client: Any, job_id: str, args: argparse.Namespace) -> dict[str, Any]:
+    with _bar(
+        100.0, "queued", "%", args.quiet, bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}"
+    ) as bar:
+
+        def update(job: dict[str, Any]) -> None:
+            bar.set_description_str(job["stage"] or job["status"])
+            bar.update(round(job["progress"] * 100.0, 1) - bar.n)
+
+        try:
+            return client.wait(job_id, poll=args.poll, timeout=args.timeout, on_update=update)
+        except KeyboardInterrupt:
+            client.cancel(job_id)
+            print(f"pmvir submit: job {job_id} canceled", file=sys.stderr)
+            raise
+
+
+def _extract(zip_path: Path, out: Path) -> None:
+    with zipfile.ZipFile(zip_path) as zf:
+        for info in zf.infolist():
+            parts = PurePosixPath(info.filename).parts
+            if info.filename.startswith("/") or ".." in parts or "\\" in info.filename:
+                raise CaptureError(zip_path.name, f"result member {info.filename!r} is not a relative path")
+        zf.extractall(out)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pmvir.client import PmvirClient
+
+    key = args.api_key or os.environ.get("PMVIR_API_KEY")
+    if not key:
+        raise ConfigError("no API key: pass --api-key or set PMVIR_API_KEY")
+    options = build_options(args).model_dump(mode="json")
+    problems = validate_capture(args.capture, decode_frames=False)
+    if problems:
+        raise CaptureError(args.capture.name, "; ".join(str(p) for p in problems))
+    out = args.out or args.capture.with_name(args.capture.stem + "-result")
+    label = args.label or args.capture.stem
+    with PmvirClient(args.server, key, retries=args.retries) as client:
+        if args.capture.suffix.lower() == ".zip" and args.capture.stat().st_size <= args.zip_limit:
+            job = client.create_job_from_zip(args.capture, options, label=label)
+        else:
+            job = client.create_job(options, label=label, idempotency_key=uuid.uuid4().hex)
+            with open_capture(args.capture) as cap:
+                _upload(client, job["id"], cap.root, _files_of(cap), args.quiet)
+        job_id = job["id"]
+        print(f"pmvir submit: job {job_id}", file=sys.stderr)
+        client.start(job_id)
+        if args.no_wait:
+            print(job_id)
+            return 0
+        job = _wait(client, job_id, args)
+        if job["status"] != "succeeded":
+            print(
+                f"pmvir submit: job {job_id} {job['status']}: {job.get('error') or ''}".rstrip(": "),
+                file=sys.stderr,
+            )
+            return 1
+        out.mkdir(parents=True, exist_ok=True)
+        with _bar(None, "download", "B", args.quiet, unit_scale=True, unit_divisor=1024) as bar:
+            zip_path = client.download(job_id, "result.zip", out / "result.zip", on_bytes=bar.update)
+        _extract(zip_path, out)
+    print(out)
+    return 0

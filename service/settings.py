@@ -1,0 +1,121 @@
+"""Service configuration, read from ``PMVIR_*`` environment variables.
+
+One :class:`Settings` object configures the API, the Celery worker and the
+job store. Every field is an environment variable named ``PMVIR_`` + the field
+name in upper case (``PMVIR_REDIS_URL``, ``PMVIR_STORAGE``, ...); byte sizes are
+plain integers. The README's "Service" section lists them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from functools import cached_property
+from pathlib import Path
+from typing import Annotated
+
+from pydantic import Field, field_validator, model_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+MiB = 1024**2
+GiB = 1024**3
+
+
+class Settings(BaseSettings):
+    """Everything the API and the worker are told (environment variables ``PMVIR_*``)."""
+
+    model_config = SettingsConfigDict(env_prefix="PMVIR_", extra="ignore", frozen=True)
+
+    redis_url: str = Field(
+        default="redis://localhost:6379/0",
+        description="Redis: the Celery broker and the job store (the service's own keys under key_prefix).",
+    )
+    storage: Path = Field(
+        default=Path("pmvir-storage"),
+        description="Storage root on disk; each job lives in <storage>/jobs/<job id>/.",
+    )
+    api_keys: Annotated[tuple[str, ...], NoDecode] = Field(
+        default=(),
+        description="Comma-separated API keys (Authorization: Bearer <key>). Empty: every request is 401.",
+    )
+    key_prefix: str = Field(default="pmvir", min_length=1, description="Prefix of the service's Redis keys.")
+    queue: str = Field(default="pmvir", min_length=1, description="Celery queue the jobs go to.")
+
+    # -- limits
+    max_frame_bytes: int = Field(
+        default=256 * MiB, gt=0, description="Largest frame, mask or ground-truth file."
+    )
+    max_frames: int = Field(default=1000, gt=0, description="Most frame files in one job.")
+    max_job_bytes: int = Field(default=16 * GiB, gt=0, description="Most bytes of capture files in one job.")
+    max_jobs_in_flight: int = Field(
+        default=16, gt=0, description="Most unfinished jobs (created, queued or running) per API key."
+    )
+    min_free_bytes: int = Field(
+        default=2 * GiB,
+        ge=0,
+        description="Uploads are refused (507) when the storage disk has less free space.",
+    )
+    max_manifest_bytes: int = Field(default=16 * MiB, gt=0, description="Largest capture.json.")
+    max_zip_bytes: int = Field(
+        default=512 * MiB, gt=0, description="Largest zipped capture sent to POST /v1/jobs."
+    )
+    max_zip_members: int = Field(default=2100, gt=0, description="Most members in a zipped capture.")
+    max_zip_ratio: float = Field(
+        default=200.0, gt=1.0, description="Largest uncompressed/compressed ratio of a zip member over 1 MiB."
+    )
+
+    # -- worker
+    job_soft_time_limit: int = Field(
+        default=6 * 3600, gt=0, description="Seconds after which a running job is stopped and marked failed."
+    )
+    job_hard_time_limit: int = Field(
+        default=6 * 3600 + 120,
+        gt=0,
+        description="Seconds after which the worker process running a job is killed.",
+    )
+    visibility_timeout: int = Field(
+        default=7 * 3600,
+        gt=0,
+        description="Seconds before Redis redelivers an unacknowledged job message "
+        "(longer than the hard limit).",
+    )
+    lease_seconds: float = Field(
+        default=30.0,
+        gt=0.5,
+        description="A running job's heartbeat lease in seconds; a job whose lease lapses "
+        "(its worker died) is requeued.",
+    )
+    max_deliveries: int = Field(
+        default=3,
+        ge=1,
+        description="Most times a worker may start a job; a job whose worker kept dying fails "
+        "at the next start.",
+    )
+    idempotency_ttl: int = Field(
+        default=24 * 3600, gt=0, description="Seconds an Idempotency-Key is remembered."
+    )
+    max_log_lines: int = Field(default=10_000, gt=0, description="Most log lines kept per job.")
+
+    @field_validator("api_keys", mode="before")
+    @classmethod
+    def _split_keys(cls, value: object) -> object:
+        if isinstance(value, str):
+            return tuple(k.strip() for k in value.split(",") if k.strip())
+        return value
+
+    @model_validator(mode="after")
+    def _limits_consistent(self) -> Settings:
+        if self.job_hard_time_limit <= self.job_soft_time_limit:
+            raise ValueError("job_hard_time_limit must be greater than job_soft_time_limit")
+        if self.visibility_timeout <= self.job_hard_time_limit:
+            raise ValueError("visibility_timeout must be longer than job_hard_time_limit (the longest job)")
+        return self
+
+    @cached_property
+    def key_owners(self) -> tuple[tuple[bytes, str], ...]:
+        """(key bytes, owner id) per API key; the owner id is a digest, never the key itself."""
+        return tuple((k.encode(), hashlib.sha256(k.encode()).hexdigest()[:24]) for k in self.api_keys)
+
+
+def get_settings() -> Settings:
+    """Settings from the environment (a new object each call; cheap)."""
+    return Settings()

@@ -1,0 +1,210 @@
+"""Job files on disk, under the storage root, per job id.
+
+Layout::
+
+    <root>/jobs/<id>/capture/            the uploaded capture (capture.json, frames/, masks/, gt/)
+    <root>/jobs/<id>/incoming/           uploads being written (unique names; renamed into capture/)
+    <root>/jobs/<id>/partial/<h>.part    resumable (Content-Range) uploads not complete yet
+    <root>/jobs/<id>/runs/<run id>/      a run's output while it is produced
+    <root>/jobs/<id>/result/             the finished result (a run's folder, renamed)
+    <root>/trash/                        folders being deleted (renamed here first, then removed)
+
+Everything that becomes visible appears by rename, so a reader never sees a
+half-written file and a run that is repeated (a redelivered task) replaces
+its own temporary folder instead of mixing with a finished result.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import shutil
+import uuid
+import zipfile
+from pathlib import Path, PurePosixPath
+
+from pmvir.io.frames import FRAME_SUFFIXES
+
+#: The result files the API serves by name (section 3 of the capture-format spec, plus the zip).
+RESULT_FILES = ("mesh.ply", "illumination.json", "report.json", "result.zip")
+
+_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.+-]{0,127}$")
+_LAYOUT = {
+    "frames": tuple(sorted(FRAME_SUFFIXES)),
+    "masks": (".png",),
+}
+_GT_FILES = ("gt/mesh.ply", "gt/illumination.json")
+CHUNK = 1 << 20
+#: Suffixes zipped without compression: compressed already, or float arrays deflate barely shrinks.
+_STORED = (".npz", ".npy", ".png", ".jpg", ".jpeg", ".zip", ".gz", ".tif", ".tiff", ".exr")
+
+
+def capture_path_problem(path: str) -> str | None:
+    """Why ``path`` is not a file of the capture layout, or None when it is.
+
+    Accepted: ``capture.json``, ``frames/<name>.<png|tif|tiff|dng|raw|bin>``,
+    ``masks/<name>.png``, ``gt/mesh.ply``, ``gt/illumination.json``; ``<name>`` is
+    1-128 characters of letters, digits, ``_ . + -``, not starting with ``.``/``-``/``+``
+    (the extension's case does not matter).
+    """
+    if not path:
+        return "is empty"
+    if "\x00" in path:
+        return "contains a NUL character"
+    if "\\" in path:
+        return "contains a backslash"
+    if path.startswith("/") or re.match(r"^[A-Za-z]:", path):
+        return "is an absolute path"
+    parts = path.split("/")
+    if any(p in ("", ".", "..") for p in parts):
+        return "has an empty, '.' or '..' segment (path traversal)"
+    if path == "capture.json" or path in _GT_FILES:
+        return None
+    if len(parts) != 2 or parts[0] not in _LAYOUT:
+        return (
+            "is not part of the capture layout (capture.json, frames/<name>.<ext>, masks/<name>.png, "
+            "gt/mesh.ply, gt/illumination.json)"
+        )
+    folder, name = parts
+    suffix = PurePosixPath(name).suffix
+    if suffix.lower() not in _LAYOUT[folder] or not PurePosixPath(name).stem:
+        return f"must end in one of {', '.join(_LAYOUT[folder])} inside {folder}/"
+    if not _NAME.match(name[: -len(suffix)]):
+        return (
+            f"has an unsupported file name {name!r} (before the extension: 1-128 letters, digits, "
+            "'_', '.', '+', '-', not starting with '.', '+' or '-')"
+        )
+    return None
+
+
+def is_frame(path: str) -> bool:
+    return path.startswith("frames/")
+
+
+class JobFiles:
+    """The storage root: folders per job, atomic writes, deletion by rename."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+
+    def job_dir(self, job_id: str) -> Path:
+        return self.root / "jobs" / job_id
+
+    def capture_dir(self, job_id: str) -> Path:
+        return self.job_dir(job_id) / "capture"
+
+    def result_dir(self, job_id: str) -> Path:
+        return self.job_dir(job_id) / "result"
+
+    def run_dir(self, job_id: str, run_id: str) -> Path:
+        return self.job_dir(job_id) / "runs" / run_id
+
+    def incoming_path(self, job_id: str) -> Path:
+        d = self.job_dir(job_id) / "incoming"
+        d.mkdir(parents=True, exist_ok=True)
+        return d / f"{uuid.uuid4().hex}.tmp"
+
+    def partial_path(self, job_id: str, path: str) -> Path:
+        h = hashlib.sha256(path.encode()).hexdigest()[:32]
+        return self.job_dir(job_id) / "partial" / f"{h}.part"
+
+    def create(self, job_id: str) -> None:
+        self.capture_dir(job_id).mkdir(parents=True, exist_ok=False)
+
+    def exists(self, job_id: str) -> bool:
+        return self.job_dir(job_id).is_dir()
+
+    def place(self, job_id: str, tmp: Path, path: str) -> Path:
+        """Rename a finished temporary file to its capture path (replacing any earlier upload)."""
+        target = self.capture_dir(job_id).joinpath(*path.split("/"))
+        target.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(tmp, target)
+        return target
+
+    def remove_capture_file(self, job_id: str, path: str) -> None:
+        target = self.capture_dir(job_id).joinpath(*path.split("/"))
+        target.unlink(missing_ok=True)
+
+    def result_file(self, job_id: str, name: str) -> Path | None:
+        """A finished result file, or None when the job has none of that name."""
+        if name not in RESULT_FILES:
+            return None
+        p = self.result_dir(job_id) / name
+        return p if p.is_file() else None
+
+    def remove_tree(self, path: Path) -> None:
+        """Remove a folder: renamed into trash/ first, so it disappears from its place at once."""
+        if not path.exists():
+            return
+        trash = self.root / "trash"
+        trash.mkdir(parents=True, exist_ok=True)
+        dest = trash / f"{path.name}-{uuid.uuid4().hex}"
+        try:
+            os.replace(path, dest)
+        except OSError:
+            dest = path
+        shutil.rmtree(dest, ignore_errors=True)
+
+    def delete(self, job_id: str) -> None:
+        self.remove_tree(self.job_dir(job_id))
+
+    def free_bytes(self) -> int:
+        self.root.mkdir(parents=True, exist_ok=True)
+        return shutil.disk_usage(self.root).free
+
+    def writable(self) -> bool:
+        """Whether a file can be created, written and removed under the root."""
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+            probe = self.root / f".probe-{uuid.uuid4().hex}"
+            probe.write_bytes(b"ok")
+            probe.unlink()
+            return True
+        except OSError:
+            return False
+
+    def publish_result(self, job_id: str, run_dir: Path) -> Path:
+        """Zip a finished run's folder into result.zip inside it, then rename it to result/.
+
+        Running twice is harmless: an earlier result folder is moved away first.
+        """
+        write_result_zip(run_dir)
+        final = self.result_dir(job_id)
+        if final.exists():
+            self.remove_tree(final)
+        os.replace(run_dir, final)
+        return final
+
+
+def write_result_zip(folder: Path) -> Path:
+    """Write ``folder/result.zip`` holding every other file under ``folder`` (temporary name, then rename).
+
+    Text and PLY members are deflated; arrays and images are stored as they are (see ``_STORED``).
+    """
+    target = folder / "result.zip"
+    tmp = folder / f".result.zip.{uuid.uuid4().hex}.tmp"
+    try:
+        with zipfile.ZipFile(tmp, "w", allowZip64=True) as zf:
+            for p in sorted(folder.rglob("*")):
+                if not p.is_file() or p.is_symlink() or p == target or p.name.endswith(".tmp"):
+                    continue
+                stored = p.suffix.lower() in _STORED
+                zf.write(
+                    p,
+                    p.relative_to(folder).as_posix(),
+                    compress_type=zipfile.ZIP_STORED if stored else zipfile.ZIP_DEFLATED,
+                    compresslevel=None if stored else 6,
+                )
+        os.replace(tmp, target)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return target
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(CHUNK):
+            h.update(chunk)
+    return h.hexdigest()

@@ -1,0 +1,326 @@
+"""Running the real service locally: redis-server, ``pmvir serve`` and ``pmvir worker`` as processes.
+
+Used by the service's tests and by ``bench/service.py``; handy for trying the
+service by hand too::
+
+    with ServiceStack(tmp_dir, api_keys=("k1",)) as stack:
+        stack.start_worker()
+        httpx.get(stack.url + "/readyz")
+
+Every process runs in its own session (process group), so :meth:`Proc.kill`
+can SIGKILL it with its children, as ``docker kill`` would; everything is
+stopped on exit, also when the body raised. Output goes to log files under the
+stack's folder (:meth:`ServiceStack.logs` for a failing test's report).
+
+:func:`write_noise_capture` writes a valid capture of random 12-bit mosaics:
+content for transport and load tests, not for reconstruction.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from pmvir.io.frames import write_frame
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _wait(pred, timeout: float, what: str, proc: Proc | None = None) -> None:  # noqa: ANN001
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc is not None and proc.popen.poll() is not None:
+            raise RuntimeError(f"{what}: process exited with {proc.popen.returncode}\n{proc.tail()}")
+        try:
+            if pred():
+                return
+        except Exception:
+            pass
+        time.sleep(0.05)
+    raise TimeoutError(f"{what}: not ready after {timeout} s" + (f"\n{proc.tail()}" if proc else ""))
+
+
+class Proc:
+    """A child process in its own session, logging to a file."""
+
+    def __init__(
+        self,
+        name: str,
+        argv: list[str],
+        *,
+        log: Path,
+        env: Mapping[str, str] | None = None,
+        cwd: Path | None = None,
+    ):
+        self.name = name
+        self.log = log
+        self._fh = open(log, "ab")
+        self.popen = subprocess.Popen(
+            argv,
+            stdout=self._fh,
+            stderr=subprocess.STDOUT,
+            env=dict(env or os.environ),
+            cwd=cwd,
+            start_new_session=True,
+        )
+
+    @property
+    def pid(self) -> int:
+        return self.popen.pid
+
+    def alive(self) -> bool:
+        return self.popen.poll() is None
+
+    def tail(self, n: int = 4000) -> str:
+        try:
+            return self.log.read_text(errors="replace")[-n:]
+        except OSError:
+            return ""
+
+    def _signal_group(self, sig: int) -> None:
+        try:
+            os.killpg(self.popen.pid, sig)
+        except ProcessLookupError:
+            pass
+
+    def kill(self) -> None:
+        """SIGKILL the process and everything in its group, at once."""
+        self._signal_group(signal.SIGKILL)
+        self.popen.wait(timeout=10)
+        self._fh.close()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """SIGTERM the group, then SIGKILL what is left after ``timeout`` seconds."""
+        if self.popen.poll() is None:
+            self._signal_group(signal.SIGTERM)
+            try:
+                self.popen.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                pass
+        self._signal_group(signal.SIGKILL)  # stray children of the group
+        if self.popen.poll() is None:
+            self.popen.wait(timeout=10)
+        self._fh.close()
+
+
+class ServiceStack:
+    """redis-server, uvicorn (the API) and Celery workers on loopback ports, sharing one storage root.
+
+    Args:
+        root: a folder for storage, Redis data and logs.
+        api_keys: the keys the API accepts.
+        env: more PMVIR_* settings for the API and the workers (strings).
+        appendonly: Redis persists to an append-only file (state survives a Redis restart).
+        api_workers: uvicorn worker processes.
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        *,
+        api_keys: tuple[str, ...] = ("test-key",),
+        env: Mapping[str, str] | None = None,
+        appendonly: bool = False,
+        api_workers: int = 1,
+    ):
+        if shutil.which("redis-server") is None:
+            raise RuntimeError("redis-server is not installed")
+        self.root = Path(root)
+        self.storage = self.root / "storage"
+        self.redis_dir = self.root / "redis"
+        self.log_dir = self.root / "logs"
+        for d in (self.storage, self.redis_dir, self.log_dir):
+            d.mkdir(parents=True, exist_ok=True)
+        self.redis_port = free_port()
+        self.api_port = free_port()
+        self.url = f"http://127.0.0.1:{self.api_port}"
+        self.redis_url = f"redis://127.0.0.1:{self.redis_port}/0"
+        self.appendonly = appendonly
+        self.api_workers = api_workers
+        self.api_keys = api_keys
+        self.env = {
+            **os.environ,
+            "PMVIR_REDIS_URL": self.redis_url,
+            "PMVIR_STORAGE": str(self.storage),
+            "PMVIR_API_KEYS": ",".join(api_keys),
+            **(env or {}),
+        }
+        self.redis: Proc | None = None
+        self.api: Proc | None = None
+        self.workers: list[Proc] = []
+        self._n = 0
+
+    # -- parts
+
+    def start_redis(self) -> Proc:
+        argv = [
+            "redis-server",
+            "--port",
+            str(self.redis_port),
+            "--bind",
+            "127.0.0.1",
+            "--save",
+            "",
+            "--dir",
+            str(self.redis_dir),
+            "--daemonize",
+            "no",
+            "--protected-mode",
+            "yes",
+            "--appendonly",
+            "yes" if self.appendonly else "no",
+        ]
+        if self.appendonly:
+            argv += ["--appendfsync", "always"]
+        self.redis = Proc("redis", argv, log=self.log_dir / "redis.log", cwd=self.redis_dir)
+        import redis as redis_py
+
+        client = redis_py.Redis(host="127.0.0.1", port=self.redis_port, socket_connect_timeout=0.5)
+        _wait(lambda: client.ping(), 15, "redis-server", self.redis)
+        client.close()
+        return self.redis
+
+    def start_api(self) -> Proc:
+        argv = [
+            sys.executable,
+            "-m",
+            "pmvir.cli",
+            "serve",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(self.api_port),
+            "--log-level",
+            "warning",
+            "--workers",
+            str(self.api_workers),
+        ]
+        self.api = Proc("api", argv, log=self.log_dir / "api.log", env=self.env)
+        import httpx
+
+        _wait(lambda: httpx.get(self.url + "/healthz", timeout=1).status_code == 200, 30, "uvicorn", self.api)
+        return self.api
+
+    def start_worker(self, *, pool: str = "prefork", wait: bool = True) -> Proc:
+        """A Celery worker (one job at a time); waits until it consumes from the queue."""
+        self._n += 1
+        log = self.log_dir / f"worker{self._n}.log"
+        argv = [
+            sys.executable,
+            "-m",
+            "pmvir.cli",
+            "worker",
+            f"--pool={pool}",
+            "--concurrency=1",
+            "--hostname",
+            f"w{self._n}@%h",
+            "--loglevel=INFO",
+        ]
+        w = Proc(f"worker{self._n}", argv, log=log, env=self.env)
+        self.workers.append(w)
+        if wait:
+            _wait(lambda: " ready." in w.tail(20000), 60, "celery worker", w)
+        return w
+
+    def start(self, *, worker: bool = True) -> ServiceStack:
+        self.start_redis()
+        self.start_api()
+        if worker:
+            self.start_worker()
+        return self
+
+    def restart_api(self) -> Proc:
+        if self.api is not None:
+            self.api.stop()
+        return self.start_api()
+
+    def restart_redis(self) -> Proc:
+        if self.redis is not None:
+            self.redis.stop()
+        return self.start_redis()
+
+    def stop(self) -> None:
+        for w in self.workers:
+            w.stop()
+        self.workers = []
+        for p in (self.api, self.redis):
+            if p is not None:
+                p.stop()
+        self.api = self.redis = None
+
+    def logs(self) -> str:
+        parts = []
+        for p in [*self.workers, self.api, self.redis]:
+            if p is not None:
+                parts.append(f"--- {p.name} ({p.log.name}) ---\n{p.tail()}")
+        return "\n".join(parts)
+
+    def __enter__(self) -> ServiceStack:
+        try:
+            return self.start(worker=False)
+        except BaseException:
+            self.stop()
+            raise
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def write_noise_capture(
+    root: str | Path, *, frames: int, width: int = 64, height: int = 48, seed: int = 0, masks: bool = False
+) -> Path:
+    """A valid IMX250MYR capture of random 12-bit mosaics as 16-bit PNGs (for transport and load tests).
+
+    Args:
+        root: the capture folder (created).
+        frames: number of frames.
+        width, height: frame size in pixels (multiples of 4).
+        seed: random seed; the content is a smooth random field plus noise, so PNG
+            compression stays realistic (neither all noise nor constant).
+        masks: also write masks/<name>.png (8-bit, all foreground).
+
+    Returns:
+        The capture folder.
+    """
+    if width % 4 or height % 4:
+        raise ValueError(f"width and height must be multiples of 4, got {width}x{height}")
+    root = Path(root)
+    (root / "frames").mkdir(parents=True, exist_ok=True)
+    if masks:
+        (root / "masks").mkdir(exist_ok=True)
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
+    entries = []
+    for i in range(frames):
+        fx, fy, ph = rng.uniform(0.005, 0.05), rng.uniform(0.005, 0.05), rng.uniform(0, 6.28)
+        base = 1500 + 1000 * np.sin(fx * xx + ph) * np.cos(fy * yy)
+        samples = np.clip(base + rng.normal(0, 60, size=base.shape), 0, 4095).astype(np.uint16)
+        name = f"{i:03d}"
+        write_frame(root / "frames" / f"{name}.png", samples, bit_depth=12)
+        entry: dict = {"file": f"frames/{name}.png"}
+        if masks:
+            write_frame(root / "masks" / f"{name}.png", np.full((height, width), 255, np.uint8), bit_depth=8)
+            entry["mask"] = f"masks/{name}.png"
+        entries.append(entry)
+    manifest = {
+        "format": "pmvir-capture/1",
+        "sensor": {"layout": "IMX250MYR", "bit_depth": 12, "black_level": 0, "white_level": 4095},
+        "frames": entries,
+    }
+    (root / "capture.json").write_text(json.dumps(manifest, indent=1))
+    return root

@@ -1,0 +1,149 @@
+"""A zipped capture sent with ``POST /v1/jobs`` (multipart field ``capture``).
+
+Before anything is extracted, the zip's central directory is checked against
+the service's limits and the capture layout: member count
+(``max_zip_members``, 413), each member's declared size (``max_frame_bytes`` /
+``max_manifest_bytes``, 413), the declared total (``max_job_bytes``, 413), the
+frame count (``max_frames``, 413) and every member name (capture layout, 422).
+Extraction itself is :func:`pmvir.io.capture_zip.extract_capture_zip`, which
+rejects unsafe names, links, encrypted members and zip bombs (ratio) before
+writing, and counts the bytes again while writing (422 naming the member).
+"""
+
+from __future__ import annotations
+
+import shutil
+import uuid
+import zipfile
+from pathlib import Path
+from typing import BinaryIO
+
+from pmvir.errors import CaptureError
+from pmvir.io.capture_zip import extract_capture_zip
+from service.deps import Services
+from service.errors import ApiError, ErrorItem, too_large
+from service.storage import CHUNK, capture_path_problem, is_frame, sha256_file
+from service.store import FileInfo
+from service.uploads import file_limit
+
+
+def _ignored(name: str) -> bool:
+    parts = name.rstrip("/").split("/")
+    return parts[0] == "__MACOSX" or parts[-1] == ".DS_Store"
+
+
+def _capture_error(exc: CaptureError) -> ApiError:
+    return ApiError(
+        422,
+        "invalid_zip",
+        str(exc),
+        errors=[ErrorItem(file=exc.path, msg=exc.problem, type=type(exc).__name__)],
+    )
+
+
+def precheck_zip(svc: Services, zip_path: Path) -> None:
+    """Check the central directory against limits and the capture layout (nothing is extracted)."""
+    s = svc.settings
+    try:
+        zf = zipfile.ZipFile(zip_path)
+    except (zipfile.BadZipFile, OSError) as exc:
+        raise ApiError(
+            422,
+            "invalid_zip",
+            f"capture: not a readable zip file ({exc})",
+            errors=[ErrorItem(file="capture", msg="not a readable zip file", type="invalid_zip")],
+        ) from exc
+    with zf:
+        infos = zf.infolist()
+        if len(infos) > s.max_zip_members:
+            raise too_large(f"the zip has {len(infos)} members, more than the limit of {s.max_zip_members}")
+        members = [i for i in infos if not i.is_dir() and not _ignored(i.filename)]
+        names = {i.filename for i in members}
+        if "capture.json" in names:
+            prefix = ""
+        else:
+            tops = {n.split("/")[0] for n in names}
+            top = next(iter(tops)) if len(tops) == 1 else None
+            if top is None or f"{top}/capture.json" not in names:
+                raise ApiError(
+                    422,
+                    "invalid_zip",
+                    "the zip has no capture.json at its root or in its one top folder",
+                    errors=[ErrorItem(file="capture.json", msg="missing", type="ManifestError")],
+                )
+            prefix = top + "/"
+        errors = []
+        total = 0
+        frames = 0
+        for info in members:
+            rel = info.filename[len(prefix) :]
+            problem = capture_path_problem(rel)
+            if problem:
+                errors.append(ErrorItem(file=info.filename, msg=f"member {problem}", type="invalid_path"))
+                continue
+            limit = file_limit(svc, rel)
+            if info.file_size > limit:
+                raise too_large(
+                    f"zip member {info.filename!r} expands to {info.file_size} bytes, more than the "
+                    f"limit of {limit}"
+                )
+            total += info.file_size
+            frames += is_frame(rel)
+        if errors:
+            raise ApiError(
+                422, "invalid_zip", f"{len(errors)} zip member(s) outside the capture layout", errors=errors
+            )
+        if total > s.max_job_bytes:
+            raise too_large(f"the zip expands to {total} bytes, more than the job limit of {s.max_job_bytes}")
+        if frames > s.max_frames:
+            raise too_large(f"the zip holds {frames} frames, more than the limit of {s.max_frames}")
+
+
+def save_upload(src: BinaryIO, dest: Path, limit: int) -> int:
+    """Copy a spooled upload to ``dest`` in chunks; 413 past ``limit`` bytes."""
+    n = 0
+    src.seek(0)
+    with open(dest, "wb") as out:
+        while chunk := src.read(CHUNK):
+            n += len(chunk)
+            if n > limit:
+                raise too_large(f"the zipped capture is more than the limit of {limit} bytes")
+            out.write(chunk)
+    return n
+
+
+def import_zip(svc: Services, job_id: str, zip_path: Path) -> list[FileInfo]:
+    """Check, extract and record a zipped capture into the job's capture folder."""
+    s = svc.settings
+    precheck_zip(svc, zip_path)
+    staging = svc.files.job_dir(job_id) / "incoming" / f"zip-{uuid.uuid4().hex}"
+    staging.mkdir(parents=True)
+    try:
+        try:
+            root = extract_capture_zip(
+                zip_path,
+                staging,
+                max_members=s.max_zip_members,
+                max_total_bytes=s.max_job_bytes,
+                max_ratio=s.max_zip_ratio,
+            )
+        except CaptureError as exc:
+            raise _capture_error(exc) from exc
+        recorded = []
+        for p in sorted(root.rglob("*")):
+            if not p.is_file() or p.is_symlink():
+                continue
+            rel = p.relative_to(root).as_posix()
+            problem = capture_path_problem(rel)
+            if problem:  # precheck_zip saw every name; this is a second line of defence
+                raise ApiError(422, "invalid_zip", f"zip member {rel!r} {problem}")
+            info = FileInfo(path=rel, size=p.stat().st_size, sha256=sha256_file(p))
+            svc.files.place(job_id, p, rel)
+            why = svc.store.upload_commit(job_id, "", info)
+            if why != "ok":
+                raise ApiError(409, "conflict", f"the job is {why}")
+            recorded.append(info)
+        return recorded
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+        zip_path.unlink(missing_ok=True)

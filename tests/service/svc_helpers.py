@@ -1,0 +1,83 @@
+"""Helpers of the service tests (constants, small HTTP helpers); fixtures are in conftest.py."""
+
+from __future__ import annotations
+
+import shutil
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from service.testing import ServiceStack
+
+KEY = "key-alice"
+OTHER_KEY = "key-bob"
+FLIGHT_KEY = "key-flight"
+FUZZ_KEY = "key-fuzz"
+
+#: Limits of the shared stack: small, so the limit tests send little data.
+LIMITS = {
+    "PMVIR_MAX_FRAME_BYTES": str(256 * 1024),
+    "PMVIR_MAX_MANIFEST_BYTES": str(64 * 1024),
+    "PMVIR_MAX_FRAMES": "64",
+    "PMVIR_MAX_JOB_BYTES": str(8 * 1024 * 1024),
+    "PMVIR_MAX_ZIP_BYTES": str(2 * 1024 * 1024),
+    "PMVIR_MAX_ZIP_MEMBERS": "60",
+    "PMVIR_MAX_JOBS_IN_FLIGHT": "12",
+    "PMVIR_MIN_FREE_BYTES": str(64 * 1024 * 1024),
+    "PMVIR_LEASE_SECONDS": "2",
+}
+#: Options that run the stages this build has.
+DECODE_ONLY = {"stop_after": "decode"}
+
+
+def require_redis() -> None:
+    if shutil.which("redis-server") is None:
+        pytest.skip("redis-server is not installed (make setup installs it)")
+
+
+def client_for(st: ServiceStack, key: str = KEY) -> httpx.Client:
+    return httpx.Client(base_url=st.url, headers={"Authorization": f"Bearer {key}"}, timeout=30)
+
+
+def upload(c: httpx.Client, job_id: str, capture: Path) -> dict[str, dict]:
+    """PUT every file of a capture folder; returns the answers by path."""
+    out = {}
+    for p in sorted(capture.rglob("*")):
+        if p.is_file():
+            rel = p.relative_to(capture).as_posix()
+            r = c.put(f"/v1/jobs/{job_id}/files/{rel}", content=p.read_bytes())
+            assert r.status_code == 200, r.text
+            out[rel] = r.json()
+    return out
+
+
+def new_job(c: httpx.Client, capture: Path | None = None, options: dict | None = None) -> str:
+    r = c.post("/v1/jobs", json={"options": DECODE_ONLY if options is None else options})
+    assert r.status_code == 201, r.text
+    job_id = r.json()["id"]
+    if capture is not None:
+        upload(c, job_id, capture)
+    return job_id
+
+
+def wait_for(c: httpx.Client, job_id: str, pred, timeout: float = 60.0, what: str = "") -> dict:
+    """Poll the job until ``pred(job)``; returns the job. Also checks progress never goes backwards."""
+    deadline = time.monotonic() + timeout
+    last = 0.0
+    job = {}
+    while time.monotonic() < deadline:
+        r = c.get(f"/v1/jobs/{job_id}")
+        if r.status_code == 200:
+            job = r.json()
+            assert job["progress"] >= last - 1e-12, f"progress went back from {last} to {job['progress']}"
+            last = job["progress"]
+            if pred(job):
+                return job
+        time.sleep(0.05)
+    raise AssertionError(f"job {job_id}: {what or 'condition'} not met in {timeout} s; last state {job}")
+
+
+def finished(job: dict) -> bool:
+    return job["status"] in ("succeeded", "failed", "canceled")

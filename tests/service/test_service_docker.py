@@ -1,0 +1,41 @@
+"""The docker files wire the parts as documented (static checks: no Docker daemon needed)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+yaml = pytest.importorskip("yaml")
+
+DOCKER = Path(__file__).resolve().parents[2] / "docker"
+
+
+def test_compose_runs_api_worker_and_redis_sharing_the_storage_volume() -> None:
+    doc = yaml.safe_load((DOCKER / "compose.yaml").read_text())
+    services = doc["services"]
+    assert set(services) == {"api", "worker", "redis"}
+    api, worker = services["api"], services["worker"]
+    assert api["command"][:2] == ["pmvir", "serve"] and worker["command"][:2] == ["pmvir", "worker"]
+    assert "storage:/data" in api["volumes"] and "storage:/data" in worker["volumes"]
+    for svc in (api, worker):
+        env = svc["environment"]
+        assert env["PMVIR_STORAGE"] == "/data"
+        assert env["PMVIR_REDIS_URL"].startswith("redis://redis:")
+        assert "PMVIR_API_KEYS" in env
+        assert svc["depends_on"]["redis"]["condition"] == "service_healthy"
+    assert api["build"]["dockerfile"] == "docker/Dockerfile"
+    assert set(doc["volumes"]) == {"storage", "redis-data"}
+
+
+def test_dockerfile_installs_the_service_and_runs_unprivileged() -> None:
+    text = (DOCKER / "Dockerfile").read_text()
+    assert '".[service]"' in text and "torch==2.13.0" in text
+    assert "USER pmvir" in text and "ENV PMVIR_STORAGE=/data" in text
+    assert 'CMD ["pmvir", "serve", "--host", "0.0.0.0", "--port", "8000"]' in text
+    ignore = [
+        ln.strip()
+        for ln in (DOCKER / "Dockerfile.dockerignore").read_text().splitlines()
+        if ln.strip() and not ln.startswith("#")
+    ]
+    assert ignore[0] == "*" and "!pmvir/" in ignore and "!service/" in ignore
