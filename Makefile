@@ -30,7 +30,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: setup
-	$(PY) -m pmvir.demo --out $(DEMO_OUT)
+	$(PY) -m service.demo --out $(DEMO_OUT)
 
 test: setup
 	$(PY) -m pytest -q

@@ -147,9 +147,12 @@ def run(
     with open_capture(capture) as cap:
         tracker("decode", 0.0, f"decoding {len(cap.frames)} frames")
         t0 = time.perf_counter()
-        views = decode_views(cap, config, tracker.stage_callback("decode"))
-        if config.stop_after == "decode":
-            files += _write_decoded_views(out, views, tracker.stage_callback("decode"))
+        decode_only = config.stop_after == "decode"
+        # when the decoded frames are the result, writing them is the second half of the stage
+        share = 0.5 if decode_only else 1.0
+        views = decode_views(cap, config, lambda f, m="": tracker("decode", share * f, m))
+        if decode_only:
+            files += _write_decoded_views(out, views, lambda f, m="": tracker("decode", share + share * f, m))
         timings["decode"] = time.perf_counter() - t0
         n_frames = len(cap.frames)
     timings["total"] = time.perf_counter() - t_run

@@ -61,8 +61,11 @@ from pmvir.synth.sensor import SensorModel, capture_mosaic
 from pmvir.synth.shapes import builtin_shape, load_mesh
 from pmvir.synth.texture import procedural_albedo, uniform_albedo
 
-#: Auto exposure: the median foreground pixel's brightest channel of I_int lands here (full-scale units).
-AUTO_EXPOSURE_TARGET = 0.45
+#: Auto exposure, as a careful operator sets a polarization camera: the brightest polarizer sample
+#: (colour channel and angle) of the foreground pixel at this percentile lands at this fraction of full
+#: scale, so highlights clip in at most about 1 % of the object instead of saturating whole regions.
+AUTO_EXPOSURE_PERCENTILE = 99.0
+AUTO_EXPOSURE_TARGET = 0.85
 _OUTPUTS = ("capture.json", "frames", "masks", "gt")
 
 
@@ -149,10 +152,12 @@ def polarization_truth(stokes: np.ndarray, gain: float) -> dict[str, np.ndarray]
 
 
 def _auto_gain(stokes: np.ndarray, mask: np.ndarray) -> float:
-    """Gain putting the median foreground pixel's brightest I_int channel at AUTO_EXPOSURE_TARGET."""
+    """Gain putting the AUTO_EXPOSURE_PERCENTILE-th brightest polarizer sample at AUTO_EXPOSURE_TARGET."""
     if not mask.any():
         return 1.0
-    level = float(np.median(stokes[mask][:, :, 0].max(axis=1) / 2.0))
+    s = stokes[mask]  # (n, 3 colours, s0 s1 s2)
+    brightest = (s[..., 0] + np.hypot(s[..., 1], s[..., 2])) / 2.0  # I at the polarizer angle = AoP
+    level = float(np.percentile(brightest.max(axis=1), AUTO_EXPOSURE_PERCENTILE))
     return AUTO_EXPOSURE_TARGET / level if level > 1e-9 else 1.0
 
 

@@ -58,7 +58,8 @@ class SynthOptions(BaseModel):
         default=None,
         gt=0.0,
         description="Sensor gain, full-scale units per radiance unit; default: chosen on the first view so "
-        "the median lit pixel's brightest channel is at 45 % of full scale.",
+        "the 99th-percentile foreground pixel's brightest polarizer sample is at 85 % of full scale "
+        "(highlights clip in at most about 1 % of the object).",
     )
     seed: int = Field(
         default=0, ge=0, description="Seed of the albedo texture, lighting variation and noise."
