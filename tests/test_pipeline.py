@@ -73,7 +73,8 @@ def test_cancel_stops_at_a_boundary(capture: Path, tmp_path: Path) -> None:
 
 
 def test_reconstruct_cli_maps_flags_onto_the_config_tree(capture: Path, tmp_path: Path, capsys) -> None:
-    from pmvir.commands.reconstruct import add_parser, build_config
+    from pmvir.commands.options import build_config
+    from pmvir.commands.reconstruct import add_parser
     import argparse
 
     parser = argparse.ArgumentParser()

@@ -13,7 +13,6 @@ problem with the capture, the options or the service.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import uuid
@@ -21,10 +20,8 @@ import zipfile
 from pathlib import Path, PurePosixPath
 from typing import Any
 
-from pydantic import ValidationError
-
 from pmvir.capture import open_capture, validate_capture
-from pmvir.config import PipelineConfig
+from pmvir.commands.options import add_option_arguments, build_config
 from pmvir.errors import CaptureError, ConfigError
 
 
@@ -41,16 +38,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--api-key", default=None, help="API key (default: the PMVIR_API_KEY environment variable)"
     )
     p.add_argument("--out", type=Path, default=None, help="result folder (default: <capture>-result)")
-    p.add_argument("--config", type=Path, help="JSON file with pipeline options (the PipelineConfig tree)")
-    p.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="set one option, e.g. --set decode.noise_floor=0.02 (VALUE is JSON, or a bare string)",
-    )
-    p.add_argument("--stop-after", choices=("decode", "geometry", "refine"), help="last stage to run")
+    add_option_arguments(p)
     p.add_argument("--label", default=None, help="a label for the job")
     p.add_argument("--no-wait", action="store_true", help="start the job, print its id and exit")
     p.add_argument("--poll", type=float, default=1.0, help="seconds between status polls (default 1)")
@@ -64,43 +52,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
-
-
-def _parse_value(text: str) -> Any:
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        return text
-
-
-def build_options(args: argparse.Namespace) -> PipelineConfig:
-    """The job options from --config, --set and --stop-after, validated locally."""
-    tree: dict[str, Any] = {}
-    if args.config is not None:
-        try:
-            tree = json.loads(args.config.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ConfigError(f"{args.config}: cannot read options ({exc})") from exc
-        if not isinstance(tree, dict):
-            raise ConfigError(f"{args.config}: options must be a JSON object")
-    for item in args.overrides:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
-        node = tree
-        *parents, leaf = key.split(".")
-        for name in parents:
-            node = node.setdefault(name, {})
-            if not isinstance(node, dict):
-                raise ConfigError(f"--set {item!r}: {name} is not a section")
-        node[leaf] = _parse_value(value)
-    if args.stop_after:
-        tree["stop_after"] = args.stop_after
-    try:
-        return PipelineConfig.model_validate(tree)
-    except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
-        raise ConfigError(f"invalid options: {problems}") from exc
 
 
 def _bar(total: float, desc: str, unit: str, quiet: bool, **kw: Any):  # noqa: ANN202
@@ -158,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     key = args.api_key or os.environ.get("PMVIR_API_KEY")
     if not key:
         raise ConfigError("no API key: pass --api-key or set PMVIR_API_KEY")
-    options = build_options(args).model_dump(mode="json")
+    options = build_config(args).model_dump(mode="json")
     problems = validate_capture(args.capture, decode_frames=False)
     if problems:
         raise CaptureError(args.capture.name, "; ".join(str(p) for p in problems))
