@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
 
     print("[demo] 2/4 starting redis-server, the API and a worker")
     with ServiceStack(out / "service", api_keys=(API_KEY,)) as stack:
-        stack.start()
+        stack.start_worker()  # entering the stack started Redis and the API
         print(f"[demo]     API at {stack.url}; logs in {stack.log_dir}")
         print(f"[demo] 3/4 submitting over HTTP (stop after '{stop_after}')")
         os.environ["PMVIR_API_KEY"] = API_KEY

@@ -238,9 +238,12 @@ class ServiceStack:
         return w
 
     def start(self, *, worker: bool = True) -> ServiceStack:
-        self.start_redis()
-        self.start_api()
-        if worker:
+        """Start whatever is not running yet (Redis, the API, and one worker when ``worker``)."""
+        if self.redis is None:
+            self.start_redis()
+        if self.api is None:
+            self.start_api()
+        if worker and not self.workers:
             self.start_worker()
         return self
 
