@@ -38,6 +38,84 @@ class DecodeOptions(_Options):
 class GeometryOptions(_Options):
     """Initial geometry (pipeline stage 2, paper section 4.2): visibility and subdivision."""
 
+    # -- poses: known-pose triangulation or SfM (pmvir.geometry.sfm)
+    min_registered_views: int = Field(
+        default=3,
+        ge=2,
+        description="Poses fail (ReconstructionError naming the views that failed) when fewer views than "
+        "this are registered by SfM.",
+    )
+    min_registered_fraction: float = Field(
+        default=0.5,
+        ge=0.0,
+        le=1.0,
+        description="Poses also fail when SfM registers less than this fraction of the views (a capture "
+        "that falls apart into pieces would otherwise give a partial object).",
+    )
+    min_sparse_points: int = Field(
+        default=50,
+        ge=1,
+        description="Poses fail when fewer 3D points than this are triangulated from 3 or more views (a "
+        "textureless object, or frames that do not overlap: chance matches seldom agree in 3 views); "
+        "dense stereo takes its view pairs and depth ranges from them.",
+    )
+    sift_max_features: int = Field(
+        default=4096, ge=64, description="Most SIFT features extracted per view."
+    )
+    sift_peak_threshold: float = Field(
+        default=0.002,
+        gt=0.0,
+        description="SIFT detection threshold on the difference-of-Gaussians peak (COLMAP's default "
+        "0.0067 finds too few features on smooth, weakly textured objects).",
+    )
+    sift_affine_shape: bool = Field(
+        default=True,
+        description="Affine-adapted SIFT (COLMAP estimate_affine_shape): about twice the extraction time, "
+        "but features survive the 30-45 degree viewpoint changes of a ring of views far better.",
+    )
+    sift_upsample: bool = Field(
+        default=True,
+        description="Detect SIFT features on the image upsampled 2x (COLMAP first_octave -1): more small "
+        "features (which small objects need), about 3x the extraction time.",
+    )
+    sift_equalize: bool = Field(
+        default=True,
+        description="Contrast-limited adaptive histogram equalization (CLAHE) of the 8-bit grey images "
+        "before SIFT: more features on weakly textured surfaces.",
+    )
+    exhaustive_matching_max_views: int = Field(
+        default=50,
+        ge=2,
+        description="Match every pair of views up to this many views; above it, each view is matched with "
+        "its sequential_matching_overlap successors in capture order (and quadratically spaced ones).",
+    )
+    sequential_matching_overlap: int = Field(
+        default=12, ge=1, description="Successors in capture order each view is matched with (many views)."
+    )
+    sfm_init_min_inliers: int = Field(
+        default=50,
+        ge=15,
+        description="Verified matches the initial view pair of incremental SfM needs (COLMAP: 100).",
+    )
+    sfm_register_min_inliers: int = Field(
+        default=15,
+        ge=6,
+        description="2D-3D inliers a view needs to be registered by incremental SfM (COLMAP: 30).",
+    )
+    sfm_max_reprojection_error: float = Field(
+        default=2.0,
+        ge=0.0,
+        description="After incremental SfM, observations reprojecting farther than this (pixels) are "
+        "dropped and a last bundle adjustment with a robust (Cauchy, 1 px) loss refines poses, focal "
+        "lengths and points (0: skip; COLMAP keeps observations up to 4 px).",
+    )
+    sfm_shared_intrinsics: bool = Field(
+        default=True,
+        description="Without given intrinsics, views of one image size share one estimated camera "
+        "(one focal length: far better constrained than one per view).",
+    )
+    sfm_seed: int = Field(default=0, ge=0, description="Random seed of RANSAC and view selection in SfM.")
+
     visibility_min_cos: float = Field(
         default=0.05,
         ge=-1.0,
@@ -76,6 +154,150 @@ class GeometryOptions(_Options):
         "a vertex added by subdivision is visible in the views in which the input face it lies on is "
         "(3: all corners, conservative: no new vertex gets a view in which part of its face may be hidden).",
     )
+    # -- dense multi-view stereo (pmvir.geometry.mvs*)
+    mvs_backend: Literal["auto", "cpu", "colmap-cuda"] = Field(
+        default="auto",
+        description="Dense stereo: 'cpu' (pmvir's plane sweep), 'colmap-cuda' (COLMAP PatchMatch and "
+        "stereo fusion through pycolmap, needs pycolmap built with CUDA), 'auto' (colmap-cuda when "
+        "pycolmap.has_cuda, else cpu).",
+    )
+    mvs_scale: float = Field(
+        default=0.5,
+        gt=0.0,
+        le=1.0,
+        description="CPU stereo works on images resampled by this factor (0.5: half width and height, "
+        "a quarter of the pixels; chosen for the time budget on two cores).",
+    )
+    mvs_colour: bool = Field(
+        default=True,
+        description="CPU stereo matches the three colour channels (ZNCC with covariances and variances "
+        "summed over colours); False: their mean (faster, loses hue-only texture).",
+    )
+    mvs_neighbours: int = Field(
+        default=5, ge=1, le=20, description="Source views matched against each reference view."
+    )
+    mvs_top_k: int = Field(
+        default=2,
+        ge=1,
+        le=20,
+        description="Per pixel, the mean of this many best neighbour costs is the aggregated cost "
+        "(robust to occlusion and highlights in the other neighbours).",
+    )
+    mvs_planes: int = Field(
+        default=96, ge=8, le=1024, description="Fronto-parallel depth planes, evenly spaced in inverse depth."
+    )
+    mvs_window: int = Field(
+        default=7, ge=3, le=31, description="ZNCC window side in pixels of the stereo grid (odd)."
+    )
+    mvs_min_score: float = Field(
+        default=0.3,
+        ge=-1.0,
+        lt=1.0,
+        description="Smallest aggregated ZNCC for a depth to be kept before the consistency filter.",
+    )
+    mvs_min_angle_deg: float = Field(
+        default=5.0, ge=0.0, lt=90.0, description="Smallest triangulation angle of a neighbour view, degrees."
+    )
+    mvs_max_angle_deg: float = Field(
+        default=60.0, gt=0.0, le=180.0, description="Largest triangulation angle of a neighbour view, degrees."
+    )
+    mvs_depth_margin: float = Field(
+        default=0.1,
+        ge=0.0,
+        le=2.0,
+        description="A view's depth range (1st to 99th percentile of its sparse points' depths) is "
+        "widened on both sides by this fraction of its far depth.",
+    )
+    mvs_consistency_px: float = Field(
+        default=1.0,
+        gt=0.0,
+        description="Geometric consistency: largest forward-backward reprojection error, pixels of the "
+        "stereo grid.",
+    )
+    mvs_consistency_depth: float = Field(
+        default=0.01, gt=0.0, lt=1.0, description="Geometric consistency: largest relative depth difference."
+    )
+    mvs_min_consistent: int = Field(
+        default=2, ge=1, le=20, description="A depth is fused when at least this many other views agree with it."
+    )
+    mvs_voxel: float = Field(
+        default=0.002,
+        ge=0.0,
+        description="Fused points are thinned to one per cube of this side, a fraction of the sparse "
+        "points' bounding-box diagonal (0: no thinning).",
+    )
+    mvs_min_points: int = Field(
+        default=1000,
+        ge=100,
+        description="Fewer fused points than this is a ReconstructionError (textureless or non-overlapping "
+        "views), not an empty mesh.",
+    )
+    mvs_min_consistent_fraction: float = Field(
+        default=0.05,
+        ge=0.0,
+        lt=1.0,
+        description="CPU stereo: when on average less than this fraction of a registered view's object "
+        "(mask) pixels (without a mask: of its depths) gets a depth that passes the consistency filter, the "
+        "views are textureless or do not overlap: a ReconstructionError (measured: textured synthetic "
+        "captures 0.15-0.75, a textureless sphere and frames with unrelated textures at most 0.02).",
+    )
+    # -- initial surface (pmvir.geometry.surface)
+    surface_poisson_depth: int | None = Field(
+        default=None,
+        ge=5,
+        le=12,
+        description="Screened Poisson octree depth (grid at most 2^depth per side); None: automatic, the "
+        "depth whose finest cell is closest to surface_poisson_voxel_px full-resolution pixels at the median "
+        "viewing distance, clamped to 6..10.",
+    )
+    surface_poisson_voxel_px: float = Field(
+        default=3.0,
+        gt=0.0,
+        description="Automatic Poisson depth: target finest-cell size in full-resolution pixels (3: measured "
+        "more accurate than 1.5 on the benchmark models, the coarser grid averaging the stereo noise, and "
+        "3x faster).",
+    )
+    surface_trim_density_quantile: float = Field(
+        default=0.0,
+        ge=0.0,
+        lt=1.0,
+        description="Poisson vertices whose octree sample density is below this quantile are removed "
+        "(0: off; the distance and silhouette trimming remove unobserved parts without cutting holes "
+        "into well observed ones).",
+    )
+    surface_trim_distance: float = Field(
+        default=0.01,
+        gt=0.0,
+        description="Poisson vertices farther than this fraction of the dense points' bounding-box "
+        "diagonal from every dense point are removed (unobserved guesses).",
+    )
+    surface_target_faces: int = Field(
+        default=150_000, ge=100, description="The trimmed surface is simplified to at most this many faces."
+    )
+    surface_min_angle_deg: float = Field(
+        default=2.0,
+        ge=0.0,
+        lt=30.0,
+        description="Triangles with a smaller interior angle (degrees) are slivers and are collapsed.",
+    )
+    surface_split_factor: float = Field(
+        default=1.75,
+        ge=1.0,
+        description="Before visibility and subdivision, faces projecting larger than this times "
+        "subdivision_max_area_px (in a view they face) are bisected, so that the uniform sqrt(3) "
+        "subdivision needs one step fewer (1.75: one step then brings the largest below the threshold).",
+    )
+
+    @model_validator(mode="after")
+    def _check_mvs(self) -> GeometryOptions:
+        if self.mvs_window % 2 == 0:
+            raise ValueError(f"mvs_window must be odd, got {self.mvs_window}")
+        if self.mvs_min_angle_deg >= self.mvs_max_angle_deg:
+            raise ValueError(
+                f"mvs_min_angle_deg ({self.mvs_min_angle_deg}) must be below mvs_max_angle_deg "
+                f"({self.mvs_max_angle_deg})"
+            )
+        return self
 
 
 class RefineOptions(_Options):
@@ -89,6 +311,14 @@ class RefineOptions(_Options):
         default=True, description="Use the polarimetric term E_pol (False: the MVIR baseline, --no-polarimetric)."
     )
     dop_weight: bool = Field(default=True, description="Weight each E_pol pair by its observed DoP rho.")
+    dop_min: float = Field(
+        default=0.02,
+        ge=0.0,
+        lt=1.0,
+        description="Pairs whose observed DoP at the start of a stage is below this are left out of E_pol for "
+        "the stage: there the AoP is noise (at a normalized Stokes noise of 0.01 a Lambertian surface shows "
+        "DoP ~0.01 with random AoP). 0 keeps every pair, as the paper's equation does.",
+    )
     intensity: Literal["min", "int"] = Field(
         default="min",
         description="Observed colour in E_pho: 'min' = I_min = (1 - rho) I_int (the paper's), 'int' = I_int.",
@@ -116,6 +346,12 @@ class RefineOptions(_Options):
         default=1e-9, ge=0.0, description="A stage stops when the largest gradient component is at most this."
     )
     history_size: int = Field(default=10, ge=1, le=100, description="L-BFGS memory (correction pairs).")
+    albedo_solve: Literal["projected", "joint"] = Field(
+        default="projected",
+        description="'projected': at every evaluation the albedo is set to its exact minimizer for the current "
+        "geometry and lighting (E_pho + tau_psm E_psm is quadratic in it; variable projection, same minimizers, "
+        "much faster convergence); 'joint': the albedo is one more block of L-BFGS unknowns.",
+    )
     precondition_lambda: float = Field(
         default=20.0,
         ge=0.0,
@@ -126,9 +362,9 @@ class RefineOptions(_Options):
         default=30, ge=0, le=1000, description="Terms of the Neumann series approximating the preconditioner."
     )
     vertex_motion: Literal["normal", "free"] = Field(
-        default="normal",
-        description="'normal': each vertex moves along its normal at the start of the stage (1 unknown per "
-        "vertex); 'free': full 3D motion (3 unknowns per vertex).",
+        default="free",
+        description="'free': full 3D vertex motion (3 unknowns per vertex; measured more accurate); 'normal': "
+        "each vertex moves along its normal at the start of the stage (1 unknown per vertex).",
     )
     intensity_units: float = Field(
         default=255.0,
@@ -156,7 +392,7 @@ class RefineOptions(_Options):
     dtype: Literal["float32", "float64"] = Field(default="float32", description="Floating-point precision.")
 
     @model_validator(mode="after")
-    def _same_stage_count(self) -> "RefineOptions":
+    def _same_stage_count(self) -> RefineOptions:
         lengths = {len(self.tau_pol), len(self.tau_gsm), len(self.tau_psm), len(self.gsm_exponent)}
         if len(lengths) != 1:
             raise ValueError(

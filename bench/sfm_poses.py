@@ -1,0 +1,158 @@
+"""Benchmark of the poses step (pmvir.geometry.sfm): known-pose triangulation and SfM.
+
+Usage: .venv/bin/python bench/sfm_poses.py [--models bunny dragon armadillo] [--views 36]
+       [--size 612x512] [--focal-factor 1.2] [--keep DIR]
+
+For each model of ../shared/data/models (normalized, plastic, pmvir synth's built-in renderer)
+it synthesizes a capture, decodes I_int and runs ``estimate_poses`` twice: with the capture's
+cameras (known poses) and without them (SfM, intrinsics estimated). It prints per run the
+registered views, sparse points (and their median / 90th-percentile distance to the true
+surface for known poses), the mean reprojection error, the camera-centre errors after a Umeyama
+similarity (largest, in % of the scene size = bounding-box diagonal of the true camera centres,
+and in object units = bounding-box diagonal 1), the focal-length error and the time per step,
+and writes bench/results/sfm_poses.json. Target: the whole geometric stage under 3 minutes per
+model on 2 cores, so poses well under a minute.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pmvir.capture import open_capture
+from pmvir.config import GeometryOptions
+from pmvir.decode import decode_frame
+from pmvir.errors import ReconstructionError
+from pmvir.evaluate import SurfaceQuery
+from pmvir.geometry.align import umeyama
+from pmvir.geometry.sfm import estimate_poses
+from pmvir.io.ply import read_mesh
+from pmvir.synth.generate import synthesize
+
+MODELS = {"bunny": "bunny.ply", "dragon": "dragon.ply", "armadillo": "armadillo.obj"}
+#: Up axis of each model file (Stanford scans are y-up).
+UP = {"bunny": "y", "dragon": "y", "armadillo": "y"}
+
+
+def _shared() -> Path:
+    env = os.environ.get("PMVIR_SHARED")
+    return Path(env) if env else Path(__file__).resolve().parents[1] / ".." / "shared"
+
+
+def _run(capture: Path, known: bool, workdir: Path) -> dict:
+    with open_capture(capture) as cap:
+        t0 = time.perf_counter()
+        images, masks = [], []
+        for i in range(len(cap)):
+            raw = cap.read_raw(i)
+            mask = cap.read_mask(i)
+            images.append(decode_frame(raw.mosaic, cap.layout, saturated=raw.saturated, mask=mask).i_int)
+            masks.append(mask)
+        decode_s = time.perf_counter() - t0
+        true = [f.camera for f in cap.frames]
+        names = [f.name for f in cap.frames]
+    t0 = time.perf_counter()
+    cpu0 = time.process_time()
+    model = estimate_poses(
+        images, names, cameras=true if known else None, masks=masks, options=GeometryOptions(), workdir=workdir
+    )
+    row: dict = {
+        "mode": "known" if known else "sfm",
+        "registered": model.num_registered,
+        "views": len(names),
+        "points": len(model.points),
+        "reprojection_px": model.mean_reprojection_error,
+        "wall_s": time.perf_counter() - t0,
+        "cpu_s": time.process_time() - cpu0,
+        "decode_s": decode_s,
+        "timings": model.timings,
+    }
+    if known:
+        mesh = read_mesh(capture / "gt" / "mesh.ply")
+        closest, _, _ = SurfaceQuery(mesh.vertices, mesh.faces).closest(model.points)
+        d = np.linalg.norm(closest - model.points, axis=1)
+        row["points_median_dist"] = float(np.median(d))
+        row["points_p90_dist"] = float(np.percentile(d, 90))
+    else:
+        reg = [i for i, c in enumerate(model.cameras) if c is not None]
+        est = np.stack([model.cameras[i].center for i in reg])
+        tru = np.stack([true[i].center for i in reg])
+        err = np.linalg.norm(umeyama(est, tru).apply(est) - tru, axis=1)
+        scene = float(np.linalg.norm(tru.max(0) - tru.min(0)))
+        row["centre_err_max"] = float(err.max())
+        row["centre_err_mean"] = float(err.mean())
+        row["centre_err_max_pct_scene"] = float(100 * err.max() / scene)
+        row["scene_size"] = scene
+        focal = np.array([model.cameras[i].K[0, 0] for i in reg])
+        row["focal_err_pct"] = float(100 * (focal.mean() / true[0].K[0, 0] - 1.0))
+    return row
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--models", nargs="+", default=list(MODELS))
+    ap.add_argument("--views", type=int, default=36)
+    ap.add_argument("--size", default="612x512")
+    ap.add_argument("--focal-factor", type=float, default=1.2)
+    ap.add_argument("--keep", type=Path, help="keep the captures and work folders here")
+    args = ap.parse_args()
+    models_dir = _shared() / "data" / "models"
+    if not models_dir.is_dir():
+        print(f"no models at {models_dir}", file=sys.stderr)
+        return 1
+    results = []
+    with tempfile.TemporaryDirectory() as tmp:
+        root = args.keep or Path(tmp)
+        for name in args.models:
+            capture = root / f"{name}-capture"
+            t0 = time.perf_counter()
+            if not (capture / "capture.json").exists():
+                synthesize(
+                    capture, mesh=models_dir / MODELS[name], views=args.views, size=args.size, material="plastic",
+                    focal_factor=args.focal_factor, mesh_up=UP[name], overwrite=True,
+                )
+            synth_s = time.perf_counter() - t0
+            for known in (True, False):
+                try:
+                    row = {"model": name, "synth_s": synth_s, **_run(capture, known, root / f"{name}-work")}
+                except ReconstructionError as exc:
+                    results.append({"model": name, "mode": "known" if known else "sfm", "error": str(exc)})
+                    print(f"{name:10s} {'known' if known else 'sfm':5s} ReconstructionError: {exc}", flush=True)
+                    continue
+                results.append(row)
+                t = row["timings"]
+                steps = " ".join(f"{k}={v:.1f}" for k, v in t.items() if k != "total")
+                quality = (
+                    f"points on surface: median {row['points_median_dist']:.4f} p90 {row['points_p90_dist']:.4f}"
+                    if known else
+                    f"centres: max {row['centre_err_max']:.4f} ({row['centre_err_max_pct_scene']:.2f} % of scene "
+                    f"{row['scene_size']:.2f}) mean {row['centre_err_mean']:.4f}; focal {row['focal_err_pct']:+.2f} %"
+                )
+                print(
+                    f"{name:10s} {row['mode']:5s} reg {row['registered']:2d}/{row['views']} pts {row['points']:5d} "
+                    f"reproj {row['reprojection_px']:.2f}px | {quality} | total {t['total']:.1f}s "
+                    f"(cpu {row['cpu_s']:.1f}s; {steps})",
+                    flush=True,
+                )
+    out = Path(__file__).resolve().parent / "results" / "sfm_poses.json"
+    out.parent.mkdir(exist_ok=True)
+    out.write_text(json.dumps({
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load_avg": os.getloadavg()},
+        "views": args.views, "size": args.size, "focal_factor": args.focal_factor, "results": results,
+    }, indent=1))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

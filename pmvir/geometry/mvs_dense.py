@@ -1,0 +1,358 @@
+"""Dense reconstruction of the registered views: depth maps, consistency filter, fusion.
+
+:func:`dense_stereo` chooses the backend (``GeometryOptions.mvs_backend``):
+
+* ``cpu``: :mod:`pmvir.geometry.mvs` plane sweep per registered view on a
+  grid scaled by ``mvs_scale``, then :mod:`pmvir.geometry.mvs_fusion`
+  (geometric consistency across the neighbours, point averaging, voxel
+  thinning, PCA normals facing the cameras);
+* ``colmap-cuda``: :mod:`pmvir.geometry.mvs_colmap` (COLMAP PatchMatch with
+  geometric consistency and COLMAP's stereo fusion), on full-resolution images;
+* ``auto``: ``colmap-cuda`` when ``pycolmap.has_cuda``, else ``cpu``.
+
+Both use pmvir's view selection (:func:`~pmvir.geometry.mvs.select_neighbours`)
+and per-view depth ranges from the sparse points. Fewer fused points than
+``mvs_min_points`` raise :class:`~pmvir.errors.ReconstructionError` naming the
+views that gave no consistent depth (a textureless object, or views that do
+not overlap), instead of producing an empty mesh.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pmvir.camera import Camera
+from pmvir.config import GeometryOptions
+from pmvir.errors import CanceledError, ReconstructionError
+from pmvir.geometry.mvs import DepthMap, prepare_view, select_neighbours, sweep_depth, view_depth_range
+from pmvir.geometry.mvs_fusion import DensePoints, estimate_normals, filter_and_fuse, voxel_thin
+
+Progress = Callable[[float, str], None]
+Cancel = Callable[[], bool]
+
+
+@dataclass(frozen=True)
+class DenseResult:
+    """What dense stereo produced.
+
+    Attributes:
+        points: the fused oriented points.
+        backend: 'cpu' or 'colmap-cuda'.
+        neighbours: per view the source views used (empty for unregistered views).
+        depth_maps: per view the CPU depth map (None for unregistered views and the COLMAP backend).
+        valid_depths: per view the number of depths before the consistency filter (-1: not computed).
+        consistent_fraction: per view the fraction of its (stereo-grid) mask pixels whose depth
+            passed the consistency filter; for a view without a mask, the fraction of its depths
+            (-1: not computed: unregistered view or COLMAP backend).
+        fused_per_view: per view the number of fused points it contributed (after thinning).
+        timings: seconds per step ('depth_maps', 'fusion').
+    """
+
+    points: DensePoints
+    backend: str
+    neighbours: list[list[int]]
+    depth_maps: list[DepthMap | None]
+    valid_depths: list[int]
+    consistent_fraction: list[float]
+    fused_per_view: list[int]
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def resolve_backend(backend: str) -> str:
+    """'cpu' or 'colmap-cuda' for an ``mvs_backend`` option value.
+
+    Raises:
+        ReconstructionError: 'colmap-cuda' requested but pycolmap has no CUDA.
+    """
+    import pycolmap
+
+    if backend == "auto":
+        return "colmap-cuda" if pycolmap.has_cuda else "cpu"
+    if backend == "colmap-cuda" and not pycolmap.has_cuda:
+        raise ReconstructionError(
+            "mvs_backend 'colmap-cuda' needs pycolmap built with CUDA (pycolmap.has_cuda is False); "
+            "use 'cpu' or 'auto'"
+        )
+    return backend
+
+
+def _check_cancel(cancel: Cancel | None) -> None:
+    if cancel is not None and cancel():
+        raise CanceledError("canceled during dense stereo")
+
+
+def dense_stereo(
+    images: Sequence[np.ndarray],
+    masks: Sequence[np.ndarray | None],
+    cameras: Sequence[Camera | None],
+    sparse_points: np.ndarray,
+    *,
+    names: Sequence[str],
+    options: GeometryOptions,
+    workdir: str | Path | None = None,
+    progress: Progress | None = None,
+    cancel: Cancel | None = None,
+) -> DenseResult:
+    """Dense oriented points of the registered views (module docstring).
+
+    Args:
+        images: per view (H, W, 3) float32 linear I_int.
+        masks: per view a bool (H, W) object mask or None.
+        cameras: per view its camera, None where the view is not registered.
+        sparse_points: (P, 3) world points from SfM / triangulation (view selection, depth ranges).
+        names: per view a name for messages (the frame stem).
+        options: the geometry options (``mvs_*`` fields).
+        workdir: scratch folder (needed by the COLMAP backend).
+        progress: called as ``progress(fraction in [0, 1], message)``.
+        cancel: polled between views; True raises CanceledError.
+
+    Returns:
+        :class:`DenseResult`.
+
+    Raises:
+        ReconstructionError: no usable view pair, or fewer than ``options.mvs_min_points`` points.
+        CanceledError: ``cancel()`` returned True.
+    """
+    n = len(images)
+    if not (len(masks) == len(cameras) == len(names) == n):
+        raise ValueError(
+            f"images, masks, cameras and names must have one entry per view, got "
+            f"{n}, {len(masks)}, {len(cameras)}, {len(names)}"
+        )
+    pts = np.asarray(sparse_points, np.float64).reshape(-1, 3)
+    registered = [i for i in range(n) if cameras[i] is not None]
+    if len(registered) < 2:
+        raise ReconstructionError(f"dense stereo needs at least 2 registered views, got {len(registered)}")
+    if len(pts) < 3:
+        raise ReconstructionError(f"dense stereo needs sparse points for depth ranges, got {len(pts)}")
+    backend = resolve_backend(options.mvs_backend)
+    reg_cams = [cameras[i] for i in registered]
+    reg_masks = [masks[i] for i in registered]
+    nb_local = select_neighbours(
+        reg_cams,
+        pts,
+        count=options.mvs_neighbours,
+        min_angle_deg=options.mvs_min_angle_deg,
+        max_angle_deg=options.mvs_max_angle_deg,
+        masks=reg_masks,
+    )
+    neighbours: list[list[int]] = [[] for _ in range(n)]
+    for k, i in enumerate(registered):
+        neighbours[i] = [registered[j] for j in nb_local[k]]
+    diag = float(np.linalg.norm(np.percentile(pts, 99, 0) - np.percentile(pts, 1, 0)))
+    if backend == "colmap-cuda":
+        return _dense_colmap(
+            images, masks, cameras, pts, names, neighbours, registered, options, workdir, diag, progress
+        )
+    return _dense_cpu(
+        images, masks, cameras, pts, names, neighbours, registered, options, diag, progress, cancel
+    )
+
+
+def _dense_cpu(
+    images: Sequence[np.ndarray],
+    masks: Sequence[np.ndarray | None],
+    cameras: Sequence[Camera | None],
+    pts: np.ndarray,
+    names: Sequence[str],
+    neighbours: list[list[int]],
+    registered: list[int],
+    options: GeometryOptions,
+    diag: float,
+    progress: Progress | None,
+    cancel: Cancel | None,
+) -> DenseResult:
+    n = len(images)
+    t0 = time.perf_counter()
+    views = [None] * n
+    for i in registered:
+        if neighbours[i] or any(i in neighbours[j] for j in registered):
+            views[i] = prepare_view(
+                images[i], masks[i], cameras[i], scale=options.mvs_scale, colour=options.mvs_colour
+            )
+    depth_maps: list[DepthMap | None] = [None] * n
+    valid = [-1] * n
+    for k, i in enumerate(registered):
+        _check_cancel(cancel)
+        if progress is not None:
+            progress(k / len(registered), f"depth map {k + 1}/{len(registered)} (view {names[i]})")
+        ref = views[i]
+        if ref is None or not neighbours[i]:
+            continue
+        rng = view_depth_range(ref.camera, pts, ref.mask, margin=options.mvs_depth_margin)
+        if rng is None:
+            continue
+        depth_maps[i] = sweep_depth(
+            ref,
+            [views[j] for j in neighbours[i]],
+            *rng,
+            planes=options.mvs_planes,
+            window=options.mvs_window,
+            top_k=options.mvs_top_k,
+            min_score=options.mvs_min_score,
+        )
+        valid[i] = int(depth_maps[i].valid.sum())
+    t1 = time.perf_counter()
+    _check_cancel(cancel)
+    if progress is not None:
+        progress(1.0, "fusing depth maps")
+    pts_f, views_f, counts_f = filter_and_fuse(
+        depth_maps,
+        neighbours,
+        max_reproj_px=options.mvs_consistency_px,
+        max_rel_depth=options.mvs_consistency_depth,
+        min_consistent=options.mvs_min_consistent,
+    )
+    consistent = np.bincount(views_f, minlength=n)
+    fraction = [-1.0] * n
+    for i in range(n):
+        if views[i] is not None:  # of the object's pixels; without a mask, of the depths found
+            base = int(views[i].mask.sum()) if masks[i] is not None else max(valid[i], 0)
+            fraction[i] = float(consistent[i] / max(base, 1))
+    if options.mvs_voxel > 0:
+        keep = voxel_thin(pts_f, options.mvs_voxel * diag)
+        pts_f, views_f, counts_f = pts_f[keep], views_f[keep], counts_f[keep]
+    dense = DensePoints(
+        points=pts_f, normals=estimate_normals(pts_f, views_f, cameras), views=views_f, consistent=counts_f
+    )
+    result = DenseResult(
+        points=dense,
+        backend="cpu",
+        neighbours=neighbours,
+        depth_maps=depth_maps,
+        valid_depths=valid,
+        consistent_fraction=fraction,
+        fused_per_view=np.bincount(views_f, minlength=n).tolist(),
+        timings={"depth_maps": t1 - t0, "fusion": time.perf_counter() - t1},
+    )
+    _check_enough(result, names, registered, options)
+    return result
+
+
+def _dense_colmap(
+    images: Sequence[np.ndarray],
+    masks: Sequence[np.ndarray | None],
+    cameras: Sequence[Camera | None],
+    pts: np.ndarray,
+    names: Sequence[str],
+    neighbours: list[list[int]],
+    registered: list[int],
+    options: GeometryOptions,
+    workdir: str | Path | None,
+    diag: float,
+    progress: Progress | None,
+) -> DenseResult:
+    from pmvir.geometry.mvs_colmap import colmap_fusion, colmap_patch_match, write_workspace
+
+    if workdir is None:
+        raise ValueError("the colmap-cuda backend needs a workdir")
+    n = len(images)
+    t0 = time.perf_counter()
+    local = {i: k for k, i in enumerate(registered)}
+    root = write_workspace(
+        Path(workdir) / "colmap-dense",
+        [images[i] for i in registered],
+        [masks[i] for i in registered],
+        [cameras[i] for i in registered],
+        [names[i] for i in registered],
+        [[local[j] for j in neighbours[i]] for i in registered],
+        pts,
+    )
+    ranges = [
+        view_depth_range(cameras[i], pts, masks[i], margin=options.mvs_depth_margin) for i in registered
+    ]
+    ranges = [r for r in ranges if r is not None]
+    if not ranges:
+        raise ReconstructionError("no registered view sees the sparse points: cannot bound the depth range")
+    if progress is not None:
+        progress(0.0, "COLMAP PatchMatch stereo (CUDA)")
+    colmap_patch_match(root, depth_range=(min(r[0] for r in ranges), max(r[1] for r in ranges)))
+    t1 = time.perf_counter()
+    if progress is not None:
+        progress(1.0, "COLMAP stereo fusion")
+    points, normals = colmap_fusion(
+        root,
+        max_reproj_error=2.0 * options.mvs_consistency_px / options.mvs_scale,
+        max_depth_error=options.mvs_consistency_depth,
+    )
+    views = _nearest_view(points, normals, cameras, registered)
+    if options.mvs_voxel > 0:
+        keep = voxel_thin(points, options.mvs_voxel * diag)
+        points, normals, views = points[keep], normals[keep], views[keep]
+    dense = DensePoints(
+        points=points, normals=normals, views=views, consistent=np.zeros(len(points), np.int64)
+    )
+    per_view = np.bincount(views, minlength=n).tolist() if len(views) else [0] * n
+    result = DenseResult(
+        points=dense,
+        backend="colmap-cuda",
+        neighbours=neighbours,
+        depth_maps=[None] * n,
+        valid_depths=[-1] * n,
+        consistent_fraction=[-1.0] * n,
+        fused_per_view=per_view,
+        timings={"depth_maps": t1 - t0, "fusion": time.perf_counter() - t1},
+    )
+    _check_enough(result, names, registered, options)
+    return result
+
+
+def _nearest_view(
+    points: np.ndarray, normals: np.ndarray, cameras: Sequence[Camera | None], registered: list[int]
+) -> np.ndarray:
+    """Per point, the registered view whose viewing direction best faces its normal."""
+    if len(points) == 0:
+        return np.zeros(0, np.int64)
+    centres = np.stack([cameras[i].center for i in registered])
+    best = np.full(len(points), -np.inf)
+    view = np.zeros(len(points), np.int64)
+    for k, c in enumerate(centres):
+        d = c - points
+        cos = (d * normals).sum(1) / np.maximum(np.linalg.norm(d, axis=1), 1e-12)
+        better = cos > best
+        best[better] = cos[better]
+        view[better] = registered[k]
+    return view
+
+
+def _check_enough(
+    result: DenseResult, names: Sequence[str], registered: list[int], options: GeometryOptions
+) -> None:
+    """ReconstructionError when too few points were fused, or too few depths passed the consistency filter."""
+    count = len(result.points)
+    fractions = [result.consistent_fraction[i] for i in registered if result.consistent_fraction[i] >= 0]
+    overall = float(np.mean(fractions)) if fractions else None
+    if count >= options.mvs_min_points and (
+        overall is None or overall >= options.mvs_min_consistent_fraction
+    ):
+        return
+    weak = [
+        names[i]
+        for i in registered
+        if result.fused_per_view[i] == 0
+        or 0 <= result.consistent_fraction[i] < options.mvs_min_consistent_fraction
+    ]
+    no_nb = [names[i] for i in registered if not result.neighbours[i]]
+    detail = f"; views without a neighbour sharing sparse points: {', '.join(no_nb)}" if no_nb else ""
+    share = (
+        ""
+        if overall is None
+        else (
+            f"; on average {100 * overall:.1f}% of a view's object pixels got a consistent depth "
+            f"(mvs_min_consistent_fraction: {100 * options.mvs_min_consistent_fraction:.1f}%)"
+        )
+    )
+    raise ReconstructionError(
+        f"dense stereo fused {count} points from {len(registered)} registered views (mvs_min_points: "
+        f"{options.mvs_min_points}){share}; views with (almost) no consistent depth: "
+        f"{', '.join(weak) if weak else 'none'}{detail}. The object may be textureless, or the views may "
+        "not overlap."
+    )
+
+
+__all__ = ["DenseResult", "dense_stereo", "resolve_backend"]

@@ -1,0 +1,378 @@
+"""Camera poses and sparse points (pipeline stage 2, first step), with pycolmap.
+
+:func:`estimate_poses` runs in one of two modes:
+
+* **known poses** (every view's Camera is given, as from a calibrated rig):
+  SIFT features are matched along the known epipolar lines and triangulated
+  with the poses and intrinsics held fixed (``pycolmap.triangulate_points``);
+  the cameras come back as given, bit for bit. Only points seen in 3 or more
+  views are kept (two-view points from chance matches in the epipolar band
+  were mostly wrong: about 60 % in our measurements).
+* **SfM** (otherwise): SIFT features, exhaustive matching (or sequential in
+  capture order above ``exhaustive_matching_max_views`` views), COLMAP's
+  incremental mapping and a last robust bundle adjustment. Given intrinsics are
+  held fixed (PINHOLE); missing ones are estimated as SIMPLE_PINHOLE (one focal
+  length, principal point at the image centre), shared by the views of one
+  image size unless ``sfm_shared_intrinsics`` is off. The result lives in
+  SfM's own frame (known up to a similarity); of several disconnected models
+  the one with most views is kept.
+
+The COLMAP plumbing (database, matching, mapping, refinement) is in
+:mod:`pmvir.geometry.sfm_colmap`.
+
+SIFT sees an 8-bit grey image per view (:func:`sift_image`): the channel mean,
+exposed so the 99.5th percentile of the foreground is white, sRGB-encoded and
+(``sift_equalize``) contrast-equalized with CLAHE. Masks, eroded by
+``_MASK_EROSION_PX`` so that no feature sits on the silhouette (a silhouette is
+no fixed surface point), restrict where features are detected. Where masks are
+given, sparse points must also project into every view's mask (grown by
+``_HULL_TOLERANCE_PX``): the visual hull.
+
+Failures are :class:`~pmvir.errors.ReconstructionError` naming the views that
+failed with their feature and match counts: fewer views than
+``min_registered_views`` (or than ``min_registered_fraction`` of them)
+registered, or fewer than ``min_sparse_points`` points seen in 3 or more views
+(a textureless object, or frames that do not overlap). COLMAP's own log lines
+are silenced below FATAL while it runs.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+
+from pmvir.camera import Camera
+from pmvir.config import GeometryOptions
+from pmvir.errors import ReconstructionError
+from pmvir.geometry.sfm_colmap import Progress, fundamental_matrix, quiet_colmap, run_colmap, sampson_error
+from pmvir.io.colmap_text import image_from_camera, pinhole_from_camera, write_colmap_text_model
+from pmvir.polarization.preview import srgb_encode
+
+__all__ = [
+    "Progress", "SparseModel", "estimate_poses", "fundamental_matrix", "sampson_error", "sift_image",
+    "write_poses_text",
+]
+
+#: Masks are eroded by this many pixels before feature detection (no features on the silhouette).
+_MASK_EROSION_PX = 4
+
+#: Sparse points must project into every mask grown by this many pixels (visual hull).
+_HULL_TOLERANCE_PX = 3
+
+#: Failure messages call views with fewer SIFT features than this (median) textureless.
+_FEW_FEATURES = 100
+
+#: Percentile of the foreground grey level mapped to white in the SIFT images.
+_EXPOSURE_PERCENTILE = 99.5
+
+
+@dataclass
+class SparseModel:
+    """Cameras and sparse 3D points of a capture.
+
+    Attributes:
+        cameras: one per view in capture order; None where the view is not registered.
+        points: (P, 3) float64 world points.
+        point_colors: (P, 3) uint8 sRGB colour of each point (mean of its observed pixels), or None.
+        point_views: per point, the int64 indices of the views observing it, or None.
+        mean_reprojection_error: mean over all observations, pixels.
+        registered: per view, whether it has a camera.
+        known_poses: True when the cameras were given (known-pose mode).
+        timings: seconds per step: "images", "features", "matching", then "triangulation"
+            (known poses) or "mapping" and "refinement" (SfM), and "total".
+        names: the views' names, in capture order.
+        num_features: SIFT features per view.
+    """
+
+    cameras: list[Camera | None]
+    points: np.ndarray
+    point_colors: np.ndarray | None
+    point_views: list[np.ndarray] | None
+    mean_reprojection_error: float
+    registered: list[bool]
+    known_poses: bool
+    timings: dict[str, float]
+    names: list[str] = field(default_factory=list)
+    num_features: list[int] = field(default_factory=list)
+
+    @property
+    def num_registered(self) -> int:
+        return int(sum(self.registered))
+
+
+def sift_image(image: np.ndarray, mask: np.ndarray | None = None, *, equalize: bool = True) -> np.ndarray:
+    """The 8-bit grey image SIFT sees.
+
+    Args:
+        image: (H, W, C) or (H, W) float linear intensities (any positive scale).
+        mask: optional (H, W) bool foreground; the exposure is set on it.
+        equalize: apply CLAHE (clip limit 2, 8 x 8 tiles).
+
+    Returns:
+        (H, W) uint8: the channel mean scaled so its 99.5th percentile (over the mask)
+        is 1, sRGB-encoded, optionally equalized.
+    """
+    grey = image.mean(axis=2) if image.ndim == 3 else image
+    if grey.ndim != 2:
+        raise ValueError(f"expected an (H, W) or (H, W, C) image, got shape {image.shape}")
+    grey = np.nan_to_num(grey.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    values = grey[mask] if mask is not None and mask.any() else grey.ravel()
+    level = float(np.percentile(values, _EXPOSURE_PERCENTILE)) if values.size else 0.0
+    scale = 1.0 / level if level > 1e-12 else 1.0
+    out = np.rint(srgb_encode(grey * np.float32(scale)) * 255.0).astype(np.uint8)
+    if equalize:
+        out = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(out)
+    return out
+
+
+def _check_inputs(
+    images: Sequence[np.ndarray],
+    names: Sequence[str],
+    cameras: Sequence[Camera | None] | None,
+    intrinsics: Sequence[np.ndarray | None] | None,
+    masks: Sequence[np.ndarray | None] | None,
+) -> None:
+    n = len(images)
+    if len(names) != n or len(set(names)) != n:
+        raise ValueError(f"expected {n} distinct names, got {len(names)} ({len(set(names))} distinct)")
+    for label, seq in (("cameras", cameras), ("intrinsics", intrinsics), ("masks", masks)):
+        if seq is not None and len(seq) != n:
+            raise ValueError(f"{label} has {len(seq)} entries for {n} images")
+    for i, im in enumerate(images):
+        if im.ndim not in (2, 3) or min(im.shape[:2]) < 16:
+            raise ValueError(f"view {names[i]}: expected an (H, W, C) image of at least 16 x 16, got {im.shape}")
+        h, w = im.shape[:2]
+        if masks is not None and masks[i] is not None and masks[i].shape != (h, w):
+            raise ValueError(f"view {names[i]}: mask {masks[i].shape} does not match the image {(h, w)}")
+        cam = cameras[i] if cameras is not None else None
+        if cam is not None and (cam.width, cam.height) != (w, h):
+            raise ValueError(f"view {names[i]}: camera is {cam.width} x {cam.height}, the image {w} x {h}")
+        k = intrinsics[i] if intrinsics is not None else None
+        for K in (k, None if cam is None else cam.K):
+            if K is not None and (np.shape(K) != (3, 3) or abs(float(np.asarray(K)[0, 1])) > 1e-12):
+                raise ValueError(f"view {names[i]}: intrinsics must be a 3 x 3 K without skew")
+
+
+def _write_inputs(
+    workdir: Path, images: Sequence[np.ndarray], masks: Sequence[np.ndarray | None] | None, options: GeometryOptions
+) -> tuple[Path, Path | None, list[str]]:
+    """SIFT images (and COLMAP masks: 0 = no features) under ``workdir``; returns dirs and file names."""
+    image_dir, mask_dir = workdir / "images", workdir / "masks"
+    for d in (image_dir, mask_dir, workdir / "sparse"):
+        shutil.rmtree(d, ignore_errors=True)
+    image_dir.mkdir(parents=True)
+    files = [f"{i:05d}.png" for i in range(len(images))]
+    has_masks = masks is not None and any(m is not None for m in masks)
+    if has_masks:
+        mask_dir.mkdir()
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * _MASK_EROSION_PX + 1,) * 2)
+    for i, (im, name) in enumerate(zip(images, files, strict=True)):
+        mask = None if masks is None else masks[i]
+        cv2.imwrite(str(image_dir / name), sift_image(im, mask, equalize=options.sift_equalize))
+        if has_masks:
+            m = np.full(im.shape[:2], 255, np.uint8) if mask is None else mask.astype(np.uint8) * 255
+            cv2.imwrite(str(mask_dir / f"{name}.png"), cv2.erode(m, kernel))
+    return image_dir, (mask_dir if has_masks else None), files
+
+
+def _view_intrinsics(
+    i: int, cameras: Sequence[Camera | None] | None, intrinsics: Sequence[np.ndarray | None] | None
+) -> np.ndarray | None:
+    if intrinsics is not None and intrinsics[i] is not None:
+        return np.asarray(intrinsics[i], dtype=np.float64)
+    if cameras is not None and cameras[i] is not None:
+        return cameras[i].K
+    return None
+
+
+def _sparse_points(
+    rec: pycolmap.Reconstruction, view_of_image: dict[int, int], images: Sequence[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Points, their colours and the views observing them.
+
+    A point's colour is the mean linear colour of the pixels holding its observations, with
+    one exposure for all points (99.5th percentile of the brightest channel -> 1), sRGB 8-bit.
+    """
+    ids = sorted(rec.points3D.keys())
+    points = np.zeros((len(ids), 3), dtype=np.float64)
+    linear = np.zeros((len(ids), 3), dtype=np.float64)
+    views: list[np.ndarray] = []
+    for k, pid in enumerate(ids):
+        p = rec.points3D[pid]
+        points[k] = p.xyz
+        seen = []
+        for el in p.track.elements:
+            i = view_of_image[el.image_id]
+            seen.append(i)
+            im = images[i]
+            x, y = rec.images[el.image_id].points2D[el.point2D_idx].xy
+            row = min(max(int(y), 0), im.shape[0] - 1)
+            col = min(max(int(x), 0), im.shape[1] - 1)
+            linear[k] += im[row, col] if im.ndim == 3 else im[row, col, None]
+        linear[k] /= len(seen)
+        views.append(np.unique(seen).astype(np.int64))
+    level = float(np.percentile(linear.max(axis=1), _EXPOSURE_PERCENTILE)) if len(ids) else 1.0
+    colors = np.rint(srgb_encode(linear / max(level, 1e-12)) * 255.0).astype(np.uint8)
+    return points, colors, views
+
+
+def _inside_masks(
+    points: np.ndarray, cameras: Sequence[Camera | None], masks: Sequence[np.ndarray | None] | None
+) -> np.ndarray:
+    """Visual-hull test: (P,) bool, True where a point projects into the (dilated) mask of every
+    view with a camera and a mask that sees it in front and inside the image."""
+    keep = np.ones(len(points), dtype=bool)
+    if masks is None or not len(points):
+        return keep
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * _HULL_TOLERANCE_PX + 1,) * 2)
+    for cam, mask in zip(cameras, masks, strict=True):
+        if cam is None or mask is None:
+            continue
+        grown = cv2.dilate(mask.astype(np.uint8), kernel).astype(bool)
+        uv, z = cam.project(points)
+        col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        seen = (z > 0) & (col >= 0) & (col < mask.shape[1]) & (row >= 0) & (row < mask.shape[0])
+        keep[seen] &= grown[row[seen], col[seen]]
+    return keep
+
+
+def _failure_message(
+    what: str, names: Sequence[str], failed: Sequence[int], features: list[int], partners: list[int]
+) -> str:
+    """``what``, the failed views with their feature and partner counts, and a likely cause."""
+    shown = [f"{names[i]} ({features[i]} features, matched with {partners[i]} views)" for i in failed[:12]]
+    more = f" and {len(failed) - 12} more" if len(failed) > 12 else ""
+    hint = ""
+    if failed and float(np.median([features[i] for i in failed])) < _FEW_FEATURES:
+        hint = " The views hold almost no features: a textureless, dark or blurred object?"
+    elif failed:
+        hint = " The views share too few features: do the frames overlap?"
+    return f"{what}; views that failed: {', '.join(shown)}{more}.{hint}"
+
+
+def estimate_poses(
+    images: Sequence[np.ndarray],
+    names: Sequence[str],
+    *,
+    cameras: Sequence[Camera | None] | None = None,
+    intrinsics: Sequence[np.ndarray | None] | None = None,
+    masks: Sequence[np.ndarray | None] | None = None,
+    options: GeometryOptions,
+    workdir: str | Path,
+    progress: Progress | None = None,
+) -> SparseModel:
+    """Cameras and sparse points of a set of views (module docstring: the two modes).
+
+    Args:
+        images: per view (H, W, 3) float32 linear intensities (I_int; I_min holds fewer
+            view-dependent specular highlights).
+        names: per view a distinct name (used in messages and :func:`write_poses_text`).
+        cameras: per view the known Camera or None; known-pose mode when every entry is given.
+        intrinsics: per view a known (3, 3) K or None (SfM mode; a given camera's K counts too).
+        masks: per view an (H, W) bool foreground mask or None; features only inside.
+        options: the geometry options (``min_registered_views``, ``sift_*``, ``sfm_*``, ...).
+        workdir: scratch folder (created; its images/, masks/, sparse/ and database.db are replaced).
+        progress: called as ``progress(fraction, step)`` between steps; it may raise
+            CanceledError to stop.
+
+    Returns:
+        The SparseModel; in known-pose mode its cameras are the given objects.
+
+    Raises:
+        ValueError: inconsistent arguments (lengths, shapes, skewed K).
+        ReconstructionError: fewer views than ``min_registered_views``; too few registered
+            views; too few 3D points. The message names the views that failed.
+    """
+    t_start = time.perf_counter()
+    n = len(images)
+    _check_inputs(images, names, cameras, intrinsics, masks)
+    if n < options.min_registered_views:
+        raise ReconstructionError(
+            f"too few views: {n} given, poses need at least min_registered_views = {options.min_registered_views}"
+        )
+    report = progress or (lambda fraction, step: None)
+    known = cameras is not None and all(c is not None for c in cameras)
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+
+    report(0.0, "writing SIFT images")
+    t0 = time.perf_counter()
+    image_dir, mask_dir, files = _write_inputs(workdir, images, masks, options)
+    timings["images"] = time.perf_counter() - t0
+    Ks = [_view_intrinsics(i, cameras, intrinsics) for i in range(n)]
+    with quiet_colmap():
+        rec, features, partners = run_colmap(
+            workdir, image_dir, mask_dir, files, [im.shape[:2] for im in images], Ks,
+            list(cameras) if known else None, options, timings, report,
+        )
+
+    index = {name: i for i, name in enumerate(files)}
+    view_of_image = {} if rec is None else {im.image_id: index[im.name] for im in rec.images.values()}
+    result_cameras: list[Camera | None] = list(cameras) if known else [None] * n
+    if not known and rec is not None:
+        for image in rec.images.values():
+            if image.has_pose:
+                i = view_of_image[image.image_id]
+                pose = image.cam_from_world()
+                h, w = images[i].shape[:2]
+                result_cameras[i] = Camera(
+                    K=image.camera.calibration_matrix(), R=pose.rotation.matrix(), t=pose.translation,
+                    width=w, height=h,
+                )
+    registered = [c is not None for c in result_cameras]
+    needed = max(options.min_registered_views, math.ceil(options.min_registered_fraction * n))
+    if sum(registered) < needed:
+        raise ReconstructionError(_failure_message(
+            f"SfM registered {sum(registered)} of {n} views, at least {needed} needed "
+            f"(min_registered_views = {options.min_registered_views}, "
+            f"min_registered_fraction = {options.min_registered_fraction})",
+            names, [i for i in range(n) if not registered[i]], features, partners,
+        ))
+    assert rec is not None
+    points, colors, views = _sparse_points(rec, view_of_image, images)
+    keep = _inside_masks(points, result_cameras, masks)
+    if known:  # two-view points from chance matches in the epipolar band: mostly wrong (measured ~60 %)
+        keep &= np.array([len(v) >= 3 for v in views], dtype=bool)
+    points, colors, views = points[keep], colors[keep], [v for v, k in zip(views, keep, strict=True) if k]
+    multi_view = sum(len(v) >= 3 for v in views)
+    if multi_view < options.min_sparse_points:
+        weakest = sorted(range(n), key=lambda i: (features[i], partners[i]))
+        raise ReconstructionError(_failure_message(
+            f"only {multi_view} 3D points were triangulated from 3 or more views ({len(points)} in all), at "
+            f"least min_sparse_points = {options.min_sparse_points} needed",
+            names, weakest, features, partners,
+        ))
+    timings["total"] = time.perf_counter() - t_start
+    report(1.0, "poses done")
+    return SparseModel(
+        cameras=result_cameras, points=points, point_colors=colors, point_views=views,
+        mean_reprojection_error=float(rec.compute_mean_reprojection_error()), registered=registered,
+        known_poses=known, timings=timings, names=list(names), num_features=features,
+    )
+
+
+def write_poses_text(model: SparseModel, directory: str | Path) -> Path:
+    """Write the registered cameras as a COLMAP text model (cameras.txt, images.txt, empty points3D.txt).
+
+    Each registered view gets its own PINHOLE camera (CAMERA_ID = IMAGE_ID = view index + 1)
+    and its ``names`` entry as image name (names must not hold whitespace).
+
+    Returns:
+        The directory.
+    """
+    cams, imgs = [], []
+    for i, cam in enumerate(model.cameras):
+        if cam is not None:
+            cams.append(pinhole_from_camera(i + 1, cam))
+            imgs.append(image_from_camera(i + 1, i + 1, model.names[i], cam))
+    write_colmap_text_model(directory, cams, imgs)
+    return Path(directory)

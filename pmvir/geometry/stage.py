@@ -1,0 +1,322 @@
+"""The geometric stage (pipeline stage 2, paper section 4.2): capture and decoded views to an initial mesh.
+
+:func:`run_geometry` runs, timing and counting each step:
+
+1. ``poses``: :func:`pmvir.geometry.sfm.estimate_poses` on the I_int images
+   (known-pose triangulation when the capture has intrinsics and every
+   ``cam_from_world``, else incremental SfM);
+2. ``depth_maps`` and ``fusion``: :func:`pmvir.geometry.mvs_dense.dense_stereo`;
+3. ``surface``: :func:`pmvir.geometry.surface.initial_surface` (screened
+   Poisson, trimmed, simplified, cleaned to one manifold component);
+4. ``visibility``: :func:`pmvir.geometry.visibility.vertex_visibility`;
+5. ``subdivision``: :func:`pmvir.geometry.subdivision.subdivide_until`
+   (sqrt(3) steps until every visible triangle is below
+   ``subdivision_max_area_px`` pixels^2).
+
+:func:`write_geometry` writes a result folder's ``initial.ply`` (the subdivided
+initial surface) and ``poses/`` (COLMAP text model of the registered views,
+images named by their frame file), and :func:`geometry_report` gives the
+JSON-ready counts and timings for ``report.json`` (spec section 3).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pmvir.camera import Camera
+from pmvir.capture import Capture
+from pmvir.config import GeometryOptions
+from pmvir.errors import CanceledError, ReconstructionError
+from pmvir.geometry.mvs_dense import DenseResult, dense_stereo
+from pmvir.geometry.sfm import SparseModel, estimate_poses
+from pmvir.geometry.subdivision import subdivide_until
+from pmvir.geometry.surface import SurfaceResult, initial_surface
+from pmvir.geometry.visibility import vertex_visibility
+from pmvir.io.colmap_text import image_from_camera, pinhole_from_camera, write_colmap_text_model
+from pmvir.io.ply import Mesh, vertex_normals, write_mesh_ply
+from pmvir.polarization.stokes import PolarizationImages
+
+Progress = Callable[[float, str], None]
+Cancel = Callable[[], bool]
+
+#: Share of the stage's progress bar given to each step (they sum to 1).
+_STEP_WEIGHTS = {"poses": 0.25, "dense": 0.45, "surface": 0.1, "visibility": 0.1, "subdivision": 0.1}
+
+
+@dataclass(frozen=True)
+class GeometryResult:
+    """Everything the geometric stage produced.
+
+    Attributes:
+        names: frame stems, in capture order.
+        files: frame files as in capture.json, in capture order.
+        cameras: per frame the camera used (None where it was not registered).
+        sparse: the SfM / triangulation result.
+        dense: the dense stereo result.
+        surface: the initial surface before subdivision, with per-step counts.
+        vertices: (N, 3) float64 the subdivided initial surface.
+        faces: (F, 3) int64, counter-clockwise seen from outside.
+        visibility: (N, V) bool, V = all frames (False columns for unregistered ones).
+        subdivision_rounds: sqrt(3) steps applied.
+        subdivision_max_area_px: largest projected visible triangle area at the end, pixels^2.
+        subdivision_converged: the area threshold was reached (not a round/vertex limit).
+        timings: seconds per step: poses, depth_maps, fusion, surface, visibility, subdivision, total.
+    """
+
+    names: list[str]
+    files: list[str]
+    cameras: list[Camera | None]
+    sparse: SparseModel
+    dense: DenseResult
+    surface: SurfaceResult
+    vertices: np.ndarray
+    faces: np.ndarray
+    visibility: np.ndarray
+    subdivision_rounds: int
+    subdivision_max_area_px: float
+    subdivision_converged: bool
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def registered(self) -> list[bool]:
+        return [c is not None for c in self.cameras]
+
+
+class _Steps:
+    """Progress and cancellation across the stage's steps."""
+
+    def __init__(self, progress: Progress | None, cancel: Cancel | None):
+        self.progress, self.cancel = progress, cancel
+        self.done = 0.0
+
+    def check(self, step: str) -> None:
+        if self.cancel is not None and self.cancel():
+            raise CanceledError(f"geometry stage canceled before {step}")
+
+    def sub(self, step: str) -> Progress:
+        start, width = self.done, _STEP_WEIGHTS[step]
+
+        def report(fraction: float, message: str) -> None:
+            self.check(step)
+            if self.progress is not None:
+                self.progress(min(1.0, start + width * min(max(fraction, 0.0), 1.0)), f"{step}: {message}")
+
+        return report
+
+    def finish(self, step: str) -> None:
+        self.done += _STEP_WEIGHTS[step]
+        if self.progress is not None:
+            self.progress(min(self.done, 1.0), f"{step}: done")
+
+
+def run_geometry(
+    capture: Capture,
+    views: Sequence[PolarizationImages],
+    *,
+    options: GeometryOptions | None = None,
+    workdir: str | Path,
+    progress: Progress | None = None,
+    cancel: Cancel | None = None,
+) -> GeometryResult:
+    """Poses, dense points, initial surface, visibility and subdivision (module docstring).
+
+    Args:
+        capture: the open capture (intrinsics, poses, masks, frame names).
+        views: per frame, in capture order, its decoded images (``i_int`` is used).
+        options: geometry options (default ``GeometryOptions()``).
+        workdir: scratch folder for SfM and (CUDA) dense workspaces; created.
+        progress: called as ``progress(fraction in [0, 1], message)``.
+        cancel: polled between steps and views; True raises CanceledError.
+
+    Returns:
+        :class:`GeometryResult`.
+
+    Raises:
+        ReconstructionError: too few registered views (naming those that failed), too few
+            dense points (textureless or non-overlapping views), or no surface.
+        CanceledError: ``cancel()`` returned True.
+    """
+    options = options or GeometryOptions()
+    n = len(capture.frames)
+    if len(views) != n:
+        raise ValueError(f"expected {n} decoded views (one per frame), got {len(views)}")
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    steps = _Steps(progress, cancel)
+    timings: dict[str, float] = {}
+    t_start = time.perf_counter()
+    names = [f.name for f in capture.frames]
+    files = [f.file for f in capture.frames]
+    images = [np.asarray(v.i_int, np.float32) for v in views]
+    masks = [capture.read_mask(i) for i in range(n)]
+
+    steps.check("poses")
+    t = time.perf_counter()
+    known = capture.has_all_poses
+    intrinsics = [None if f.intrinsics is None else _k_matrix(f.intrinsics) for f in capture.frames]
+    sparse = estimate_poses(
+        images,
+        names,
+        cameras=[f.camera for f in capture.frames] if known else None,
+        intrinsics=intrinsics if any(k is not None for k in intrinsics) else None,
+        masks=masks,
+        options=options,
+        workdir=workdir / "sfm",
+        progress=steps.sub("poses"),
+    )
+    timings["poses"] = time.perf_counter() - t
+    steps.finish("poses")
+    cameras = list(sparse.cameras)
+
+    steps.check("dense stereo")
+    dense = dense_stereo(
+        images,
+        masks,
+        cameras,
+        sparse.points,
+        names=names,
+        options=options,
+        workdir=workdir,
+        progress=steps.sub("dense"),
+        cancel=cancel,
+    )
+    timings.update(dense.timings)
+    steps.finish("dense")
+
+    steps.check("surface")
+    t = time.perf_counter()
+    reg = [i for i in range(n) if cameras[i] is not None]
+    surface = initial_surface(
+        dense.points.points,
+        dense.points.normals,
+        cameras=[cameras[i] for i in reg],
+        masks=[masks[i] for i in reg],
+        poisson_depth=options.surface_poisson_depth,
+        poisson_voxel_px=options.surface_poisson_voxel_px,
+        trim_density_quantile=options.surface_trim_density_quantile,
+        trim_distance=options.surface_trim_distance,
+        target_faces=options.surface_target_faces,
+        min_angle_deg=options.surface_min_angle_deg,
+        max_area_px=options.surface_split_factor * options.subdivision_max_area_px,
+    )
+    timings["surface"] = time.perf_counter() - t
+    steps.finish("surface")
+
+    steps.check("visibility")
+    t = time.perf_counter()
+    reg_cams = [cameras[i] for i in reg]
+    vis = vertex_visibility(
+        surface.vertices,
+        surface.faces,
+        reg_cams,
+        [masks[i] for i in reg],
+        min_cos=options.visibility_min_cos,
+        rel_tol=options.visibility_rel_tol,
+    )
+    timings["visibility"] = time.perf_counter() - t
+    if not vis.any():
+        raise ReconstructionError("no vertex of the initial surface is visible in any registered view")
+    steps.finish("visibility")
+
+    steps.check("subdivision")
+    t = time.perf_counter()
+    sub = subdivide_until(
+        surface.vertices,
+        surface.faces,
+        vis,
+        reg_cams,
+        max_area_px=options.subdivision_max_area_px,
+        max_rounds=options.subdivision_max_rounds,
+        max_vertices=options.subdivision_max_vertices,
+        min_visible_corners=options.subdivision_min_visible_corners,
+    )
+    full_vis = np.zeros((len(sub.vertices), n), bool)
+    full_vis[:, reg] = sub.visibility
+    timings["subdivision"] = time.perf_counter() - t
+    steps.finish("subdivision")
+    timings["total"] = time.perf_counter() - t_start
+    return GeometryResult(
+        names=names,
+        files=files,
+        cameras=cameras,
+        sparse=sparse,
+        dense=dense,
+        surface=surface,
+        vertices=sub.vertices,
+        faces=sub.faces,
+        visibility=full_vis,
+        subdivision_rounds=sub.rounds,
+        subdivision_max_area_px=sub.max_area_px,
+        subdivision_converged=sub.converged,
+        timings=timings,
+    )
+
+
+def _k_matrix(intr: Any) -> np.ndarray:
+    return np.array([[intr.fx, 0.0, intr.cx], [0.0, intr.fy, intr.cy], [0.0, 0.0, 1.0]])
+
+
+def write_poses(directory: str | Path, result: GeometryResult) -> None:
+    """``directory/cameras.txt, images.txt, points3D.txt`` of the registered views (a PINHOLE camera each)."""
+    cams, imgs = [], []
+    for i, cam in enumerate(result.cameras):
+        if cam is None:
+            continue
+        cams.append(pinhole_from_camera(i + 1, cam))
+        imgs.append(image_from_camera(i + 1, i + 1, result.files[i], cam))
+    write_colmap_text_model(directory, cams, imgs)
+
+
+def write_geometry(out_dir: str | Path, result: GeometryResult) -> dict[str, Path]:
+    """Write ``initial.ply`` (the subdivided initial surface, spec PLY) and ``poses/`` into ``out_dir``.
+
+    Returns:
+        {'initial': path of initial.ply, 'poses': path of poses/}.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    mesh = Mesh(result.vertices, result.faces, normals=vertex_normals(result.vertices, result.faces))
+    write_mesh_ply(out_dir / "initial.ply", mesh)
+    write_poses(out_dir / "poses", result)
+    return {"initial": out_dir / "initial.ply", "poses": out_dir / "poses"}
+
+
+def geometry_report(result: GeometryResult) -> dict[str, Any]:
+    """The stage's part of ``report.json``: counts per step and timings (seconds), JSON-ready."""
+    sparse, dense = result.sparse, result.dense
+    failed = [name for name, ok in zip(result.names, result.registered, strict=True) if not ok]
+    return {
+        "poses": {
+            "mode": "known" if sparse.known_poses else "sfm",
+            "views": len(result.names),
+            "registered_views": int(sum(result.registered)),
+            "unregistered": failed,
+            "sparse_points": len(sparse.points),
+            "mean_reprojection_error_px": float(sparse.mean_reprojection_error),
+            "timings": {k: float(v) for k, v in sparse.timings.items()},
+        },
+        "dense": {
+            "backend": dense.backend,
+            "points": len(dense.points),
+            "valid_depths_per_view": dict(zip(result.names, dense.valid_depths, strict=True)),
+            "fused_points_per_view": dict(zip(result.names, dense.fused_per_view, strict=True)),
+        },
+        "surface": {k: int(v) for k, v in result.surface.counts.items()},
+        "subdivision": {
+            "rounds": int(result.subdivision_rounds),
+            "max_area_px": float(result.subdivision_max_area_px),
+            "converged": bool(result.subdivision_converged),
+            "vertices": len(result.vertices),
+            "faces": len(result.faces),
+            "visible_vertex_fraction": float(result.visibility.any(axis=1).mean())
+            if len(result.vertices)
+            else 0.0,
+        },
+        "timings": {k: float(v) for k, v in result.timings.items()},
+    }

@@ -1,0 +1,291 @@
+"""Poses: SfM and known-pose triangulation (pmvir.geometry.sfm) against synthetic ground truth.
+
+Captures: the session fixtures of ``conftest.py``: ``blob_capture`` (pmvir synth's textured
+``blob``, 36 views of 432 x 360, focal length 1.2 x the larger side) with ``blob_views`` (its
+decoded frames), ``textureless_capture`` and ``unrelated_capture``. For SfM the blob's frames
+are cropped to 344 x 320 around the principal point: the focal length stays 518.4 px while
+COLMAP's initial guess (1.2 x the larger side) becomes 412.8 px, 20 % off, so the focal length
+is really estimated.
+
+Thresholds, set from measurement (2026-11, pycolmap 4.2, CPU, 2 cores):
+
+* SfM camera centres after a Umeyama similarity: largest error within 0.5 % of the scene size
+  (the bounding-box diagonal of the true camera centres, 3.4 object units here; measured
+  0.30 %), mean error within 0.25 % of it (measured 0.10 %).
+* SfM focal length within 1 % of the truth (measured -0.3 %).
+* Given intrinsics come back exactly; centres within 0.5 % (measured 0.20 %, 24 views).
+* Known poses: cameras returned bit for bit; sparse points within 0.3e-2 of the true surface
+  at the median (measured 0.06e-2) and 1.0e-2 at the 90th percentile (measured 0.25e-2),
+  in units of the object's bounding-box diagonal.
+"""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pmvir.camera import Camera
+from pmvir.capture import open_capture
+from pmvir.config import GeometryOptions
+from pmvir.decode import decode_frame
+from pmvir.errors import ReconstructionError
+from pmvir.evaluate import SurfaceQuery
+from pmvir.geometry.align import umeyama
+from pmvir.geometry.sfm import (
+    SparseModel,
+    estimate_poses,
+    fundamental_matrix,
+    sampson_error,
+    sift_image,
+    write_poses_text,
+)
+from pmvir.io.colmap_text import camera_from_colmap, read_colmap_text_model
+from pmvir.io.ply import read_mesh
+from pmvir.polarization.stokes import PolarizationImages
+
+#: The SfM crop of the blob's 432 x 360 frames: x0, y0, width, height (centred on the principal point).
+CROP = (44, 20, 344, 320)
+#: Known poses need few features: the stage's tests use the same (faster) setting.
+KNOWN_POSE_OPTIONS = GeometryOptions(sift_affine_shape=False)
+
+
+def _load(path: Path, views: list[PolarizationImages] | None = None) -> dict:
+    """Names, decoded I_int, masks and true cameras of a capture (decoded here unless given)."""
+    with open_capture(path) as cap:
+        images, masks = [], []
+        for i in range(len(cap)):
+            mask = cap.read_mask(i)
+            if views is None:
+                raw = cap.read_raw(i)
+                images.append(decode_frame(raw.mosaic, cap.layout, saturated=raw.saturated, mask=mask).i_int)
+            else:
+                images.append(views[i].i_int)
+            masks.append(mask)
+        return {
+            "names": [f.name for f in cap.frames],
+            "images": images,
+            "masks": masks,
+            "cameras": [f.camera for f in cap.frames],
+        }
+
+
+@pytest.fixture(scope="module")
+def blob_data(blob_capture: Path, blob_views: list[PolarizationImages]) -> dict:
+    return _load(blob_capture, blob_views)
+
+
+@pytest.fixture(scope="module")
+def sfm_views(blob_data: dict) -> dict:
+    """The blob's views cropped to CROP, with the true cameras of the crop."""
+    x0, y0, w, h = CROP
+    cameras = []
+    for c in blob_data["cameras"]:
+        K = c.K.copy()
+        K[0, 2] -= x0
+        K[1, 2] -= y0
+        cameras.append(Camera(K=K, R=c.R, t=c.t, width=w, height=h))
+    return {
+        "names": blob_data["names"],
+        "images": [np.ascontiguousarray(a[y0:y0 + h, x0:x0 + w]) for a in blob_data["images"]],
+        "masks": [np.ascontiguousarray(a[y0:y0 + h, x0:x0 + w]) for a in blob_data["masks"]],
+        "cameras": cameras,
+    }
+
+
+@pytest.fixture(scope="module")
+def known_pose_run(blob_data: dict, tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, SparseModel, list]:
+    calls: list[tuple[float, str]] = []
+    model = estimate_poses(
+        blob_data["images"], blob_data["names"], cameras=blob_data["cameras"], masks=blob_data["masks"],
+        options=KNOWN_POSE_OPTIONS, workdir=tmp_path_factory.mktemp("sfm-known"),
+        progress=lambda f, s: calls.append((f, s)),
+    )
+    return blob_data, model, calls
+
+
+def _centre_errors(model: SparseModel, true: list[Camera]) -> tuple[np.ndarray, float]:
+    """Per registered view, |aligned estimated centre - true centre|; and the scene size."""
+    reg = [i for i, c in enumerate(model.cameras) if c is not None]
+    est = np.stack([model.cameras[i].center for i in reg])
+    tru = np.stack([true[i].center for i in reg])
+    sim = umeyama(est, tru)
+    scene = float(np.linalg.norm(tru.max(0) - tru.min(0)))
+    return np.linalg.norm(sim.apply(est) - tru, axis=1), scene
+
+
+def test_sfm_recovers_camera_centres_and_focal_length(sfm_views: dict, tmp_path: Path) -> None:
+    model = estimate_poses(
+        sfm_views["images"], sfm_views["names"], masks=sfm_views["masks"], options=GeometryOptions(),
+        workdir=tmp_path,
+    )
+    true = sfm_views["cameras"]
+    assert not model.known_poses
+    assert model.registered == [True] * 36
+    err, scene = _centre_errors(model, true)
+    assert err.max() <= 0.005 * scene, f"largest centre error {err.max():.4f} of scene size {scene:.3f}"
+    assert err.mean() <= 0.0025 * scene, f"mean centre error {err.mean():.4f} of scene size {scene:.3f}"
+    focal = np.array([c.K[0, 0] for c in model.cameras])
+    assert np.allclose(focal, focal[0])  # one shared camera
+    assert abs(focal[0] / true[0].K[0, 0] - 1.0) <= 0.01, f"focal {focal[0]:.2f}, true {true[0].K[0, 0]:.2f}"
+    assert np.array_equal(model.cameras[0].K[:2, 2], true[0].K[:2, 2])  # principal point at the centre
+    assert 0.0 < model.mean_reprojection_error < 1.0
+    assert len(model.points) >= 500 and model.point_views is not None and len(model.point_views) == len(model.points)
+    assert {"images", "features", "matching", "mapping", "refinement", "total"} <= set(model.timings)
+
+
+def test_sfm_holds_given_intrinsics_fixed(sfm_views: dict, tmp_path: Path) -> None:
+    """The level and upper rings' 24 views, intrinsics given: they come back exactly; poses are estimated."""
+    ring = list(range(12, 36))
+    true = [sfm_views["cameras"][i] for i in ring]
+    K = true[0].K.copy()
+    model = estimate_poses(
+        [sfm_views["images"][i] for i in ring], [sfm_views["names"][i] for i in ring],
+        intrinsics=[K] * len(ring), masks=[sfm_views["masks"][i] for i in ring], options=GeometryOptions(),
+        workdir=tmp_path,
+    )
+    assert model.num_registered == len(ring)
+    for cam in model.cameras:
+        assert np.array_equal(cam.K, K)
+    err, scene = _centre_errors(model, true)
+    assert err.max() <= 0.005 * scene
+
+
+def test_known_poses_are_returned_bit_exact(known_pose_run: tuple, blob_capture: Path) -> None:
+    data, model, _ = known_pose_run
+    assert model.known_poses and model.registered == [True] * len(data["names"])
+    with open_capture(blob_capture) as cap:
+        fresh = [f.camera for f in cap.frames]  # independent copies read again from capture.json
+    for got, given, again in zip(model.cameras, data["cameras"], fresh, strict=True):
+        assert got is given
+        for name in ("K", "R", "t"):
+            assert np.array_equal(getattr(got, name), getattr(again, name))
+    assert "triangulation" in model.timings
+
+
+def test_known_pose_points_lie_on_the_true_surface(known_pose_run: tuple, blob_capture: Path) -> None:
+    data, model, _ = known_pose_run
+    mesh = read_mesh(blob_capture / "gt" / "mesh.ply")
+    closest, _, _ = SurfaceQuery(mesh.vertices, mesh.faces).closest(model.points)
+    d = np.linalg.norm(closest - model.points, axis=1)
+    assert len(d) >= 500
+    assert np.median(d) <= 0.3e-2 and np.percentile(d, 90) <= 1.0e-2, (np.median(d), np.percentile(d, 90))
+    assert model.mean_reprojection_error < 1.0
+    # Every point is seen in 3 or more views and lies in the mask of each of them.
+    inside = []
+    for p, views in zip(model.points, model.point_views, strict=True):
+        assert len(views) >= 3 and views.min() >= 0 and views.max() < len(data["names"])
+        for v in views:
+            (u, vv), = model.cameras[v].project(p[None])[0]
+            inside.append(bool(data["masks"][v][int(vv), int(u)]))
+    assert np.mean(inside) > 0.98
+    assert model.point_colors is not None and model.point_colors.shape == (len(model.points), 3)
+
+
+def test_progress_goes_from_zero_to_one(known_pose_run: tuple) -> None:
+    _, _, calls = known_pose_run
+    fractions = [f for f, _ in calls]
+    assert fractions[0] == 0.0 and fractions[-1] == 1.0
+    assert all(b >= a for a, b in itertools.pairwise(fractions))
+    assert all(isinstance(s, str) and s for _, s in calls)
+
+
+def test_poses_written_as_colmap_text_read_back(known_pose_run: tuple, tmp_path: Path) -> None:
+    _, model, _ = known_pose_run
+    write_poses_text(model, tmp_path / "poses")
+    cameras, images = read_colmap_text_model(tmp_path / "poses")
+    assert sorted(m.name for m in images.values()) == sorted(model.names)
+    for m in images.values():
+        back = camera_from_colmap(cameras[m.camera_id], m)
+        given = model.cameras[model.names.index(m.name)]
+        assert np.array_equal(back.K, given.K) and np.array_equal(back.t, given.t)
+        assert np.allclose(back.R, given.R, atol=1e-14)
+
+
+def test_fundamental_matrix_and_sampson_error(blob_data: dict) -> None:
+    c1, c2 = blob_data["cameras"][0], blob_data["cameras"][1]
+    pts = np.random.default_rng(1).normal(scale=0.2, size=(50, 3))
+    x1, x2 = c1.project(pts)[0], c2.project(pts)[0]
+    F = fundamental_matrix(c1, c2)
+    assert sampson_error(x1, x2, F).max() < 1e-12
+    shifted = x2 + np.array([0.0, 3.0])
+    assert np.median(sampson_error(x1, shifted, F)) > 0.5
+
+
+def test_sift_image_is_exposure_invariant_8bit() -> None:
+    rng = np.random.default_rng(0)
+    image = rng.uniform(0.0, 0.2, size=(64, 80, 3)).astype(np.float32)
+    mask = np.zeros((64, 80), bool)
+    mask[8:56, 10:70] = True
+    a = sift_image(image, mask, equalize=False)
+    assert a.dtype == np.uint8 and a.shape == (64, 80)
+    assert np.array_equal(a, sift_image(image * 7.0, mask, equalize=False))
+    assert np.percentile(a[mask], 99.5) >= 250
+    assert sift_image(image, mask).shape == (64, 80)
+
+
+# -- bad inputs: each a clear ReconstructionError (or ValueError for inconsistent arguments)
+
+
+def test_too_few_views_is_an_error(sfm_views: dict, tmp_path: Path) -> None:
+    with pytest.raises(ReconstructionError, match="too few views: 2 given"):
+        estimate_poses(sfm_views["images"][:2], sfm_views["names"][:2], options=GeometryOptions(), workdir=tmp_path)
+
+
+def test_textureless_object_is_an_error_in_sfm(textureless_capture: Path, tmp_path: Path) -> None:
+    data = _load(textureless_capture)
+    with pytest.raises(ReconstructionError, match="registered 0 of 12 views.*textureless") as info:
+        estimate_poses(data["images"], data["names"], masks=data["masks"], options=GeometryOptions(), workdir=tmp_path)
+    assert "000 (" in str(info.value)  # names the views that failed, with their feature counts
+
+
+def test_textureless_object_is_an_error_with_known_poses(textureless_capture: Path, tmp_path: Path) -> None:
+    data = _load(textureless_capture)
+    with pytest.raises(ReconstructionError, match="3D points.*textureless"):
+        estimate_poses(
+            data["images"], data["names"], cameras=data["cameras"], masks=data["masks"], options=GeometryOptions(),
+            workdir=tmp_path,
+        )
+
+
+def test_non_overlapping_frames_are_an_error_in_sfm(unrelated_capture: Path, tmp_path: Path) -> None:
+    data = _load(unrelated_capture)
+    with pytest.raises(ReconstructionError, match="registered 0 of 8 views.*overlap") as info:
+        estimate_poses(data["images"], data["names"], masks=data["masks"], options=GeometryOptions(), workdir=tmp_path)
+    assert all(f"{name} (" in str(info.value) for name in data["names"])
+
+
+def test_non_overlapping_frames_are_an_error_with_known_poses(unrelated_capture: Path, tmp_path: Path) -> None:
+    data = _load(unrelated_capture)
+    with pytest.raises(ReconstructionError, match="from 3 or more views.*overlap"):
+        estimate_poses(
+            data["images"], data["names"], cameras=data["cameras"], masks=data["masks"], options=GeometryOptions(),
+            workdir=tmp_path,
+        )
+
+
+def test_too_few_registered_views_is_an_error(sfm_views: dict, tmp_path: Path) -> None:
+    """Requiring every view of a capture of two unrelated halves: the views that failed are named."""
+    front, back = [12, 13, 14, 15], [19, 20, 21, 22]  # level ring, 30 degrees apart; 120+ degrees between halves
+    idx = front + back
+    with pytest.raises(ReconstructionError, match="SfM registered [0-4] of 8 views, at least 8 needed") as info:
+        estimate_poses(
+            [sfm_views["images"][i] for i in idx], [sfm_views["names"][i] for i in idx],
+            masks=[sfm_views["masks"][i] for i in idx], options=GeometryOptions(min_registered_fraction=1.0),
+            workdir=tmp_path,
+        )
+    text = str(info.value)
+    assert sum(f"{sfm_views['names'][i]} (" in text for i in idx) >= 4
+
+
+def test_inconsistent_arguments_are_value_errors(sfm_views: dict, tmp_path: Path) -> None:
+    images, names = sfm_views["images"][:3], sfm_views["names"][:3]
+    with pytest.raises(ValueError, match="distinct names"):
+        estimate_poses(images, names[:2], options=GeometryOptions(), workdir=tmp_path)
+    with pytest.raises(ValueError, match="mask"):
+        estimate_poses(images, names, masks=[np.ones((4, 4), bool)] * 3, options=GeometryOptions(), workdir=tmp_path)
+    skewed = np.array([[500.0, 1.0, 172.0], [0.0, 500.0, 160.0], [0.0, 0.0, 1.0]])
+    with pytest.raises(ValueError, match="skew"):
+        estimate_poses(images, names, intrinsics=[skewed] * 3, options=GeometryOptions(), workdir=tmp_path)
