@@ -4,9 +4,12 @@
 call. It reports progress through one callback and checks a cancellation
 callable at every stage and iteration boundary.
 
-Stages, in order: ``decode`` (demosaicing and polarization quantities), then
-``geometry`` and ``refine`` as they are available; ``config.stop_after`` names
-the last one to run. Every file of the result is written under a temporary
+Stages, in order: ``decode`` (demosaicing and polarization quantities),
+``geometry`` (poses, dense stereo, initial surface, visibility, sqrt(3)
+subdivision: ``initial.ply``, ``poses/``) and ``refine`` (Polarimetric MVIR:
+``mesh.ply``, ``illumination.json``); ``config.stop_after`` names the last one
+to run. ``report.json`` is always written, with per-stage timings, counts,
+energies, the parameters and the software versions. Every file of the result is written under a temporary
 name and renamed, so a run that is killed leaves no half-written file, and a
 run repeated on the same folder replaces its files.
 """
@@ -16,9 +19,10 @@ from __future__ import annotations
 import json
 import os
 import platform
+import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from pmvir import __version__
@@ -26,7 +30,11 @@ from pmvir.capture import Capture, open_capture
 from pmvir.config import PipelineConfig
 from pmvir.decode import decode_frame, write_decoded, write_previews
 from pmvir.errors import CanceledError, ConfigError
+from pmvir.geometry.stage import GeometryResult, geometry_report, run_geometry, write_geometry
+from pmvir.io.illumination import illumination_from_arrays, write_illumination
+from pmvir.io.ply import Mesh, write_mesh_ply
 from pmvir.polarization.stokes import PolarizationImages
+from pmvir.refine import RefineResult, make_visibility_fn, observation_from_decoded, refine_surface
 
 #: progress(stage, overall fraction in [0, 1], message)
 ProgressCallback = Callable[[str, float, str], None]
@@ -37,7 +45,7 @@ CancelCheck = Callable[[], bool]
 STAGE_WEIGHTS: dict[str, float] = {"decode": 0.1, "geometry": 0.3, "refine": 0.6}
 STAGE_ORDER: tuple[str, ...] = ("decode", "geometry", "refine")
 #: Stages this build can run.
-AVAILABLE_STAGES: tuple[str, ...] = ("decode",)
+AVAILABLE_STAGES: tuple[str, ...] = ("decode", "geometry", "refine")
 
 
 @dataclass
@@ -144,7 +152,8 @@ def run(
     timings: dict[str, float] = {}
     files: list[str] = []
     t_run = time.perf_counter()
-    with open_capture(capture) as cap:
+    sections: dict[str, object] = {}
+    with open_capture(capture) as cap, tempfile.TemporaryDirectory(prefix=".work-", dir=out) as work:
         tracker("decode", 0.0, f"decoding {len(cap.frames)} frames")
         t0 = time.perf_counter()
         decode_only = config.stop_after == "decode"
@@ -154,12 +163,112 @@ def run(
         if decode_only:
             files += _write_decoded_views(out, views, lambda f, m="": tracker("decode", share + share * f, m))
         timings["decode"] = time.perf_counter() - t0
-        n_frames = len(cap.frames)
+        counts = {"frames": len(cap.frames)}
+        if "geometry" in stages:
+            t0 = time.perf_counter()
+            geometry = _geometry_stage(cap, views, config, Path(work), tracker, should_cancel)
+            files += _write_geometry(out, geometry)
+            sections["geometry"] = geometry_report(geometry)
+            timings["geometry"] = time.perf_counter() - t0
+        if "refine" in stages:
+            t0 = time.perf_counter()
+            refined, registered = _refine_stage(cap, views, geometry, config, tracker, should_cancel)
+            files += _write_refined(out, geometry, refined, [views[i].file for i in registered])
+            sections["refine"] = refine_report(refined)
+            timings["refine"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_run
-    _write_report(out, config, stages, timings, {"frames": n_frames})
+    _write_report(out, config, stages, timings, counts, sections)
     files.append("report.json")
     tracker(stages[-1], 1.0, "done")
     return PipelineResult(out=out, stages_run=stages, timings=timings, files=files)
+
+
+def _geometry_stage(
+    cap: Capture, views: list[DecodedView], config: PipelineConfig, work: Path, tracker: _Progress,
+    should_cancel: CancelCheck | None,
+) -> GeometryResult:
+    """Poses, dense stereo, initial surface, visibility, subdivision (stage 2)."""
+    return run_geometry(
+        cap,
+        [v.images for v in views],
+        options=config.geometry,
+        workdir=work / "geometry",
+        progress=tracker.stage_callback("geometry"),
+        cancel=should_cancel,
+    )
+
+
+def _write_geometry(out: Path, geometry: GeometryResult) -> list[str]:
+    written = write_geometry(out, geometry)
+    poses = sorted(p.relative_to(out).as_posix() for p in Path(written["poses"]).iterdir())
+    return ["initial.ply", *poses]
+
+
+def _refine_stage(
+    cap: Capture,
+    views: list[DecodedView],
+    geometry: GeometryResult,
+    config: PipelineConfig,
+    tracker: _Progress,
+    should_cancel: CancelCheck | None,
+) -> tuple[RefineResult, list[int]]:
+    """Polarimetric MVIR on the registered views (stage 3). Returns the result and those views' indices."""
+    registered = [i for i, cam in enumerate(geometry.cameras) if cam is not None]
+    cameras = [geometry.cameras[i] for i in registered]
+    observations = [
+        observation_from_decoded(asdict(views[i].images), intensity=config.refine.intensity) for i in registered
+    ]
+    masks = [cap.read_mask(i) for i in registered]
+    visibility_fn = make_visibility_fn(
+        cameras, masks, min_cos=config.geometry.visibility_min_cos, rel_tol=config.geometry.visibility_rel_tol
+    )
+    refined = refine_surface(
+        geometry.vertices,
+        geometry.faces,
+        cameras,
+        observations,
+        geometry.visibility[:, registered],
+        options=config.refine,
+        visibility_fn=visibility_fn,
+        progress=tracker.stage_callback("refine"),
+        cancel=should_cancel,
+    )
+    return refined, registered
+
+
+def _write_refined(out: Path, geometry: GeometryResult, refined: RefineResult, files: list[str]) -> list[str]:
+    mesh = Mesh(refined.vertices, geometry.faces, albedo=refined.albedo, normals=refined.normals)
+    write_mesh_ply(out / "mesh.ply", mesh)
+    write_illumination(out / "illumination.json", illumination_from_arrays(files, refined.sh, refined.rgb_scale))
+    return ["mesh.ply", "illumination.json"]
+
+
+def refine_report(refined: RefineResult) -> dict:
+    """The refinement's part of report.json: per stage its parameters and per-iteration term values."""
+    return {
+        "vertices": len(refined.vertices),
+        "timings": {k: float(v) for k, v in refined.timings.items()},
+        "stages": [
+            {
+                "index": st.index,
+                "tau_pol": st.tau_pol,
+                "tau_gsm": st.tau_gsm,
+                "tau_psm": st.tau_psm,
+                "t": st.t,
+                "k": st.k,
+                "vertex_view_pairs": st.n_pairs,
+                "observed_vertices": st.n_observed,
+                "iterations": len(st.energies) - 1,
+                "evaluations": st.evaluations,
+                "stop_reason": st.stop_reason,
+                "seconds": st.seconds,
+                "energies_first": st.energies[0] if st.energies else {},
+                "energies_last": st.energies[-1] if st.energies else {},
+                "energies": st.energies,
+            }
+            for st in refined.stages
+        ],
+    }
 
 
 def _write_decoded_views(out: Path, views: list[DecodedView], report: Callable[[float, str], None]) -> list[str]:
@@ -185,12 +294,15 @@ def software_versions() -> dict[str, str]:
     return versions
 
 
-def _write_report(out: Path, config: PipelineConfig, stages: list[str], timings: dict[str, float], counts: dict) -> None:
+def _write_report(
+    out: Path, config: PipelineConfig, stages: list[str], timings: dict[str, float], counts: dict, sections: dict
+) -> None:
     report = {
         "format": "pmvir-report/1",
         "stages": stages,
         "timings_s": timings,
         "counts": counts,
+        **sections,
         "parameters": config.model_dump(mode="json"),
         "software": software_versions(),
     }

@@ -1,0 +1,195 @@
+"""Speed and memory of the three-stage refinement (pmvir.refine) at full size.
+
+A synthetic ~300k-vertex bumpy sphere seen by 36 views at 612 x 512, rendered
+with the refinement's own image model (pmvir.refine.forward), is refined from a
+perturbed copy (details attenuated, noise added) with the default options on
+the CPU, visibility refreshed between stages by pmvir.geometry.visibility.
+
+Prints a table and writes bench/results/refine_speed.json. Peak memory is the
+process's maximum resident set size (ru_maxrss), which includes what torch
+allocates (tracemalloc would not see it).
+
+Run: .venv/bin/python bench/refine_speed.py [--frequency 173] [--views 36] [--max-iterations N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pmvir.camera import Camera, look_at
+from pmvir.config import RefineOptions
+from pmvir.geometry.visibility import vertex_visibility
+from pmvir.refine import observation_from_decoded, refine_surface
+from pmvir.refine.forward import render_decoded
+from pmvir.refine.schedule import make_visibility_fn
+from pmvir.synth.shapes import geodesic_sphere
+
+
+def rss_gib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
+def bumps(d: np.ndarray, n: int, amp: float, width: float, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    c = rng.normal(size=(n, 3))
+    c /= np.linalg.norm(c, axis=1, keepdims=True)
+    h = amp * rng.choice([-1.0, 1.0], n)
+    out = np.zeros(len(d))
+    for k in range(0, n, 16):  # chunks keep (N, 16) temporaries small
+        ang = np.arccos(np.clip(d @ c[k : k + 16].T, -1.0, 1.0))
+        out += (h[k : k + 16] * np.exp(-((ang / width) ** 2))).sum(1)
+    return out
+
+
+def scene(frequency: int, n_views: int, width: int, height: int, seed: int = 0):
+    d, faces = geodesic_sphere(frequency)
+    coarse = bumps(d, 12, 0.06, 0.35, seed)
+    fine = bumps(d, 300, 0.008, 0.06, seed + 1)
+    true_v = d * (1.0 + coarse + fine)[:, None]
+    rng = np.random.default_rng(seed + 2)
+    h = np.linalg.norm(true_v[faces[:, 0]] - true_v[faces[:, 1]], axis=1).mean()
+    init_v = d * (1.0 + coarse + 0.3 * fine + rng.normal(0.0, 0.3 * h, len(d)))[:, None]
+    albedo = np.tile([0.6, 0.45, 0.3], (len(d), 1))
+    albedo[d @ np.array([0.0, 0.6, 0.8]) > 0.85] = [0.25, 0.45, 0.6]
+    cams = []
+    f = 0.9 * width
+    for i in range(n_views):
+        ring = i % 3
+        az = 2 * np.pi * (i // 3) / (n_views // 3) + ring * 0.3
+        el = np.radians([-30.0, 0.0, 30.0][ring])
+        c = 4.0 * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+        R, t = look_at(c, np.zeros(3))
+        cams.append(Camera.from_intrinsics(f, f, width / 2, height / 2, width, height, R, t))
+    sh = np.tile([0.7, 0.15, 0.3, 0.1, 0.05, 0.05, 0.1, 0.05, 0.03], (n_views, 1))
+    sh[:, 1:] += rng.normal(0.0, 0.03, (n_views, 8))
+    scale = np.array([1.0, 0.9, 0.8]) * rng.uniform(0.9, 1.1, (n_views, 1))
+    frames = render_decoded(
+        true_v,
+        faces,
+        albedo,
+        cams,
+        sh,
+        scale,
+        specular_dirs=np.array([[0.3, 0.2, 1.0]]),
+        stokes_noise=0.01,
+        intensity_noise=0.003,
+        seed=seed,
+    )
+    return true_v, init_v, faces, cams, frames
+
+
+def accuracy(v: np.ndarray, true_v: np.ndarray, faces: np.ndarray) -> float:
+    import open3d as o3d
+
+    sc = o3d.t.geometry.RaycastingScene()
+    sc.add_triangles(true_v.astype(np.float32), faces.astype(np.uint32))
+    dist = sc.compute_distance(o3d.core.Tensor(v.astype(np.float32))).numpy()
+    return float(dist.mean() / np.linalg.norm(true_v.max(0) - true_v.min(0)))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frequency", type=int, default=173, help="geodesic frequency (173: 299,292 vertices)")
+    ap.add_argument("--views", type=int, default=36)
+    ap.add_argument("--width", type=int, default=612)
+    ap.add_argument("--height", type=int, default=512)
+    ap.add_argument("--max-iterations", type=int, default=None, help="override RefineOptions.max_iterations")
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "refine_speed.json"))
+    args = ap.parse_args()
+
+    t0 = time.perf_counter()
+    true_v, init_v, faces, cams, frames = scene(args.frequency, args.views, args.width, args.height)
+    obs = [observation_from_decoded(fr, intensity="min") for fr in frames]
+    masks = [fr["mask"] for fr in frames]
+    del frames
+    vis = vertex_visibility(init_v, faces, cams, masks)
+    t_scene = time.perf_counter() - t0
+    rss_scene = rss_gib()
+
+    opts = RefineOptions(device="cpu")
+    if args.max_iterations is not None:
+        opts.max_iterations = args.max_iterations
+    t1 = time.perf_counter()
+    res = refine_surface(
+        init_v,
+        faces,
+        cams,
+        obs,
+        vis,
+        options=opts,
+        visibility_fn=make_visibility_fn(cams, masks),
+        progress=lambda f, m: print(f"{time.perf_counter() - t1:8.1f}s {f:5.3f} {m}", file=sys.stderr, flush=True),
+    )
+    t_refine = time.perf_counter() - t1
+    rss_peak = rss_gib()
+    acc0, acc1 = accuracy(init_v, true_v, faces), accuracy(res.vertices, true_v, faces)
+
+    rows = [("scene + render + visibility (not timed below)", t_scene, "")]
+    rows.append(("refine: setup", res.timings["setup"], ""))
+    for st in res.stages:
+        e0, e1 = st.energies[0]["total"], st.energies[-1]["total"]
+        rows.append(
+            (
+                f"refine: stage {st.index + 1} ({len(st.energies) - 1} it, {st.evaluations} ev, {st.stop_reason})",
+                st.seconds,
+                f"E {e0:.4g} -> {e1:.4g}, {st.n_pairs:,} pairs",
+            )
+        )
+    rows.append(("refine: total", t_refine, "limit 600 s"))
+    print(
+        f"pmvir refine speed: {len(init_v):,} vertices, {len(faces):,} faces, {args.views} views "
+        f"{args.width}x{args.height}, torch {torch.__version__}, {torch.get_num_threads()} threads"
+    )
+    print(f"{'step':60s} {'seconds':>9s}  notes")
+    for name, sec, note in rows:
+        print(f"{name:60s} {sec:9.1f}  {note}")
+    print(f"peak RSS {rss_peak:.2f} GiB (after scene: {rss_scene:.2f} GiB; limit 8 GiB)")
+    print(f"accuracy (GT diagonals): initial {acc0:.6f} -> refined {acc1:.6f}")
+    out = {
+        "vertices": len(init_v),
+        "faces": len(faces),
+        "views": args.views,
+        "image": [args.width, args.height],
+        "threads": torch.get_num_threads(),
+        "cpu_count": os.cpu_count(),
+        "platform": platform.platform(),
+        "torch": torch.__version__,
+        "options": opts.model_dump(),
+        "scene_seconds": t_scene,
+        "refine_seconds": t_refine,
+        "timings": res.timings,
+        "stages": [
+            {
+                "iterations": len(st.energies) - 1,
+                "evaluations": st.evaluations,
+                "stop_reason": st.stop_reason,
+                "seconds": st.seconds,
+                "pairs": st.n_pairs,
+                "energy_start": st.energies[0],
+                "energy_end": st.energies[-1],
+            }
+            for st in res.stages
+        ],
+        "peak_rss_gib": rss_peak,
+        "rss_after_scene_gib": rss_scene,
+        "accuracy_initial": acc0,
+        "accuracy_refined": acc1,
+        "under_10_min": t_refine < 600.0,
+        "under_8_gib": rss_peak < 8.0,
+    }
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

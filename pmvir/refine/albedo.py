@@ -1,0 +1,116 @@
+"""The albedo that minimizes the cost for given geometry and lighting (variable projection).
+
+For fixed vertices X and lighting L, E_pho + tau3 E_psm is quadratic in the
+albedo K, channel by channel; its minimizer solves the sparse symmetric
+positive-definite system
+
+    (D + 2 tau3 L_w) K = b,   D_i = sum_{c in V(i)} a_ic^2 / |V(i)|,   b_i = sum_c a_ic I_ic / |V(i)|
+
+with ``a_ic = S(N_i, L_c) L_scale,c`` (per channel) and ``L_w`` the graph Laplacian
+weighted by the E_psm weights w_ij. E_pol and E_gsm do not involve K. Optimizing
+the reduced cost E(X, L, K*(X, L)) over X and L has the same minimizers as the
+joint problem, and by the envelope theorem its gradient is the partial gradient
+at K = K*, so K* is never differentiated.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from pmvir.refine.mesh_ops import adjacency_csr
+from pmvir.refine.sampling import PairSet
+
+
+class AlbedoSolver:
+    """Solves for K*(X, L) by Jacobi-preconditioned conjugate gradients, warm-started.
+
+    Args:
+        pairs: the stage's pairs.
+        edges: (E, 2) int64 undirected edges (NumPy).
+        psm_weight: (E,) E_psm weights w_ij (NumPy).
+        tau_psm: tau3.
+        initial: (N, 3) starting albedo (tensor); also the anchor of a tiny ridge that keeps
+            vertices without observations and without observed neighbours determined.
+        tol: relative residual at which CG stops; max_iter: most CG iterations.
+        ridge: the ridge relative to the mean diagonal.
+
+    Attributes:
+        current: (N, 3) the last solution, in the dtype of ``initial``.
+        iterations: CG iterations of the last solve.
+    """
+
+    def __init__(
+        self,
+        pairs: PairSet,
+        edges: np.ndarray,
+        psm_weight: np.ndarray,
+        tau_psm: float,
+        initial: torch.Tensor,
+        *,
+        tol: float = 1e-5,
+        max_iter: int = 500,
+        ridge: float = 1e-6,
+    ):
+        n = initial.shape[0]
+        device = initial.device
+        self.pairs, self.tau, self.tol, self.max_iter, self.ridge = (
+            pairs,
+            float(tau_psm),
+            tol,
+            max_iter,
+            ridge,
+        )
+        self.dtype = initial.dtype
+        self.current = initial.detach().clone()
+        self._x = initial.detach().to(torch.float64)
+        w = np.asarray(psm_weight, dtype=np.float64)
+        self.degree = torch.from_numpy(np.bincount(edges[:, 0], w, n) + np.bincount(edges[:, 1], w, n)).to(
+            device
+        )[:, None]
+        self.adjacency = adjacency_csr(edges, w, n, device=device, dtype=torch.float64)
+        self.iterations = 0
+
+    def __call__(self, observed: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
+        """K* for the pairs' observed colours (P, 3) and lights (P, 3); returns (N, 3), no gradient."""
+        with torch.no_grad():
+            pv = self.pairs.vertex
+            wgt = self.pairs.weight.to(torch.float64)[:, None]
+            a = light.to(torch.float64)
+            diag = torch.zeros_like(self._x).index_add_(0, pv, wgt * a * a)
+            rhs = torch.zeros_like(self._x).index_add_(0, pv, wgt * a * observed.to(torch.float64))
+            mean_diag = float(diag.mean()) if float(diag.mean()) > 0 else 1.0
+            ridge = self.ridge * mean_diag
+            rhs = rhs + ridge * self._x
+            d = diag + ridge
+            lap = 2.0 * self.tau
+
+            def matvec(x: torch.Tensor) -> torch.Tensor:
+                if lap == 0.0:
+                    return d * x
+                return d * x + lap * (self.degree * x - self.adjacency @ x)
+
+            precond = 1.0 / (d + lap * self.degree)
+            x = self._x.clone()
+            r = rhs - matvec(x)
+            rhs_norm = rhs.norm(dim=0).clamp_min(1e-300)
+            z = precond * r
+            p = z.clone()
+            rz = (r * z).sum(0)
+            it = 0
+            for it in range(1, self.max_iter + 1):
+                if bool(((r.norm(dim=0) / rhs_norm) <= self.tol).all()):
+                    it -= 1
+                    break
+                ap = matvec(p)
+                alpha = rz / (p * ap).sum(0).clamp_min(1e-300)
+                x = x + alpha * p
+                r = r - alpha * ap
+                z = precond * r
+                rz_new = (r * z).sum(0)
+                p = z + (rz_new / rz.clamp_min(1e-300)) * p
+                rz = rz_new
+            self.iterations = it
+            self._x = x
+            self.current = x.to(self.dtype)
+            return self.current

@@ -1,0 +1,304 @@
+"""The four terms of the polarimetric MVIR cost (paper, section 4.3), each its own function.
+
+    E = E_pho + tau1 * E_pol + tau2 * E_gsm + tau3 * E_psm
+
+All functions are pure, vectorized over every (vertex, view) pair / face /
+edge, and differentiable with autograd. Intensities and albedos are in the
+capture's normalized units times ``units`` (default 255: the paper's weights
+were tuned for 8-bit pixel values; see :class:`pmvir.config.RefineOptions`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from pmvir.refine.mesh_ops import face_normals, normalize, vertex_normals
+from pmvir.refine.sampling import PairSamples, PairSet, ViewStack, sample_pairs
+from pmvir.sh import sh9_basis
+
+#: Offsets o of the paper's Eq. (eta): eta = min_o |alpha - phi + o|, for alpha in [0, 2 pi), phi in [0, pi).
+ETA_OFFSETS = (-2.0 * math.pi, -1.5 * math.pi, -math.pi, -0.5 * math.pi, 0.0, 0.5 * math.pi, math.pi)
+
+#: Squared length below which a camera-frame normal is taken as pointing along the optical axis
+#: (its image-plane azimuth is undefined and the pair drops out of E_pol).
+AZIMUTH_EPS = 1e-12
+
+
+def azimuth(normal_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Image-plane azimuth of camera-frame normals, in the capture's AoP (ccw) sense.
+
+    alpha = atan2(-n_y, n_x) (capture spec, section 2), wrapped to [0, 2 pi) as in
+    the paper (section 3.2: the azimuth ranges over [0, 2 pi)).
+
+    Args:
+        normal_cam: (..., 2) or (..., 3) normals in OpenCV camera axes (x, y used).
+
+    Returns:
+        alpha (...) in [0, 2 pi) and a bool mask (...) of where it is defined.
+    """
+    nx, ny = normal_cam[..., 0], normal_cam[..., 1]
+    defined = nx * nx + ny * ny > AZIMUTH_EPS
+    nx_safe = torch.where(defined, nx, torch.ones_like(nx))
+    alpha = torch.remainder(torch.atan2(-ny, nx_safe), 2.0 * math.pi)
+    return alpha, defined
+
+
+def azimuth_distance(alpha: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
+    """eta of the paper's Eq. (eta): the distance from alpha to the nearest of phi + {-pi, -pi/2, 0, pi/2, pi, ...}.
+
+    The seven terms |alpha - phi + o|, o in ``ETA_OFFSETS``, with alpha in [0, 2 pi) and
+    phi in [0, pi] put alpha - phi in (-pi, 2 pi); the seven candidates are spaced
+    pi/2 over [-pi, 2 pi], so eta <= pi/4 always (theta in [0, 1]).
+
+    Args:
+        alpha: (...) azimuth, radians in [0, 2 pi).
+        phi: (...) AoP, radians in [0, pi].
+
+    Returns:
+        (...) eta in [0, pi/4].
+    """
+    d = alpha - phi
+    return torch.stack([(d + o).abs() for o in ETA_OFFSETS], dim=0).amin(dim=0)
+
+
+def polarimetric_cost(eta: torch.Tensor, *, k: float) -> torch.Tensor:
+    """((exp(-k theta) - exp(-k)) / (1 - exp(-k)))^2 with theta = 1 - 4 eta / pi, per element.
+
+    Zero when eta = 0 (the azimuth matches one of the four AoP candidates), one when
+    eta = pi/4 (halfway between two candidates).
+    """
+    theta = 1.0 - 4.0 * eta / math.pi
+    ek = math.exp(-k)
+    f = (torch.exp(-k * theta) - ek) / (1.0 - ek)
+    return f * f
+
+
+def pair_light(
+    normals: torch.Tensor, sh: torch.Tensor, rgb_scale: torch.Tensor, pairs: PairSet
+) -> torch.Tensor:
+    """S(N_i, L_basis,c) * L_scale,c of every pair, (P, 3): the rendered colour divided by the albedo.
+
+
+    Args:
+        normals: (N, 3) unit world vertex normals N(X).
+        sh: (V, 9) pmvir-sh9 coefficients L_basis per view.
+        rgb_scale: (V, 3) L_scale per view.
+        pairs: the stage's pairs.
+    """
+    sizes = [b - a for a, b in zip(pairs.offsets[:-1], pairs.offsets[1:])]
+    basis = torch.split(sh9_basis(normals.index_select(0, pairs.vertex)), sizes)
+    shading = torch.cat([b @ sh[c] for c, b in enumerate(basis)])
+    return shading[:, None] * rgb_scale.index_select(0, pairs.view)
+
+
+def photometric_term(
+    observed: torch.Tensor, light: torch.Tensor, albedo: torch.Tensor, pairs: PairSet, *, units: float = 255.0
+) -> torch.Tensor:
+    """E_pho = sum_i sum_{c in V(i)} ||I_ic - K_i S(N_i, L_c) L_scale,c||^2 / |V(i)|.
+
+    Args:
+        observed: (P, 3) observed RGB I_ic at each pair's projection.
+        light: (P, 3) S(N_i, L_basis,c) L_scale,c (see :func:`pair_light`).
+        albedo: (N, 3) RGB albedo K.
+        pairs: the stage's pairs.
+        units: intensities and albedos are multiplied by this before squaring.
+
+    Returns:
+        scalar tensor.
+    """
+    rendered = albedo.index_select(0, pairs.vertex) * light
+    r = (observed - rendered) * units
+    return ((r * r).sum(-1) * pairs.weight).sum()
+
+
+def polarimetric_term(
+    normal_cam: torch.Tensor,
+    aop: torch.Tensor,
+    dop: torch.Tensor,
+    aop_defined: torch.Tensor,
+    pairs: PairSet,
+    *,
+    k: float = 0.5,
+    dop_weight: bool = True,
+) -> torch.Tensor:
+    """E_pol = sum_i sum_{c in V(i)} rho_ic ((e^{-k theta_ic} - e^{-k}) / (1 - e^{-k}))^2 / |V(i)|.
+
+    Args:
+        normal_cam: (P, 2) or (P, 3) vertex normals in each pair's camera frame (x, y used).
+        aop: (P,) observed AoP phi_ic in [0, pi).
+        dop: (P,) observed DoP rho_ic (the weight; replaced by 1 when ``dop_weight`` is False).
+        aop_defined: (P,) bool; pairs where the sampled AoP is undefined contribute nothing.
+        pairs: the stage's pairs.
+        k: narrowness of the cost's concave shape (paper: 0.5).
+        dop_weight: weight each pair by its DoP.
+
+    Returns:
+        scalar tensor.
+    """
+    alpha, defined = azimuth(normal_cam)
+    cost = polarimetric_cost(azimuth_distance(alpha, aop), k=k)
+    w = pairs.weight * (defined & aop_defined).to(cost.dtype)
+    if dop_weight:
+        w = w * dop
+    return (cost * w).sum()
+
+
+def geometric_smoothness_term(
+    normals: torch.Tensor, face_pairs: torch.Tensor, has_neighbour: torch.Tensor, *, t: float
+) -> torch.Tensor:
+    """E_gsm = sum_r (arccos(N'_r . N'_r,avg) / pi)^t.
+
+    N'_r,avg is the normalized mean of the unit normals of the faces sharing an
+    edge with face r. The angle is computed as atan2(|a x b|, a . b), equal to
+    arccos(a . b) for unit vectors but with a finite gradient at zero angle.
+
+    Args:
+        normals: (F, 3) unit face normals N'_r.
+        face_pairs: (M, 2) int64 pairs (r, s) of edge-adjacent faces, both orders present.
+        has_neighbour: (F,) bool, faces with at least one adjacent face (the others are skipped).
+        t: exponent (paper: 2.2, 2.8, 3.4 over the stages).
+
+    Returns:
+        scalar tensor.
+    """
+    avg = torch.zeros_like(normals).index_add(0, face_pairs[:, 0], normals.index_select(0, face_pairs[:, 1]))
+    avg = normalize(avg)
+    cross = torch.linalg.cross(normals, avg, dim=1)
+    sin = torch.sqrt((cross * cross).sum(-1).clamp_min(1e-30))
+    cos = (normals * avg).sum(-1)
+    angle = torch.atan2(sin, cos)
+    return ((angle / math.pi) ** t * has_neighbour.to(angle.dtype)).sum()
+
+
+def photometric_smoothness_term(
+    albedo: torch.Tensor, edges: torch.Tensor, weights: torch.Tensor, *, units: float = 255.0
+) -> torch.Tensor:
+    """E_psm = sum_i sum_{j in A(i)} w_ij ||K_i - K_j||^2 (each undirected edge counted twice).
+
+    Args:
+        albedo: (N, 3) RGB albedo.
+        edges: (E, 2) int64 undirected mesh edges.
+        weights: (E,) w_ij, fixed for the stage (see :func:`psm_weights`).
+        units: albedos are multiplied by this before squaring.
+    """
+    d = (albedo.index_select(0, edges[:, 0]) - albedo.index_select(0, edges[:, 1])) * units
+    return 2.0 * ((d * d).sum(-1) * weights).sum()
+
+
+def psm_weights(
+    colour: np.ndarray,
+    observed: np.ndarray,
+    edges: np.ndarray,
+    *,
+    sigma_chroma: float,
+    sigma_log_intensity: float,
+) -> np.ndarray:
+    """MVIR's photometric-smoothness weights from the observed colours of adjacent vertices.
+
+    ``w_ij = exp(-||c_i - c_j||^2 / sigma_c^2) * exp(-(log I_i - log I_j)^2 / sigma_I^2)`` where
+    ``I = (R + G + B) / 3`` and ``c = (R, G, B) / (R + G + B)`` (chromaticity) of the vertex's
+    observed colour averaged over its views. Edges touching a vertex without observations get 1.
+
+    Args:
+        colour: (N, 3) mean observed RGB per vertex (normalized units).
+        observed: (N,) bool, vertices with at least one observation.
+        edges: (E, 2) int64.
+
+    Returns:
+        (E,) float64 weights in (0, 1].
+    """
+    rgb = np.maximum(np.asarray(colour, dtype=np.float64), 0.0)
+    s = rgb.sum(1) + 1e-6
+    chroma = rgb / s[:, None]
+    log_i = np.log(s / 3.0)
+    i, j = edges[:, 0], edges[:, 1]
+    dc = ((chroma[i] - chroma[j]) ** 2).sum(1)
+    di = (log_i[i] - log_i[j]) ** 2
+    w = np.exp(-dc / sigma_chroma**2) * np.exp(-di / sigma_log_intensity**2)
+    return np.where(observed[i] & observed[j], w, 1.0)
+
+
+@dataclass(frozen=True)
+class StageProblem:
+    """Everything an energy evaluation needs besides the unknowns (constant within a stage).
+
+    Attributes:
+        faces: (F, 3) int64 tensor.
+        face_pairs: (M, 2) int64 edge-adjacent face pairs (both orders).
+        has_neighbour: (F,) bool.
+        edges: (E, 2) int64 undirected edges.
+        psm_weight: (E,) w_ij.
+        views: packed cameras and images.
+        pairs: the stage's (vertex, view) pairs.
+        polarimetric: whether E_pol is evaluated.
+        pol_mask: (P,) bool pairs used by E_pol (None: all), e.g. DoP above the noise floor at the stage start.
+        k, dop_weight, t, units: term parameters.
+    """
+
+    faces: torch.Tensor
+    face_pairs: torch.Tensor
+    has_neighbour: torch.Tensor
+    edges: torch.Tensor
+    psm_weight: torch.Tensor
+    views: ViewStack
+    pairs: PairSet
+    polarimetric: bool
+    pol_mask: torch.Tensor | None
+    k: float
+    dop_weight: bool
+    t: float
+    units: float
+
+
+def energy_terms(
+    vertices: torch.Tensor,
+    albedo: torch.Tensor | Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+    sh: torch.Tensor,
+    rgb_scale: torch.Tensor,
+    problem: StageProblem,
+) -> dict[str, torch.Tensor]:
+    """The named, unweighted terms ``{"pho", "pol", "gsm", "psm"}`` (``"pol"`` only when polarimetric).
+
+    Args:
+        vertices: (N, 3) positions X.
+        albedo: (N, 3) albedo K, or a function (observed (P, 3), light (P, 3), both detached)
+            -> K that chooses it (e.g. :class:`pmvir.refine.albedo.AlbedoSolver`).
+        sh: (V, 9) L_basis; rgb_scale: (V, 3) L_scale.
+        problem: the stage's constants.
+    """
+    normals = vertex_normals(vertices, problem.faces)
+    samples: PairSamples = sample_pairs(vertices, normals, problem.views, problem.pairs)
+    light = pair_light(normals, sh, rgb_scale, problem.pairs)
+    if callable(albedo):
+        albedo = albedo(samples.intensity.detach(), light.detach())
+    terms = {"pho": photometric_term(samples.intensity, light, albedo, problem.pairs, units=problem.units)}
+    if problem.polarimetric:
+        terms["pol"] = polarimetric_term(
+            samples.normal_cam,
+            samples.aop,
+            samples.dop,
+            samples.aop_defined if problem.pol_mask is None else samples.aop_defined & problem.pol_mask,
+            problem.pairs,
+            k=problem.k,
+            dop_weight=problem.dop_weight,
+        )
+    terms["gsm"] = geometric_smoothness_term(
+        face_normals(vertices, problem.faces), problem.face_pairs, problem.has_neighbour, t=problem.t
+    )
+    terms["psm"] = photometric_smoothness_term(albedo, problem.edges, problem.psm_weight, units=problem.units)
+    return terms
+
+
+def total_energy(
+    terms: dict[str, torch.Tensor], *, tau_pol: float, tau_gsm: float, tau_psm: float
+) -> torch.Tensor:
+    """E_pho + tau1 E_pol + tau2 E_gsm + tau3 E_psm (a missing ``"pol"`` counts as 0)."""
+    e = terms["pho"] + tau_gsm * terms["gsm"] + tau_psm * terms["psm"]
+    if "pol" in terms:
+        e = e + tau_pol * terms["pol"]
+    return e

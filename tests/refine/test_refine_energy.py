@@ -1,0 +1,365 @@
+"""The cost's terms: gradients against finite differences, E_pol's shape (paper figure), conventions."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pmvir.camera import Camera, look_at
+from pmvir.refine.energy import (
+    ETA_OFFSETS,
+    StageProblem,
+    azimuth,
+    azimuth_distance,
+    energy_terms,
+    geometric_smoothness_term,
+    pair_light,
+    photometric_smoothness_term,
+    photometric_term,
+    polarimetric_cost,
+    polarimetric_term,
+    psm_weights,
+    total_energy,
+)
+from pmvir.refine.forward import render_decoded
+from pmvir.refine.mesh_ops import face_adjacency, face_normals, unique_edges, vertex_normals
+from pmvir.refine.sampling import (
+    Observation,
+    PairSet,
+    build_view_stack,
+    observation_from_decoded,
+    sample_pairs,
+    select_pairs,
+)
+from pmvir.synth.shapes import geodesic_sphere
+
+F64 = torch.float64
+
+
+def _pairs(n: int) -> PairSet:
+    """n pairs of n distinct vertices in one view, weight 1."""
+    idx = torch.arange(n)
+    return PairSet(
+        idx,
+        torch.zeros(n, dtype=torch.int64),
+        [0, n],
+        torch.ones(n, dtype=F64),
+        np.ones(n, dtype=np.int64),
+        idx,
+    )
+
+
+# --- E_pol: the paper's figure and the azimuth convention -----------------------------------------
+
+
+def test_polarimetric_cost_reproduces_paper_figure() -> None:
+    """phi = 120 deg, k = 0.5: zero at alpha = 30, 120, 210, 300 deg, maximum (1) halfway between."""
+    alpha = torch.deg2rad(torch.arange(0.0, 360.0, 0.25, dtype=F64))
+    phi = torch.full_like(alpha, math.radians(120.0))
+    cost = polarimetric_cost(azimuth_distance(alpha, phi), k=0.5)
+    deg = np.degrees(alpha.numpy())
+    c = cost.numpy()
+    assert c.min() >= 0.0 and c.max() <= 1.0 + 1e-12
+    zeros = deg[c < 1e-12]
+    np.testing.assert_allclose(np.sort(zeros), [30.0, 120.0, 210.0, 300.0])
+    for peak in (75.0, 165.0, 255.0, 345.0):
+        assert c[np.argmin(np.abs(deg - peak))] == pytest.approx(1.0)
+    # local maxima of the sampled curve sit exactly halfway between the zeros
+    interior = (c[1:-1] > c[:-2]) & (c[1:-1] >= c[2:])
+    np.testing.assert_allclose(deg[1:-1][interior], [75.0, 165.0, 255.0, 345.0])
+    # concave between the zeros (k > 0): above the straight-line-in-theta value (4 eta/pi)^2 ... at mid-slope
+    eta = math.radians(22.5)
+    f = (math.exp(-0.5 * (1 - 4 * eta / math.pi)) - math.exp(-0.5)) / (1 - math.exp(-0.5))
+    assert float(polarimetric_cost(torch.tensor(eta, dtype=F64), k=0.5)) == pytest.approx(f * f)
+
+
+def test_polarimetric_term_matches_figure_through_camera_normals() -> None:
+    """The same curve through polarimetric_term: camera-frame normals with azimuth alpha, DoP 1."""
+    alpha = torch.deg2rad(torch.tensor([30.0, 75.0, 120.0, 165.0, 210.0, 255.0, 300.0, 345.0], dtype=F64))
+    normal_cam = torch.stack([torch.cos(alpha), -torch.sin(alpha), -torch.ones_like(alpha)], dim=1)
+    phi = torch.full_like(alpha, math.radians(120.0))
+    n = len(alpha)
+    per_pair = [
+        float(
+            polarimetric_term(
+                normal_cam[i : i + 1],
+                phi[:1],
+                torch.ones(1, dtype=F64),
+                torch.ones(1, dtype=torch.bool),
+                _pairs(1),
+                k=0.5,
+            )
+        )
+        for i in range(n)
+    ]
+    np.testing.assert_allclose(per_pair, [0, 1, 0, 1, 0, 1, 0, 1], atol=1e-12)
+    # DoP weighting scales it; switching it off ignores the DoP
+    dop = torch.full((n,), 0.25, dtype=F64)
+    defined = torch.ones(n, dtype=torch.bool)
+    assert float(polarimetric_term(normal_cam, phi, dop, defined, _pairs(n))) == pytest.approx(4 * 0.25)
+    assert float(
+        polarimetric_term(normal_cam, phi, dop, defined, _pairs(n), dop_weight=False)
+    ) == pytest.approx(4)
+
+
+def test_eta_is_at_most_quarter_pi_over_the_whole_range() -> None:
+    """alpha in [0, 2 pi) (as azimuth() returns) and phi in [0, pi]: the seven offsets cover every case."""
+    a, p = np.meshgrid(np.linspace(0, 2 * np.pi, 721)[:-1], np.linspace(0, np.pi, 361), indexing="ij")
+    eta = azimuth_distance(torch.from_numpy(a), torch.from_numpy(p)).numpy()
+    assert eta.max() <= np.pi / 4 + 1e-12
+    periodic = np.abs(np.mod(a - p + np.pi / 4, np.pi / 2) - np.pi / 4)
+    np.testing.assert_allclose(eta, periodic, atol=1e-12)
+    theta = 1 - 4 * eta / np.pi
+    assert theta.min() >= -1e-12 and theta.max() <= 1 + 1e-12
+
+
+def test_eta_offsets_need_alpha_wrapped_to_0_2pi() -> None:
+    """With alpha = atan2 in (-pi, pi] unwrapped the literal seven terms would exceed pi/4: azimuth() wraps."""
+    alpha_raw, phi = -0.9 * math.pi, 0.9 * math.pi
+    literal = min(abs(alpha_raw - phi + o) for o in ETA_OFFSETS)
+    assert literal > math.pi / 4
+    normal_cam = torch.tensor([[math.cos(alpha_raw), -math.sin(alpha_raw), -1.0]], dtype=F64)
+    alpha, defined = azimuth(normal_cam)
+    assert bool(defined[0]) and 0.0 <= float(alpha[0]) < 2 * math.pi
+    assert float(alpha[0]) == pytest.approx(alpha_raw + 2 * math.pi)
+    assert float(azimuth_distance(alpha, torch.tensor([phi], dtype=F64))[0]) <= math.pi / 4
+
+
+def test_azimuth_is_counter_clockwise_on_screen() -> None:
+    """Spec section 2: alpha = atan2(-ny, nx): image right is 0, image up (-y) is pi/2."""
+    n = torch.tensor([[1.0, 0, -1], [0, -1.0, -1], [-1.0, 0, -1], [0, 1.0, -1], [0, 0, -1.0]], dtype=F64)
+    alpha, defined = azimuth(n)
+    np.testing.assert_allclose(alpha[:4].numpy(), [0, np.pi / 2, np.pi, 1.5 * np.pi], atol=1e-12)
+    assert defined.tolist() == [True, True, True, True, False]
+
+
+def test_rendered_aop_follows_the_spec_sense() -> None:
+    """A sphere seen head-on: the right limb has AoP ~0, the top limb (image up) AoP ~pi/2 (diffuse)."""
+    v, f = geodesic_sphere(12)
+    R, t = look_at(np.array([0.0, -4.0, 0.0]), np.zeros(3))
+    cam = Camera.from_intrinsics(120.0, 120.0, 32.0, 32.0, 64, 64, R, t)
+    fr = render_decoded(v, f, np.full((len(v), 3), 0.5), [cam], np.eye(9)[0], np.ones(3))[0]
+    row = 32
+    cols = np.flatnonzero(fr["mask"][row])
+    right = fr["aop"][row, cols.max() - 1]
+    assert min(right, np.pi - right) < np.radians(8)
+    rows = np.flatnonzero(fr["mask"][:, 32])
+    top = fr["aop"][rows.min() + 1, 32]
+    assert abs(top - np.pi / 2) < np.radians(8)
+    assert fr["dop"][row, cols.max() - 1] > fr["dop"][row, 32]  # more polarized at grazing angles
+
+
+# --- sampling ----------------------------------------------------------------------------------------
+
+
+def _flat_view(h: int = 20, w: int = 24) -> tuple[Camera, np.ndarray]:
+    cam = Camera.from_intrinsics(50.0, 50.0, w / 2, h / 2, w, h, np.eye(3), np.zeros(3))
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+    return cam, 0.01 * cols + 0.02 * rows + 0.1
+
+
+def test_bilinear_sampling_is_exact_on_a_linear_image() -> None:
+    cam, ramp = _flat_view()
+    intensity = np.stack([ramp, 2 * ramp, 0.5 * ramp], axis=-1).astype(np.float32)
+    obs = Observation(intensity, np.zeros(ramp.shape), ramp, np.ones(ramp.shape, bool))
+    views = build_view_stack([cam], [obs], polarimetric=True, device="cpu", dtype=F64)
+    rng = np.random.default_rng(0)
+    uv = rng.uniform([1.0, 1.0], [cam.width - 1.0, cam.height - 1.0], (50, 2))
+    pts = np.concatenate([(uv - cam.K[:2, 2]) / 50.0 * 2.0, np.full((50, 1), 2.0)], axis=1)  # depth 2
+    pairs = select_pairs(pts, np.ones((50, 1), bool), [cam], [obs], device="cpu", dtype=F64)
+    assert pairs.size == 50
+    x = torch.from_numpy(pts)
+    smp = sample_pairs(x, torch.zeros_like(x), views, pairs)
+    expect = (0.01 * (uv[:, 0] - 0.5) + 0.02 * (uv[:, 1] - 0.5) + 0.1)[pairs.vertex.numpy()]
+    np.testing.assert_allclose(smp.intensity[:, 0].numpy(), expect, atol=1e-6)
+    np.testing.assert_allclose(smp.intensity[:, 1].numpy(), 2 * expect, atol=1e-6)
+    np.testing.assert_allclose(smp.dop.numpy(), expect, atol=1e-6)
+
+
+def test_aop_is_interpolated_as_an_axial_angle() -> None:
+    """Across the 0/pi wrap the sampled AoP stays near 0 (mod pi), never near pi/2."""
+    cam, ramp = _flat_view()
+    aop = np.where(np.arange(cam.width)[None, :] < 12, 0.05, np.pi - 0.05) * np.ones(ramp.shape)
+    obs = Observation(np.ones(ramp.shape + (3,)), aop, np.full(ramp.shape, 0.3), np.ones(ramp.shape, bool))
+    views = build_view_stack([cam], [obs], polarimetric=True, device="cpu", dtype=F64)
+    u = np.linspace(11.0, 13.0, 9)  # pixel centres 11.5 (col 11) and 12.5 (col 12)
+    pts = np.stack([(u - cam.K[0, 2]) / 50.0, np.zeros_like(u), np.ones_like(u)], axis=1)
+    pairs = select_pairs(pts, np.ones((len(u), 1), bool), [cam], [obs], device="cpu", dtype=F64)
+    x = torch.from_numpy(pts)
+    phi = sample_pairs(x, torch.zeros_like(x), views, pairs).aop.numpy()
+    dist = np.minimum(phi, np.pi - phi)
+    assert dist.max() <= 0.05 + 1e-6  # the view table is float32
+    assert np.all((phi >= 0) & (phi < np.pi + 1e-12))
+
+
+def test_pairs_need_valid_footprints() -> None:
+    cam, ramp = _flat_view()
+    valid = np.ones(ramp.shape, bool)
+    valid[:, 12] = False
+    obs = Observation(np.ones(ramp.shape + (3,)), np.zeros(ramp.shape), ramp, valid)
+    u = np.array([5.0, 12.4, 13.0, 20.0])  # the middle two touch column 12
+    pts = np.stack([(u - cam.K[0, 2]) / 50.0, np.zeros_like(u), np.ones_like(u)], axis=1)
+    pairs = select_pairs(pts, np.ones((4, 1), bool), [cam], [obs], device="cpu", dtype=F64)
+    assert pairs.vertex.tolist() == [0, 3]
+    np.testing.assert_array_equal(pairs.count, [1, 0, 0, 1])
+
+
+# --- smoothness terms -------------------------------------------------------------------------------
+
+
+def test_gsm_is_zero_on_a_plane_and_grows_with_bending() -> None:
+    xs, ys = np.meshgrid(np.arange(5.0), np.arange(5.0))
+    v = np.stack([xs.ravel(), ys.ravel(), np.zeros(25)], axis=1)
+    quads = [
+        (r * 5 + c, r * 5 + c + 1, (r + 1) * 5 + c, (r + 1) * 5 + c + 1) for r in range(4) for c in range(4)
+    ]
+    f = np.array([t for a, b, c, d in quads for t in ((a, b, d), (a, d, c))])
+    fp = torch.from_numpy(face_adjacency(f))
+    has = torch.ones(len(f), dtype=torch.bool)
+    ft = torch.from_numpy(f)
+    flat = geometric_smoothness_term(face_normals(torch.from_numpy(v), ft), fp, has, t=2.2)
+    assert float(flat) == pytest.approx(0.0, abs=1e-12)
+    energies = []
+    for h in (0.1, 0.3):
+        bent = v.copy()
+        bent[12, 2] = h
+        energies.append(
+            float(geometric_smoothness_term(face_normals(torch.from_numpy(bent), ft), fp, has, t=2.2))
+        )
+    assert 0 < energies[0] < energies[1]
+
+
+def test_psm_weights_follow_chromaticity_and_intensity() -> None:
+    colour = np.array([[0.5, 0.4, 0.3], [0.5, 0.4, 0.3], [0.25, 0.2, 0.15], [0.3, 0.4, 0.5], [0.0, 0.0, 0.0]])
+    observed = np.array([True, True, True, True, False])
+    edges = np.array([[0, 1], [0, 2], [0, 3], [0, 4]])
+    w = psm_weights(colour, observed, edges, sigma_chroma=0.05, sigma_log_intensity=0.3)
+    assert w[0] == pytest.approx(1.0)
+    assert w[1] == pytest.approx(np.exp(-(np.log(2.0) ** 2) / 0.09), rel=1e-4)  # same chroma, half intensity
+    assert w[2] < 1e-6  # different chromaticity
+    assert w[3] == 1.0  # unobserved neighbour: plain smoothness
+
+
+def test_psm_counts_each_edge_twice() -> None:
+    k = torch.tensor([[0.1, 0.2, 0.3], [0.2, 0.2, 0.5]], dtype=F64)
+    e = photometric_smoothness_term(k, torch.tensor([[0, 1]]), torch.tensor([0.5], dtype=F64), units=1.0)
+    assert float(e) == pytest.approx(2 * 0.5 * (0.01 + 0.0 + 0.04))
+
+
+# --- finite-difference gradient checks --------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def small_problem():
+    return make_small_problem()
+
+
+def make_small_problem():
+    """42-vertex bumpy sphere, 3 views of 24 x 24, float64, perturbed vertices."""
+    rng = np.random.default_rng(3)
+    tv, tf = geodesic_sphere(3)
+    tv = tv * (1 + 0.05 * np.sin(3 * tv[:, :1]))
+    cams = []
+    for az in (0.3, 2.4, 4.4):
+        R, t = look_at(3.0 * np.array([np.cos(az), np.sin(az), 0.4]), np.zeros(3))
+        cams.append(Camera.from_intrinsics(30.0, 30.0, 12.0, 12.0, 24, 24, R, t))
+    sh = np.array([0.8, 0.1, 0.3, 0.1, 0.05, 0.05, 0.1, 0.02, 0.03])
+    frames = render_decoded(
+        tv, tf, np.full((len(tv), 3), 0.5), cams, sh, np.ones(3), stokes_noise=0.01, seed=1
+    )
+    obs = [observation_from_decoded(fr) for fr in frames]
+    v0 = tv + rng.normal(0, 0.01, tv.shape)
+    from pmvir.geometry.visibility import vertex_visibility
+
+    vis = vertex_visibility(v0, tf, cams)
+    views = build_view_stack(cams, obs, polarimetric=True, device="cpu", dtype=F64)
+    pairs = select_pairs(v0, vis, cams, obs, device="cpu", dtype=F64)
+    assert pairs.size > 30
+    edges = unique_edges(tf)
+    fp = face_adjacency(tf)
+    problem = StageProblem(
+        faces=torch.from_numpy(tf),
+        face_pairs=torch.from_numpy(fp),
+        has_neighbour=torch.from_numpy(np.bincount(fp[:, 0], minlength=len(tf)) > 0),
+        edges=torch.from_numpy(edges),
+        psm_weight=torch.from_numpy(rng.uniform(0.2, 1.0, len(edges))),
+        views=views,
+        pairs=pairs,
+        polarimetric=True,
+        pol_mask=None,
+        k=0.5,
+        dop_weight=True,
+        t=2.2,
+        units=255.0,
+    )
+    n_views = len(cams)
+    inputs = (
+        torch.from_numpy(v0).requires_grad_(),
+        torch.from_numpy(rng.uniform(0.3, 0.7, (len(tv), 3))).requires_grad_(),
+        torch.from_numpy(np.tile(sh, (n_views, 1)) + rng.normal(0, 0.05, (n_views, 9))).requires_grad_(),
+        torch.from_numpy(rng.uniform(0.8, 1.2, (n_views, 3))).requires_grad_(),
+    )
+    return problem, inputs
+
+
+def _pho(problem, x, k, sh, sc):
+    n = vertex_normals(x, problem.faces)
+    smp = sample_pairs(x, n, problem.views, problem.pairs)
+    return photometric_term(smp.intensity, pair_light(n, sh, sc, problem.pairs), k, problem.pairs)
+
+
+def _pol(problem, x):
+    n = vertex_normals(x, problem.faces)
+    smp = sample_pairs(x, n, problem.views, problem.pairs)
+    return polarimetric_term(smp.normal_cam, smp.aop, smp.dop, smp.aop_defined, problem.pairs, k=0.5)
+
+
+def _gsm(problem, x):
+    return geometric_smoothness_term(
+        face_normals(x, problem.faces), problem.face_pairs, problem.has_neighbour, t=2.8
+    )
+
+
+def _psm(problem, k):
+    return photometric_smoothness_term(k, problem.edges, problem.psm_weight)
+
+
+def _total(problem, x, k, sh, sc):
+    terms = energy_terms(x, k, sh, sc, problem)
+    return total_energy(terms, tau_pol=60.0, tau_gsm=0.1, tau_psm=2.0)
+
+
+@pytest.mark.parametrize(
+    "name, fn, which",
+    [
+        ("pho", _pho, (0, 1, 2, 3)),
+        ("pol", _pol, (0,)),
+        ("gsm", _gsm, (0,)),
+        ("psm", _psm, (1,)),
+        ("total", _total, (0, 1, 2, 3)),
+    ],
+)
+def test_gradients_match_finite_differences(small_problem, name, fn, which) -> None:
+    """torch.autograd.gradcheck (central differences, float64) of each term and of the total.
+
+    The function is divided by its value at the start so that the tolerances are relative.
+    """
+    problem, inputs = small_problem
+    args = tuple(inputs[i] for i in which)
+    value = float(fn(problem, *args).detach())
+    assert value > 0.0, f"E_{name} should be positive on the perturbed mesh"
+    assert torch.autograd.gradcheck(lambda *a: fn(problem, *a) / value, args, eps=1e-6, atol=1e-7, rtol=1e-4)
+
+
+def test_dop_weighting_is_switchable(small_problem) -> None:
+    problem, inputs = small_problem
+    x = inputs[0].detach()
+    n = vertex_normals(x, problem.faces)
+    smp = sample_pairs(x, n, problem.views, problem.pairs)
+    args = (smp.normal_cam, smp.aop, smp.dop, smp.aop_defined, problem.pairs)
+    weighted = float(polarimetric_term(*args, dop_weight=True))
+    unweighted = float(polarimetric_term(*args, dop_weight=False))
+    assert 0 < weighted < unweighted  # DoP < 1 everywhere

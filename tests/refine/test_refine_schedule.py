@@ -1,0 +1,277 @@
+"""The three-stage refinement end to end on synthetic captures with a known surface."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+from refine_scene import accuracy, make_scene
+
+from pmvir.config import PipelineConfig, RefineOptions
+from pmvir.errors import CanceledError, ConfigError, MeshError, ReconstructionError
+from pmvir.refine import Observation, make_visibility_fn, observation_from_decoded, refine_surface
+
+#: L-BFGS iterations per stage in these tests (the default is larger); enough for the comparisons below.
+ITERATIONS = 60
+
+
+def _inputs(scene, intensity="min"):
+    obs = [observation_from_decoded(fr, intensity=intensity) for fr in scene.frames]
+    vis_fn = make_visibility_fn(scene.cameras)
+    return obs, vis_fn, vis_fn(scene.vertices, scene.faces)
+
+
+@pytest.fixture(scope="module")
+def plastic():
+    scene = make_scene(two_colours=True)
+    obs, vis_fn, vis = _inputs(scene)
+    return scene, obs, vis_fn, vis
+
+
+@pytest.fixture(scope="module")
+def plastic_runs(plastic):
+    scene, obs, vis_fn, vis = plastic
+    calls, progress = [], []
+
+    def counting_vis(v, f):
+        calls.append(v.copy())
+        return vis_fn(v, f)
+
+    full = refine_surface(
+        scene.vertices,
+        scene.faces,
+        scene.cameras,
+        obs,
+        vis,
+        options=RefineOptions(max_iterations=ITERATIONS),
+        visibility_fn=counting_vis,
+        progress=lambda frac, msg: progress.append((frac, msg)),
+    )
+    baseline = refine_surface(
+        scene.vertices,
+        scene.faces,
+        scene.cameras,
+        obs,
+        vis,
+        options=RefineOptions(max_iterations=ITERATIONS, polarimetric=False),
+        visibility_fn=vis_fn,
+    )
+    return full, baseline, calls, progress
+
+
+def test_refinement_improves_accuracy_and_beats_the_mvir_baseline(plastic, plastic_runs) -> None:
+    scene = plastic[0]
+    full, baseline, _, _ = plastic_runs
+    before = accuracy(scene.vertices, scene.true_vertices, scene.true_faces)
+    acc_full = accuracy(full.vertices, scene.true_vertices, scene.true_faces)
+    acc_base = accuracy(baseline.vertices, scene.true_vertices, scene.true_faces)
+    assert acc_full < 0.8 * before
+    assert acc_base < before
+    assert acc_full < acc_base
+
+
+def test_every_term_is_logged_per_iteration_and_the_cost_decreases(plastic_runs) -> None:
+    full, baseline, _, _ = plastic_runs
+    assert len(full.stages) == 3
+    for st, tau in zip(full.stages, (60.0, 120.0, 360.0)):
+        assert st.tau_pol == tau and st.k == 0.5
+        assert len(st.energies) == len(st.grad_max) >= 2
+        for e in st.energies:
+            assert set(e) == {"pho", "pol", "gsm", "psm", "total"}
+            weighted = e["pho"] + st.tau_pol * e["pol"] + st.tau_gsm * e["gsm"] + st.tau_psm * e["psm"]
+            assert e["total"] == pytest.approx(weighted, rel=1e-5)
+        totals = [e["total"] for e in st.energies]
+        assert all(b <= a for a, b in itertools.pairwise(totals))
+        assert totals[-1] < 0.9 * totals[0]
+    assert [st.t for st in full.stages] == [2.2, 2.8, 3.4]
+    assert "pol" not in baseline.stages[0].energies[0]
+    assert baseline.stages[0].tau_pol == 0.0
+
+
+def test_visibility_is_refreshed_between_stages_and_progress_reported(plastic_runs) -> None:
+    _, _, calls, progress = plastic_runs
+    assert len(calls) == 2  # before stages 2 and 3, at the refined geometry
+    assert not np.allclose(calls[0], calls[1])
+    fractions = [f for f, _ in progress]
+    assert all(b >= a for a, b in itertools.pairwise(fractions))
+    assert fractions[0] == 0.0 and fractions[-1] == 1.0
+    assert any("stage 3/3" in m for _, m in progress)
+
+
+def test_result_shapes_and_gauge(plastic, plastic_runs) -> None:
+    scene = plastic[0]
+    full = plastic_runs[0]
+    n, v = len(scene.vertices), len(scene.cameras)
+    assert full.vertices.shape == (n, 3) and full.vertices.dtype == np.float64
+    assert full.normals.shape == (n, 3) and full.normals.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(full.normals, axis=1), 1.0, atol=1e-5)
+    assert full.albedo.shape == (n, 3) and full.albedo.dtype == np.float32
+    assert full.sh.shape == (v, 9) and full.rgb_scale.shape == (v, 3)
+    np.testing.assert_array_equal(full.sh[:, 0], 1.0)  # gauge: L0 = 1
+    np.testing.assert_array_equal(full.rgb_scale[0], 1.0)  # gauge: view 0's scale
+    assert full.visibility.shape == (n, v) and full.visibility.dtype == bool
+    assert set(full.timings) == {"setup", "stage_1", "stage_2", "stage_3", "total"}
+    # lighting and albedo: the rendered shading ratio between views matches the truth's
+    true_ratio = scene.rgb_scale[1] * scene.sh[1, 0] / (scene.rgb_scale[0] * scene.sh[0, 0])
+    np.testing.assert_allclose(full.rgb_scale[1], true_ratio, rtol=0.1)
+    cap = full.albedo[:, 2] > full.albedo[:, 0]  # the blue cap is found as a different albedo
+    d = scene.vertices / np.linalg.norm(scene.vertices, axis=1, keepdims=True)
+    truth = d @ np.array([0.0, 0.6, 0.8]) > 0.85
+    assert np.mean(cap == truth) > 0.95
+
+
+def test_lambert_capture_full_method_agrees_with_the_baseline() -> None:
+    """DoP ~0 (noise only): E_pol has (almost) no usable pairs and the two results agree within 3%."""
+    scene = make_scene(two_colours=True, lambert=True)
+    obs, vis_fn, vis = _inputs(scene)
+    accs = []
+    for pol in (True, False):
+        res = refine_surface(
+            scene.vertices,
+            scene.faces,
+            scene.cameras,
+            obs,
+            vis,
+            options=RefineOptions(max_iterations=ITERATIONS, polarimetric=pol),
+            visibility_fn=vis_fn,
+        )
+        accs.append(accuracy(res.vertices, scene.true_vertices, scene.true_faces))
+    assert abs(accs[0] - accs[1]) <= 0.03 * accs[1]
+    assert accs[0] < accuracy(scene.vertices, scene.true_vertices, scene.true_faces)
+
+
+def test_ablations_run_and_lower_the_cost(plastic) -> None:
+    """I_int instead of I_min, no DoP weighting, motion along normals, joint albedo: each lowers its cost."""
+    scene, _, _, vis = plastic
+    obs_int = [observation_from_decoded(fr, intensity="int") for fr in scene.frames]
+    one_stage = {
+        "tau_pol": [60.0],
+        "tau_gsm": [0.1],
+        "tau_psm": [2.0],
+        "gsm_exponent": [2.2],
+        "max_iterations": 15,
+    }
+    for opts, obs in [
+        (RefineOptions(intensity="int", dop_weight=False, **one_stage), obs_int),
+        (RefineOptions(vertex_motion="normal", albedo_solve="joint", dop_min=0.0, **one_stage), plastic[1]),
+    ]:
+        res = refine_surface(scene.vertices, scene.faces, scene.cameras, obs, vis, options=opts)
+        e = res.stages[0].energies
+        assert len(res.stages) == 1 and e[-1]["total"] < 0.5 * e[0]["total"]
+
+
+def test_cancel_raises_at_an_iteration_boundary(plastic) -> None:
+    scene, obs, _, vis = plastic
+    polls = []
+
+    def cancel() -> bool:
+        polls.append(1)
+        return len(polls) > 3
+
+    with pytest.raises(CanceledError, match="iteration"):
+        refine_surface(
+            scene.vertices,
+            scene.faces,
+            scene.cameras,
+            obs,
+            vis,
+            options=RefineOptions(max_iterations=10),
+            cancel=cancel,
+        )
+    assert len(polls) == 4
+
+
+def test_cancel_before_the_first_stage(plastic) -> None:
+    scene, obs, _, vis = plastic
+    with pytest.raises(CanceledError, match="before stage 1"):
+        refine_surface(scene.vertices, scene.faces, scene.cameras, obs, vis, cancel=lambda: True)
+
+
+# --- bad inputs ------------------------------------------------------------------------------------
+
+
+def test_visibility_of_the_wrong_shape_is_a_config_error(plastic) -> None:
+    scene, obs, _, vis = plastic
+    with pytest.raises(ConfigError, match="visibility"):
+        refine_surface(scene.vertices, scene.faces, scene.cameras, obs, vis[:, :-1])
+
+
+def test_camera_and_observation_counts_must_match(plastic) -> None:
+    scene, obs, _, vis = plastic
+    with pytest.raises(ConfigError, match="observations"):
+        refine_surface(scene.vertices, scene.faces, scene.cameras, obs[:-1], vis)
+
+
+def test_image_size_must_match_the_camera(plastic) -> None:
+    scene, obs, _, vis = plastic
+    small = Observation(obs[0].intensity[:-1], obs[0].aop[:-1], obs[0].dop[:-1], obs[0].valid[:-1])
+    with pytest.raises(ConfigError, match="view 0"):
+        refine_surface(scene.vertices, scene.faces, scene.cameras, [small] + obs[1:], vis)
+
+
+def test_observation_arrays_must_agree() -> None:
+    with pytest.raises(ConfigError, match="aop"):
+        Observation(np.zeros((4, 5, 3)), np.zeros((4, 4)), np.zeros((4, 5)), np.ones((4, 5), bool))
+    with pytest.raises(ConfigError, match="intensity"):
+        Observation(np.zeros((4, 5)), np.zeros((4, 5)), np.zeros((4, 5)), np.ones((4, 5), bool))
+
+
+def test_decoded_frame_needs_its_keys_and_a_known_intensity() -> None:
+    frame = {"i_min": np.zeros((4, 4, 3)), "aop": np.zeros((4, 4)), "dop": np.zeros((4, 4))}
+    with pytest.raises(ConfigError, match="valid"):
+        observation_from_decoded(frame)
+    with pytest.raises(ConfigError, match="intensity"):
+        observation_from_decoded(frame | {"valid": np.ones((4, 4), bool)}, intensity="max")
+
+
+def test_faces_out_of_range_are_a_mesh_error(plastic) -> None:
+    scene, obs, _, vis = plastic
+    faces = scene.faces.copy()
+    faces[0, 0] = len(scene.vertices)
+    with pytest.raises(MeshError, match="face indices"):
+        refine_surface(scene.vertices, faces, scene.cameras, obs, vis)
+
+
+def test_nan_vertices_are_a_mesh_error(plastic) -> None:
+    scene, obs, _, vis = plastic
+    v = scene.vertices.copy()
+    v[3, 1] = np.nan
+    with pytest.raises(MeshError, match="NaN"):
+        refine_surface(v, scene.faces, scene.cameras, obs, vis)
+
+
+def test_nothing_visible_is_a_reconstruction_error(plastic) -> None:
+    scene, obs, _, vis = plastic
+    with pytest.raises(ReconstructionError, match="stage 1"):
+        refine_surface(scene.vertices, scene.faces, scene.cameras, obs, np.zeros_like(vis))
+
+
+def test_unavailable_cuda_is_a_config_error(plastic, monkeypatch) -> None:
+    import torch
+
+    scene, obs, _, vis = plastic
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ConfigError, match="CUDA"):
+        refine_surface(
+            scene.vertices, scene.faces, scene.cameras, obs, vis, options=RefineOptions(device="cuda")
+        )
+
+
+def test_stage_lists_must_have_equal_lengths() -> None:
+    with pytest.raises(ValidationError, match="one entry per stage"):
+        RefineOptions(tau_pol=[60.0, 120.0], tau_gsm=[0.1], tau_psm=[2.0], gsm_exponent=[2.2])
+
+
+def test_gsm_exponent_below_one_is_rejected() -> None:
+    with pytest.raises(ValidationError, match="gsm_exponent"):
+        RefineOptions(gsm_exponent=[0.5, 2.8, 3.4])
+
+
+def test_unknown_option_is_rejected_and_config_tree_has_refine() -> None:
+    with pytest.raises(ValidationError):
+        RefineOptions(tau1=[1.0])
+    cfg = PipelineConfig.model_validate({"refine": {"polarimetric": False, "intensity": "int"}})
+    assert cfg.refine.polarimetric is False and cfg.refine.n_stages == 3
+    assert RefineOptions().tau_pol == [60.0, 120.0, 360.0] and RefineOptions().pol_k == 0.5

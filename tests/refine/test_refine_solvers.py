@@ -1,0 +1,143 @@
+"""L-BFGS with strong-Wolfe line search, the graph preconditioner and the projected albedo."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+
+from pmvir.refine.albedo import AlbedoSolver
+from pmvir.refine.energy import photometric_smoothness_term, photometric_term
+from pmvir.refine.lbfgs import minimize_lbfgs
+from pmvir.refine.mesh_ops import GraphSmoother, face_adjacency, unique_edges
+from pmvir.refine.sampling import PairSet
+from pmvir.synth.shapes import geodesic_sphere
+
+F64 = torch.float64
+
+
+def _rosenbrock(x: torch.Tensor):
+    x = x.detach().requires_grad_(True)
+    f = (100.0 * (x[1:] - x[:-1] ** 2) ** 2 + (1.0 - x[:-1]) ** 2).sum()
+    (g,) = torch.autograd.grad(f, x)
+    return float(f.detach()), g, {"f": float(f.detach())}
+
+
+def test_lbfgs_minimizes_rosenbrock_and_logs_every_iteration() -> None:
+    log = []
+    res = minimize_lbfgs(
+        _rosenbrock,
+        torch.tensor([-1.2, 1.0, -0.5, 0.8], dtype=F64),
+        max_iterations=200,
+        rel_tolerance=0.0,
+        grad_tolerance=1e-8,
+        on_iteration=lambda it, f, g, aux: log.append((it, f, aux)),
+    )
+    np.testing.assert_allclose(res.x.numpy(), np.ones(4), atol=1e-5)
+    assert res.reason == "gradient_norm"
+    assert [it for it, _, _ in log] == list(range(res.iterations + 1))
+    values = [f for _, f, _ in log]
+    assert all(b < a for a, b in itertools.pairwise(values))  # the line search only accepts decreases
+    assert log[-1][2]["f"] == pytest.approx(res.value)
+
+
+def test_lbfgs_stops_on_max_iterations_and_relative_decrease() -> None:
+    x0 = torch.tensor([-1.2, 1.0], dtype=F64)
+    assert minimize_lbfgs(_rosenbrock, x0, max_iterations=3, rel_tolerance=0.0).reason == "max_iterations"
+    res = minimize_lbfgs(_rosenbrock, x0, max_iterations=500, rel_tolerance=0.05, grad_tolerance=0.0)
+    assert res.reason == "relative_decrease" and res.iterations < 500
+
+
+def test_lbfgs_with_exact_preconditioner_solves_a_quadratic_at_once() -> None:
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(30, 30))
+    h = torch.from_numpy(a @ a.T + 30 * np.eye(30))
+    b = torch.from_numpy(rng.normal(size=30))
+    hinv = torch.linalg.inv(h)
+
+    def quad(x):
+        return float(0.5 * x @ h @ x - b @ x), h @ x - b, None
+
+    res = minimize_lbfgs(
+        quad,
+        torch.zeros(30, dtype=F64),
+        precondition=lambda v: hinv @ v,
+        max_iterations=5,
+        grad_tolerance=1e-9,
+    )
+    assert res.iterations <= 2
+    np.testing.assert_allclose(res.x.numpy(), torch.linalg.solve(h, b).numpy(), atol=1e-8)
+
+
+def test_graph_smoother_approximates_the_screened_laplacian_inverse() -> None:
+    v, f = geodesic_sphere(4)
+    e = unique_edges(f)
+    n = len(v)
+    lap = np.zeros((n, n))
+    lap[e[:, 0], e[:, 1]] = lap[e[:, 1], e[:, 0]] = -1.0
+    lap[np.arange(n), np.arange(n)] = -lap.sum(1)
+    x = np.random.default_rng(1).normal(size=(n, 3))
+    exact = np.linalg.solve(np.eye(n) + 2.0 * lap, x)
+    smooth = GraphSmoother(e, n, lam=2.0, iterations=200, device="cpu", dtype=F64)
+    np.testing.assert_allclose(smooth(torch.from_numpy(x)).numpy(), exact, atol=1e-6)
+    short = GraphSmoother(e, n, lam=2.0, iterations=5, device="cpu", dtype=F64)
+    m = np.stack([short(torch.from_numpy(c)).numpy() for c in np.eye(n)], axis=1)
+    np.testing.assert_allclose(m, m.T, atol=1e-12)  # symmetric ...
+    assert np.linalg.eigvalsh(m).min() > 0  # ... positive definite: a valid preconditioner
+
+
+def test_face_adjacency_of_a_closed_mesh() -> None:
+    _, f = geodesic_sphere(3)
+    fp = face_adjacency(f)
+    assert np.all(np.bincount(fp[:, 0], minlength=len(f)) == 3)  # three edge neighbours per face
+    shared = [len(set(f[a]) & set(f[b])) for a, b in fp]
+    assert set(shared) == {2}
+
+
+def test_projected_albedo_solves_the_normal_equations() -> None:
+    """K* from CG equals the dense solution and zeroes the gradient of E_pho + tau3 E_psm in K."""
+    rng = np.random.default_rng(2)
+    v, f = geodesic_sphere(3)
+    n = len(v)
+    e = unique_edges(f)
+    vert = np.repeat(np.arange(n), 3)[rng.random(3 * n) < 0.7]
+    vert = vert[vert != 5]  # vertex 5 has no observation: only E_psm determines it
+    view = rng.integers(0, 4, len(vert))
+    order = np.argsort(view, kind="stable")
+    vert, view = vert[order], view[order]
+    count = np.bincount(vert, minlength=n)
+    pairs = PairSet(
+        torch.from_numpy(vert),
+        torch.from_numpy(view),
+        np.concatenate([[0], np.cumsum(np.bincount(view, minlength=4))]).tolist(),
+        torch.from_numpy(1.0 / count[vert]),
+        count,
+        torch.from_numpy(vert * 4 + view),
+    )
+    observed = torch.from_numpy(rng.uniform(0.1, 0.9, (len(vert), 3)))
+    light = torch.from_numpy(rng.uniform(0.5, 1.5, (len(vert), 3)))
+    w = rng.uniform(0.1, 1.0, len(e))
+    tau = 2.0
+    solver = AlbedoSolver(pairs, e, w, tau, torch.full((n, 3), 0.5, dtype=F64), tol=1e-12, ridge=0.0)
+    k = solver(observed, light)
+    lap = np.zeros((n, n))
+    np.add.at(lap, (e[:, 0], e[:, 1]), -w)
+    np.add.at(lap, (e[:, 1], e[:, 0]), -w)
+    lap[np.arange(n), np.arange(n)] = -lap.sum(1)
+    wp = 1.0 / count[vert]
+    for ch in range(3):
+        a = light[:, ch].numpy()
+        d = np.bincount(vert, wp * a * a, n)
+        b = np.bincount(vert, wp * a * observed[:, ch].numpy(), n)
+        np.testing.assert_allclose(
+            k[:, ch].numpy(), np.linalg.solve(np.diag(d) + 2 * tau * lap, b), atol=1e-9
+        )
+    kk = k.clone().requires_grad_(True)
+    et = torch.from_numpy(e)
+    energy = photometric_term(observed, light, kk, pairs) + tau * photometric_smoothness_term(
+        kk, et, torch.from_numpy(w)
+    )
+    (g,) = torch.autograd.grad(energy, kk)
+    assert float(g.abs().max()) < 1e-6 * float(energy.detach())
