@@ -81,17 +81,19 @@ def _summarize(result: Path, capture: Path) -> None:
     report = json.loads((result / "report.json").read_text())
     timings = ", ".join(f"{k} {v:.1f} s" for k, v in report["timings_s"].items())
     print(f"[demo]     stages {report['stages']}: {timings}")
-    # the refined result folder (mesh, lighting) when refinement ran, else the initial surface
-    estimate = result if (result / "mesh.ply").exists() else result / "initial.ply"
-    if estimate.exists():
+    # the initial surface, and the refined result (mesh, albedo, lighting) when refinement ran
+    rows = [("initial.ply", result / "initial.ply"), ("mesh.ply", result)]
+    rows = [(name, path) for name, path in rows if (result / name).exists()]
+    if rows:
         from pmvir.evaluate import evaluate_paths
 
-        metrics = evaluate_paths(estimate, capture / "gt").to_dict()
-        name = "mesh.ply" if estimate == result else estimate.name
-        print(f"[demo]     {name} against the ground truth (bounding-box diagonal units):")
-        for key in ("accuracy", "completeness", "albedo_rmse", "illumination_error"):
-            value = metrics.get(key)
-            print(f"[demo]       {key:20s} {'n/a' if value is None else f'{value:.5f}'}")
+        keys = ("accuracy", "completeness", "albedo_rmse", "illumination_error")
+        print("[demo]     against the ground truth (distances in bounding-box diagonals):")
+        print("[demo]       " + f"{'':12s}" + "".join(f"{k:>20s}" for k in keys))
+        for name, path in rows:
+            metrics = evaluate_paths(path, capture / "gt").to_dict()
+            cells = "".join(f"{'n/a' if metrics[k] is None else format(metrics[k], '.5f'):>20s}" for k in keys)
+            print(f"[demo]       {name:12s}{cells}")
         return
     decoded = sorted((result / "decoded").glob("*.npz"))
     print(f"[demo]     {len(decoded)} decoded frames with previews in {result / 'decoded'}")
