@@ -35,6 +35,7 @@ from pmvir.io.illumination import illumination_from_arrays, write_illumination
 from pmvir.io.ply import Mesh, write_mesh_ply
 from pmvir.polarization.stokes import PolarizationImages
 from pmvir.refine import RefineResult, make_visibility_fn, observation_from_decoded, refine_surface
+from pmvir.refine.schedule import StageLog
 
 #: progress(stage, overall fraction in [0, 1], message)
 ProgressCallback = Callable[[str, float, str], None]
@@ -71,7 +72,9 @@ class PipelineResult:
 class _Progress:
     """Turns per-stage fractions into an overall fraction that never goes backwards."""
 
-    def __init__(self, stages: list[str], callback: ProgressCallback | None, should_cancel: CancelCheck | None):
+    def __init__(
+        self, stages: list[str], callback: ProgressCallback | None, should_cancel: CancelCheck | None
+    ):
         total = sum(STAGE_WEIGHTS[s] for s in stages)
         self._start: dict[str, float] = {}
         acc = 0.0
@@ -102,7 +105,9 @@ def stages_for(config: PipelineConfig) -> list[str]:
     return list(STAGE_ORDER[: STAGE_ORDER.index(config.stop_after) + 1])
 
 
-def decode_views(cap: Capture, config: PipelineConfig, report: Callable[[float, str], None]) -> list[DecodedView]:
+def decode_views(
+    cap: Capture, config: PipelineConfig, report: Callable[[float, str], None]
+) -> list[DecodedView]:
     """Decode every frame of an open capture (stage 1)."""
     views = []
     n = len(cap.frames)
@@ -147,7 +152,9 @@ def run(
     stages = stages_for(config)
     missing = [s for s in stages if s not in AVAILABLE_STAGES]
     if missing:
-        raise ConfigError(f"stage(s) {missing} are not available in pmvir {__version__}; use stop_after='decode'")
+        raise ConfigError(
+            f"stage(s) {missing} are not available in pmvir {__version__}; use stop_after='decode'"
+        )
     tracker = _Progress(stages, progress, should_cancel)
     timings: dict[str, float] = {}
     files: list[str] = []
@@ -184,7 +191,11 @@ def run(
 
 
 def _geometry_stage(
-    cap: Capture, views: list[DecodedView], config: PipelineConfig, work: Path, tracker: _Progress,
+    cap: Capture,
+    views: list[DecodedView],
+    config: PipelineConfig,
+    work: Path,
+    tracker: _Progress,
     should_cancel: CancelCheck | None,
 ) -> GeometryResult:
     """Poses, dense stereo, initial surface, visibility, subdivision (stage 2)."""
@@ -216,7 +227,8 @@ def _refine_stage(
     registered = [i for i, cam in enumerate(geometry.cameras) if cam is not None]
     cameras = [geometry.cameras[i] for i in registered]
     observations = [
-        observation_from_decoded(asdict(views[i].images), intensity=config.refine.intensity) for i in registered
+        observation_from_decoded(asdict(views[i].images), intensity=config.refine.intensity)
+        for i in registered
     ]
     masks = [cap.read_mask(i) for i in registered]
     visibility_fn = make_visibility_fn(
@@ -239,39 +251,48 @@ def _refine_stage(
 def _write_refined(out: Path, geometry: GeometryResult, refined: RefineResult, files: list[str]) -> list[str]:
     mesh = Mesh(refined.vertices, geometry.faces, albedo=refined.albedo, normals=refined.normals)
     write_mesh_ply(out / "mesh.ply", mesh)
-    write_illumination(out / "illumination.json", illumination_from_arrays(files, refined.sh, refined.rgb_scale))
+    write_illumination(
+        out / "illumination.json", illumination_from_arrays(files, refined.sh, refined.rgb_scale)
+    )
     return ["mesh.ply", "illumination.json"]
 
 
-def refine_report(refined: RefineResult) -> dict:
-    """The refinement's part of report.json: per stage its parameters and per-iteration term values."""
+def _stage_report(st: StageLog) -> dict:
     return {
-        "vertices": len(refined.vertices),
-        "timings": {k: float(v) for k, v in refined.timings.items()},
-        "stages": [
-            {
-                "index": st.index,
-                "tau_pol": st.tau_pol,
-                "tau_gsm": st.tau_gsm,
-                "tau_psm": st.tau_psm,
-                "t": st.t,
-                "k": st.k,
-                "vertex_view_pairs": st.n_pairs,
-                "observed_vertices": st.n_observed,
-                "iterations": len(st.energies) - 1,
-                "evaluations": st.evaluations,
-                "stop_reason": st.stop_reason,
-                "seconds": st.seconds,
-                "energies_first": st.energies[0] if st.energies else {},
-                "energies_last": st.energies[-1] if st.energies else {},
-                "energies": st.energies,
-            }
-            for st in refined.stages
-        ],
+        "index": st.index,
+        "tau_pol": st.tau_pol,
+        "tau_gsm": st.tau_gsm,
+        "tau_psm": st.tau_psm,
+        "t": st.t,
+        "k": st.k,
+        "vertex_view_pairs": st.n_pairs,
+        "observed_vertices": st.n_observed,
+        "iterations": len(st.energies) - 1,
+        "evaluations": st.evaluations,
+        "stop_reason": st.stop_reason,
+        "seconds": st.seconds,
+        "energies_first": st.energies[0] if st.energies else {},
+        "energies_last": st.energies[-1] if st.energies else {},
+        "energies": st.energies,
     }
 
 
-def _write_decoded_views(out: Path, views: list[DecodedView], report: Callable[[float, str], None]) -> list[str]:
+def refine_report(refined: RefineResult) -> dict:
+    """The refinement's part of report.json: per stage its parameters and per-iteration term values.
+
+    ``lighting`` is the final lighting stage (surface fixed), null when it did not run.
+    """
+    return {
+        "vertices": len(refined.vertices),
+        "timings": {k: float(v) for k, v in refined.timings.items()},
+        "stages": [_stage_report(st) for st in refined.stages],
+        "lighting": None if refined.lighting is None else _stage_report(refined.lighting),
+    }
+
+
+def _write_decoded_views(
+    out: Path, views: list[DecodedView], report: Callable[[float, str], None]
+) -> list[str]:
     folder = out / "decoded"
     folder.mkdir(exist_ok=True)
     written = []
@@ -295,7 +316,12 @@ def software_versions() -> dict[str, str]:
 
 
 def _write_report(
-    out: Path, config: PipelineConfig, stages: list[str], timings: dict[str, float], counts: dict, sections: dict
+    out: Path,
+    config: PipelineConfig,
+    stages: list[str],
+    timings: dict[str, float],
+    counts: dict,
+    sections: dict,
 ) -> None:
     report = {
         "format": "pmvir-report/1",

@@ -12,7 +12,13 @@ Conventions (capture spec, sections 1-2):
 * DoP and intensities are interpolated bilinearly.
 * A (vertex, view) pair is used in a stage when the vertex is visible in the
   view, in front of the camera, its projection's whole bilinear footprint lies
-  inside the image, and every pixel of the footprint is ``valid``. The pair set
+  inside the image, every pixel of the footprint is ``valid`` and, when a minimum
+  viewing cosine is given, the vertex normal faces the camera at least that much
+  (cos of the angle between the normal and the direction to the camera centre).
+  Grazing pairs are left out because their bilinear sample mixes surface points
+  far apart along the surface (the footprint stretches by 1 / cos) and their
+  colour is the least reliable: kept, they pull the surface away from the truth.
+  The pair set
   is fixed for a stage; samples move with the vertices (and are differentiated).
 """
 
@@ -207,12 +213,20 @@ def select_pairs(
     *,
     device: torch.device,
     dtype: torch.dtype,
+    normals: np.ndarray | None = None,
+    min_cos: float = -1.0,
+    keep_best: int = 0,
 ) -> PairSet:
     """The usable (vertex, view) pairs at the current geometry (rules in the module docstring).
 
     Args:
         vertices: (N, 3) world positions.
         visibility: (N, V) bool, True where vertex i is visible in view c.
+        normals: (N, 3) unit vertex normals; needed when ``min_cos`` > -1.
+        min_cos: pairs whose normal makes a cosine below this with the direction to the
+            camera are left out (-1: none is) ...
+        keep_best: ... except each vertex's ``keep_best`` most frontal usable pairs, so that
+            a vertex seen by few cameras keeps enough views to be placed.
 
     Raises:
         ConfigError: ``visibility`` has the wrong shape.
@@ -221,8 +235,10 @@ def select_pairs(
     vis = np.asarray(visibility)
     if vis.shape != (n, n_views):
         raise ConfigError(f"expected ({n}, {n_views}) visibility, got {vis.shape}")
+    if min_cos > -1.0 and (normals is None or np.shape(normals) != (n, 3)):
+        raise ConfigError(f"select_pairs with min_cos > -1 needs ({n}, 3) normals")
     vis = vis.astype(bool)
-    vert_idx, view_idx = [], []
+    vert_idx, view_idx, cos_all = [], [], []
     for c, (cam, obs) in enumerate(zip(cameras, observations)):
         idx = np.flatnonzero(vis[:, c])
         uv, depth = cam.project(vertices[idx])
@@ -237,11 +253,20 @@ def select_pairs(
         ok = valid[y0, x0] & valid[y0, x1] & valid[y1, x0] & valid[y1, x1]
         # Within a view, pairs go in pixel order: the image lookups then walk memory forwards.
         order = np.argsort(y0[ok] * w + x0[ok], kind="stable")
-        vert_idx.append(idx[ok][order])
-        view_idx.append(np.full(int(ok.sum()), c, dtype=np.int64))
+        kept = idx[ok][order]
+        vert_idx.append(kept)
+        view_idx.append(np.full(len(kept), c, dtype=np.int64))
+        if min_cos > -1.0:
+            to_cam = cam.center[None, :] - vertices[kept]
+            cos_all.append(
+                (normals[kept] * to_cam).sum(1) / np.maximum(np.linalg.norm(to_cam, axis=1), 1e-300)
+            )
     vertex = np.concatenate(vert_idx)
     view = np.concatenate(view_idx)
-    offsets = np.concatenate([[0], np.cumsum([len(v) for v in vert_idx])]).tolist()
+    if min_cos > -1.0:
+        keep = _frontal_pairs(vertex, np.concatenate(cos_all), min_cos=min_cos, keep_best=keep_best)
+        vertex, view = vertex[keep], view[keep]
+    offsets = np.searchsorted(view, np.arange(n_views + 1)).tolist()
     count = np.bincount(vertex, minlength=n).astype(np.int64)
     weight = 1.0 / np.maximum(count[vertex], 1)
     return PairSet(
@@ -252,6 +277,18 @@ def select_pairs(
         count=count,
         flat=torch.from_numpy(vertex * n_views + view).to(device),
     )
+
+
+def _frontal_pairs(vertex: np.ndarray, cos: np.ndarray, *, min_cos: float, keep_best: int) -> np.ndarray:
+    """(P,) bool: cos >= min_cos, or among the vertex's ``keep_best`` largest cos."""
+    keep = cos >= min_cos
+    if keep_best > 0 and len(vertex):
+        order = np.lexsort((-cos, vertex))
+        vs = vertex[order]
+        starts = np.flatnonzero(np.r_[True, vs[1:] != vs[:-1]])
+        rank = np.arange(len(vs)) - np.repeat(starts, np.diff(np.r_[starts, len(vs)]))
+        keep[order[rank < keep_best]] = True
+    return keep
 
 
 @dataclass(frozen=True)

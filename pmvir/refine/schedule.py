@@ -49,7 +49,14 @@ from pmvir.refine.mesh_ops import (
     unique_edges,
     vertex_normals,
 )
-from pmvir.refine.sampling import Observation, PairSet, build_view_stack, sample_pairs, select_pairs
+from pmvir.refine.sampling import (
+    Observation,
+    PairSet,
+    ViewStack,
+    build_view_stack,
+    sample_pairs,
+    select_pairs,
+)
 
 #: vertices (N, 3) float64, faces (F, 3) int64 -> (N, V) bool visibility.
 VisibilityFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -100,7 +107,8 @@ class RefineResult:
         rgb_scale: (V, 3) float32 RGB scale per view (view 0 = its initial [1, 1, 1]).
         visibility: (N, V) bool visibility used by the last stage.
         stages: one :class:`StageLog` per stage.
-        timings: seconds: ``setup``, ``stage_1`` ... ``stage_S``, ``total``.
+        timings: seconds: ``setup``, ``stage_1`` ... ``stage_S``, ``lighting`` (when run), ``total``.
+        lighting: the final lighting stage's log (None when ``lighting_iterations`` is 0).
     """
 
     vertices: np.ndarray
@@ -111,6 +119,7 @@ class RefineResult:
     visibility: np.ndarray
     stages: list[StageLog] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    lighting: StageLog | None = None
 
 
 def resolve_device(name: str) -> torch.device:
@@ -151,7 +160,8 @@ class _Unknowns:
 class _Parametrization:
     """Flat, preconditioned unknowns z of one stage <-> (X, K, L_basis, L_scale).
 
-    Blocks of z: vertex motion (N or 3N), albedo (3N, only when ``joint_albedo``),
+    Blocks of z: vertex motion (N for "normal", 3N for "free", none for "fixed"), albedo (3N, only when
+    ``joint_albedo``),
     SH L1..L8 per view (8V), RGB scale of views 1..V-1 (3(V-1)).
     """
 
@@ -165,7 +175,7 @@ class _Parametrization:
         per_view = torch.zeros(v, dtype=start.sh.dtype, device=start.sh.device)
         per_view.index_add_(0, pairs.view, pairs.weight)
         self.precond = per_view.clamp_min(1.0).rsqrt()
-        n_geo = n if motion == "normal" else 3 * n
+        n_geo = {"normal": n, "free": 3 * n, "fixed": 0}[motion]
         sizes = [n_geo, 3 * n if joint_albedo else 0, 8 * v, 3 * (v - 1)]
         self.bounds = np.cumsum([0] + sizes).tolist()
 
@@ -181,6 +191,8 @@ class _Parametrization:
         b, n = self.bounds, self.n
 
         def apply(z: torch.Tensor) -> torch.Tensor:
+            if self.motion == "fixed":
+                return z
             geo = z[b[0] : b[1]]
             geo = smoother(geo if self.motion == "normal" else geo.view(n, 3)).reshape(-1)
             return torch.cat([geo, z[b[1] :]])
@@ -193,8 +205,10 @@ class _Parametrization:
         geo = z[b[0] : b[1]]
         if self.motion == "normal":
             vertices = s.vertices + self.h * geo[:, None] * self.normal0
-        else:
+        elif self.motion == "free":
             vertices = s.vertices + self.h * geo.view(n, 3)
+        else:  # "fixed": lighting and albedo only
+            vertices = s.vertices
         albedo = z[b[1] : b[2]].view(n, 3) if self.joint_albedo else s.albedo
         sh_rest = s.sh[:, 1:] + z[b[2] : b[3]].view(v, 8) * self.precond[:, None]
         sh = torch.cat([torch.ones_like(s.sh[:, :1]), sh_rest], dim=1)
@@ -215,6 +229,208 @@ def _stage_observations(
     count = pairs.count
     mean = total.cpu().numpy().astype(np.float64) / np.maximum(count, 1)[:, None]
     return mean, count > 0, smp.dop
+
+
+class _IterationLog:
+    """Collects the per-iteration energies of a stage and reports progress / polls cancellation."""
+
+    def __init__(self, max_iterations: int, stage: int, n_stages: int, report, check_cancel):
+        self.max_iterations, self.stage, self.n_stages = max_iterations, stage, n_stages
+        self.report, self.check_cancel = report, check_cancel
+        self.energies: list[dict[str, float]] = []
+        self.grad_max: list[float] = []
+        self.label = ""  # set: the whole run is one named stage, e.g. "lighting stage"
+
+    def __call__(self, it: int, value: float, gmax: float, named: dict[str, float]) -> None:
+        self.energies.append(named)
+        self.grad_max.append(gmax)
+        s, n = self.stage, self.n_stages
+        if self.label:
+            self.report(
+                min(it / self.max_iterations, 1.0), f"refine {self.label} iteration {it}: E = {value:.6g}"
+            )
+            self.check_cancel(f"in the {self.label} at iteration {it}")
+            return
+        frac = min(it / self.max_iterations, 1.0)
+        self.report((s + frac) / n, f"refine stage {s + 1}/{n} iteration {it}: E = {value:.6g}")
+        self.check_cancel(f"at stage {s + 1} iteration {it}")
+
+
+def _minimize(
+    param: _Parametrization,
+    problem: StageProblem,
+    solver: AlbedoSolver | None,
+    tau: tuple[float, float, float],
+    smoother: GraphSmoother,
+    opts: RefineOptions,
+    log: _IterationLog,
+    max_iterations: int,
+):
+    """L-BFGS on one parametrization of a stage's cost."""
+
+    def fun(z: torch.Tensor):
+        z = z.detach().requires_grad_(True)
+        u = param.unpack(z)
+        albedo = u.albedo if solver is None else solver
+        terms = energy_terms(u.vertices, albedo, u.sh, u.rgb_scale, problem)
+        total = total_energy(terms, tau_pol=tau[0], tau_gsm=tau[1], tau_psm=tau[2])
+        (grad,) = torch.autograd.grad(total, z)
+        named = {k: float(v.detach()) for k, v in terms.items()}
+        named["total"] = float(total.detach())
+        return named["total"], grad, named
+
+    return minimize_lbfgs(
+        fun,
+        param.initial(),
+        precondition=param.preconditioner(smoother),
+        first_step=0.1,
+        max_iterations=max_iterations,
+        history_size=opts.history_size,
+        rel_tolerance=opts.rel_tolerance,
+        grad_tolerance=opts.grad_tolerance,
+        on_iteration=log,
+    )
+
+
+def _accepted(
+    param: _Parametrization, problem: StageProblem, solver: AlbedoSolver | None, z: torch.Tensor
+) -> _Unknowns:
+    """The unknowns at the accepted point z (with the projected albedo solved there)."""
+    with torch.no_grad():
+        u = param.unpack(z)
+        if solver is not None:
+            energy_terms(u.vertices, solver, u.sh, u.rgb_scale, problem)
+            u.albedo = solver.current
+    return _Unknowns(u.vertices.detach(), u.albedo.detach(), u.sh.detach(), u.rgb_scale.detach())
+
+
+@dataclass(frozen=True)
+class _Topology:
+    """The mesh's fixed connectivity, on the device (and the edges in NumPy too)."""
+
+    faces: torch.Tensor
+    face_pairs: torch.Tensor
+    has_neighbour: torch.Tensor
+    edges: torch.Tensor
+    edges_np: np.ndarray
+
+    @classmethod
+    def of(cls, faces_np: np.ndarray, device: torch.device) -> _Topology:
+        edges_np = unique_edges(faces_np)
+        fpairs_np = face_adjacency(faces_np)
+        has_nb = np.bincount(fpairs_np[:, 0], minlength=len(faces_np)) > 0
+        return cls(
+            faces=torch.from_numpy(faces_np).to(device),
+            face_pairs=torch.from_numpy(fpairs_np).to(device),
+            has_neighbour=torch.from_numpy(has_nb).to(device),
+            edges=torch.from_numpy(edges_np).to(device),
+            edges_np=edges_np,
+        )
+
+
+def _stage_problem(
+    topo: _Topology,
+    views: ViewStack,
+    pairs: PairSet,
+    colour: np.ndarray,
+    observed: np.ndarray,
+    opts: RefineOptions,
+    *,
+    polarimetric: bool,
+    pol_mask: torch.Tensor | None,
+    t: float,
+) -> tuple[StageProblem, np.ndarray]:
+    """A stage's constants and its E_psm weights (from the observed colours at its start)."""
+    w = psm_weights(
+        colour,
+        observed,
+        topo.edges_np,
+        sigma_chroma=opts.psm_sigma_chroma,
+        sigma_log_intensity=opts.psm_sigma_log_intensity,
+    )
+    device, dtype = views.table.device, views.table.dtype
+    problem = StageProblem(
+        faces=topo.faces,
+        face_pairs=topo.face_pairs,
+        has_neighbour=topo.has_neighbour,
+        edges=topo.edges,
+        psm_weight=torch.from_numpy(w).to(device=device, dtype=dtype),
+        views=views,
+        pairs=pairs,
+        polarimetric=polarimetric,
+        pol_mask=pol_mask,
+        k=opts.pol_k,
+        dop_weight=opts.dop_weight,
+        t=t,
+        units=opts.intensity_units,
+    )
+    return problem, w
+
+
+def _lighting_stage(
+    state: _Unknowns,
+    topo: _Topology,
+    cameras: Sequence[Camera],
+    observations: Sequence[Observation],
+    views: ViewStack,
+    vis: np.ndarray,
+    visibility_fn: VisibilityFn | None,
+    smoother: GraphSmoother,
+    opts: RefineOptions,
+    report: ProgressFn,
+    check_cancel: Callable[[str], None],
+) -> tuple[_Unknowns, np.ndarray, StageLog]:
+    """Lighting and albedo for the final surface, held fixed, from every visible pair.
+
+    The geometric stages leave out grazing pairs (``min_view_cos``), so each view's lighting
+    is seen only over normals within that cone of its camera; here the whole visible
+    hemisphere of each view constrains it. Geometry does not move, so the grazing
+    samples cannot pull the surface. The last stage's tau_psm weights E_psm.
+    """
+    t0 = time.perf_counter()
+    report(0.0, "refine lighting stage: visibility and pairs")
+    cur_np = state.vertices.detach().cpu().numpy().astype(np.float64)
+    if opts.refresh_visibility and visibility_fn is not None:
+        vis = np.asarray(visibility_fn(cur_np, topo.faces.cpu().numpy()))
+    device, dtype = state.vertices.device, state.vertices.dtype
+    pairs = select_pairs(cur_np, vis, cameras, observations, device=device, dtype=dtype)
+    colour, observed, _ = _stage_observations(state.vertices, topo.faces, views, pairs)
+    tau_psm = opts.tau_psm[-1]
+    # the geometry is fixed: E_pol and E_gsm are constants here
+    problem, w = _stage_problem(
+        topo, views, pairs, colour, observed, opts, polarimetric=False, pol_mask=None, t=opts.gsm_exponent[-1]
+    )
+    joint = opts.albedo_solve == "joint"
+    h = mean_edge_length(cur_np, topo.edges_np)
+    param = _Parametrization(state, pairs, topo.faces, h, "fixed", joint)
+    solver = None if joint else AlbedoSolver(pairs, topo.edges_np, w, tau_psm, state.albedo)
+    n_stages = opts.n_stages
+    log = _IterationLog(opts.lighting_iterations, n_stages, n_stages, report, check_cancel)
+    log.label = "lighting stage"
+    res = _minimize(
+        param, problem, solver, (0.0, 0.0, tau_psm), smoother, opts, log, opts.lighting_iterations
+    )
+    state = _accepted(param, problem, solver, res.x)
+    seconds = time.perf_counter() - t0
+    return (
+        state,
+        vis,
+        StageLog(
+            index=n_stages,
+            tau_pol=0.0,
+            tau_gsm=0.0,
+            tau_psm=tau_psm,
+            t=opts.gsm_exponent[-1],
+            k=opts.pol_k,
+            n_pairs=pairs.size,
+            n_observed=int(observed.sum()),
+            energies=log.energies,
+            grad_max=log.grad_max,
+            evaluations=res.evaluations,
+            stop_reason=res.reason,
+            seconds=seconds,
+        ),
+    )
 
 
 def refine_surface(
@@ -264,20 +480,23 @@ def refine_surface(
     if vis.shape != (n, n_views):
         raise ConfigError(f"expected ({n}, {n_views}) visibility, got {vis.shape}")
 
+    # The geometric stages share the progress bar with the lighting stage (half a stage's worth).
+    geo_share = opts.n_stages / (opts.n_stages + (0.5 if opts.lighting_iterations > 0 else 0.0))
+
     def report(fraction: float, message: str) -> None:
         if progress is not None:
-            progress(min(max(fraction, 0.0), 1.0), message)
+            progress(min(max(fraction * geo_share, 0.0), 1.0), message)
+
+    def report_lighting(fraction: float, message: str) -> None:
+        if progress is not None:
+            progress(min(max(geo_share + (1.0 - geo_share) * fraction, 0.0), 1.0), message)
 
     def check_cancel(where: str) -> None:
         if cancel is not None and cancel():
             raise CanceledError(f"refinement canceled {where}")
 
-    faces_t = torch.from_numpy(faces_np).to(device)
-    edges_np = unique_edges(faces_np)
-    edges_t = torch.from_numpy(edges_np).to(device)
-    fpairs_np = face_adjacency(faces_np)
-    fpairs_t = torch.from_numpy(fpairs_np).to(device)
-    has_nb = torch.from_numpy(np.bincount(fpairs_np[:, 0], minlength=len(faces_np)) > 0).to(device)
+    topo = _Topology.of(faces_np, device)
+    faces_t, edges_np = topo.faces, topo.edges_np
     smoother = GraphSmoother(
         edges_np,
         n,
@@ -306,7 +525,19 @@ def refine_surface(
             vis = np.asarray(visibility_fn(cur_np, faces_np))
             if vis.shape != (n, n_views):
                 raise ConfigError(f"visibility_fn returned shape {vis.shape}, expected ({n}, {n_views})")
-        pairs = select_pairs(cur_np, vis, cameras, observations, device=device, dtype=dtype)
+        with torch.no_grad():
+            normals_np = vertex_normals(state.vertices, faces_t).cpu().numpy().astype(np.float64)
+        pairs = select_pairs(
+            cur_np,
+            vis,
+            cameras,
+            observations,
+            device=device,
+            dtype=dtype,
+            normals=normals_np,
+            min_cos=opts.min_view_cos,
+            keep_best=opts.min_view_pairs,
+        )
         if pairs.size == 0:
             raise ReconstructionError(
                 f"stage {s + 1}: no vertex projects onto valid pixels of a view that sees it"
@@ -316,79 +547,29 @@ def refine_surface(
             fill = colour[observed].mean(axis=0)
             init = np.where(observed[:, None], colour, fill[None, :])
             state.albedo = torch.from_numpy(init).to(device=device, dtype=dtype)
-        w = psm_weights(
-            colour,
-            observed,
-            edges_np,
-            sigma_chroma=opts.psm_sigma_chroma,
-            sigma_log_intensity=opts.psm_sigma_log_intensity,
-        )
         tau_pol = opts.tau_pol[s] if opts.polarimetric else 0.0
         tau_gsm, tau_psm, t_exp = opts.tau_gsm[s], opts.tau_psm[s], opts.gsm_exponent[s]
-        problem = StageProblem(
-            faces=faces_t,
-            face_pairs=fpairs_t,
-            has_neighbour=has_nb,
-            edges=edges_t,
-            psm_weight=torch.from_numpy(w).to(device=device, dtype=dtype),
-            views=views,
-            pairs=pairs,
+        problem, w = _stage_problem(
+            topo,
+            views,
+            pairs,
+            colour,
+            observed,
+            opts,
             polarimetric=opts.polarimetric,
             pol_mask=None if dop is None or opts.dop_min <= 0.0 else dop >= opts.dop_min,
-            k=opts.pol_k,
-            dop_weight=opts.dop_weight,
             t=t_exp,
-            units=opts.intensity_units,
         )
         h = mean_edge_length(cur_np, edges_np)
         joint = opts.albedo_solve == "joint"
+        tau = (tau_pol, tau_gsm, tau_psm)
+        log = _IterationLog(opts.max_iterations, s, n_stages, report, check_cancel)
+        evaluations = 0
         param = _Parametrization(state, pairs, faces_t, h, opts.vertex_motion, joint)
         solver = None if joint else AlbedoSolver(pairs, edges_np, w, tau_psm, state.albedo)
-
-        def fun(
-            z: torch.Tensor, param=param, problem=problem, solver=solver, tau=(tau_pol, tau_gsm, tau_psm)
-        ):
-            z = z.detach().requires_grad_(True)
-            u = param.unpack(z)
-            albedo = u.albedo if solver is None else solver
-            terms = energy_terms(u.vertices, albedo, u.sh, u.rgb_scale, problem)
-            total = total_energy(terms, tau_pol=tau[0], tau_gsm=tau[1], tau_psm=tau[2])
-            (grad,) = torch.autograd.grad(total, z)
-            named = {k: float(v.detach()) for k, v in terms.items()}
-            named["total"] = float(total.detach())
-            return named["total"], grad, named
-
-        energies: list[dict[str, float]] = []
-        grads: list[float] = []
-
-        def on_iteration(
-            it: int, value: float, gmax: float, named: dict[str, float], s=s, energies=energies, grads=grads
-        ) -> None:
-            energies.append(named)
-            grads.append(gmax)
-            report(
-                (s + min(it / opts.max_iterations, 1.0)) / n_stages,
-                f"refine stage {s + 1}/{n_stages} iteration {it}: E = {value:.6g}",
-            )
-            check_cancel(f"at stage {s + 1} iteration {it}")
-
-        res = minimize_lbfgs(
-            fun,
-            param.initial(),
-            precondition=param.preconditioner(smoother),
-            first_step=0.1,
-            max_iterations=opts.max_iterations,
-            history_size=opts.history_size,
-            rel_tolerance=opts.rel_tolerance,
-            grad_tolerance=opts.grad_tolerance,
-            on_iteration=on_iteration,
-        )
-        with torch.no_grad():
-            u = param.unpack(res.x)
-            if solver is not None:  # the albedo of the accepted point
-                energy_terms(u.vertices, solver, u.sh, u.rgb_scale, problem)
-                u.albedo = solver.current
-        state = _Unknowns(u.vertices.detach(), u.albedo.detach(), u.sh.detach(), u.rgb_scale.detach())
+        res = _minimize(param, problem, solver, tau, smoother, opts, log, opts.max_iterations)
+        state = _accepted(param, problem, solver, res.x)
+        evaluations += res.evaluations
         seconds = time.perf_counter() - t_stage
         timings[f"stage_{s + 1}"] = seconds
         logs.append(
@@ -401,19 +582,38 @@ def refine_surface(
                 k=opts.pol_k,
                 n_pairs=pairs.size,
                 n_observed=int(observed.sum()),
-                energies=energies,
-                grad_max=grads,
-                evaluations=res.evaluations,
+                energies=log.energies,
+                grad_max=log.grad_max,
+                evaluations=evaluations,
                 stop_reason=res.reason,
                 seconds=seconds,
             )
         )
 
+    lighting_log = None
+    if opts.lighting_iterations > 0:
+        check_cancel("before the lighting stage")
+        state, vis, lighting_log = _lighting_stage(
+            state,
+            topo,
+            cameras,
+            observations,
+            views,
+            vis,
+            visibility_fn,
+            smoother,
+            opts,
+            report_lighting,
+            check_cancel,
+        )
+        timings["lighting"] = lighting_log.seconds
+
     out_vertices = state.vertices.cpu().numpy().astype(np.float64)
     with torch.no_grad():
         normals = vertex_normals(state.vertices, faces_t).cpu().numpy().astype(np.float32)
     timings["total"] = time.perf_counter() - t_start
-    report(1.0, "refine done")
+    if progress is not None:
+        progress(1.0, "refine done")
     return RefineResult(
         vertices=out_vertices,
         normals=normals,
@@ -423,4 +623,5 @@ def refine_surface(
         visibility=vis.astype(bool),
         stages=logs,
         timings=timings,
+        lighting=lighting_log,
     )

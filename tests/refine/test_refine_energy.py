@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from pmvir.camera import Camera, look_at
+from pmvir.errors import ConfigError
 from pmvir.refine.energy import (
     ETA_OFFSETS,
     StageProblem,
@@ -205,6 +206,26 @@ def test_pairs_need_valid_footprints() -> None:
     pairs = select_pairs(pts, np.ones((4, 1), bool), [cam], [obs], device="cpu", dtype=F64)
     assert pairs.vertex.tolist() == [0, 3]
     np.testing.assert_array_equal(pairs.count, [1, 0, 0, 1])
+
+
+def test_grazing_pairs_are_left_out_below_the_minimum_viewing_cosine() -> None:
+    """A vertex whose normal turns 50 / 70 degrees away from the camera is kept / dropped at min_cos 0.5."""
+    cam, ramp = _flat_view()
+    obs = Observation(np.ones(ramp.shape + (3,)), np.zeros(ramp.shape), ramp, np.ones(ramp.shape, bool))
+    pts = np.array([[0.0, 0.0, 1.0], [0.01, 0.0, 1.0], [-0.01, 0.0, 1.0]])
+    to_cam = -pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    tilt = np.radians([0.0, 50.0, 70.0])
+    # turn each normal about the y axis away from the direction to the camera
+    normals = np.stack(
+        [np.cos(t) * d + np.sin(t) * np.cross([0.0, 1.0, 0.0], d) for t, d in zip(tilt, to_cam)]
+    )
+    vis = np.ones((3, 1), bool)
+    kept = select_pairs(pts, vis, [cam], [obs], device="cpu", dtype=F64, normals=normals, min_cos=0.5)
+    assert sorted(kept.vertex.tolist()) == [0, 1]
+    everything = select_pairs(pts, vis, [cam], [obs], device="cpu", dtype=F64)
+    assert sorted(everything.vertex.tolist()) == [0, 1, 2]
+    with pytest.raises(ConfigError, match="normals"):
+        select_pairs(pts, vis, [cam], [obs], device="cpu", dtype=F64, min_cos=0.5)
 
 
 # --- smoothness terms -------------------------------------------------------------------------------
