@@ -358,12 +358,6 @@ class RefineOptions(_Options):
         description="Each vertex keeps at least this many of its most frontal visible pairs even below "
         "min_view_cos, so that parts seen only obliquely (a sparse rig, the poles of a ring) stay placed.",
     )
-    lighting_iterations: int = Field(
-        default=30,
-        ge=0,
-        description="L-BFGS iterations of a final lighting stage: the surface held fixed, lighting and albedo "
-        "fitted to every visible pair (grazing ones too, which the geometric stages leave out). 0: none.",
-    )
     rel_tolerance: float = Field(
         default=1e-5,
         ge=0.0,

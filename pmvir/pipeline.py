@@ -278,15 +278,11 @@ def _stage_report(st: StageLog) -> dict:
 
 
 def refine_report(refined: RefineResult) -> dict:
-    """The refinement's part of report.json: per stage its parameters and per-iteration term values.
-
-    ``lighting`` is the final lighting stage (surface fixed), null when it did not run.
-    """
+    """The refinement's part of report.json: per stage its parameters and per-iteration term values."""
     return {
         "vertices": len(refined.vertices),
         "timings": {k: float(v) for k, v in refined.timings.items()},
         "stages": [_stage_report(st) for st in refined.stages],
-        "lighting": None if refined.lighting is None else _stage_report(refined.lighting),
     }
 
 

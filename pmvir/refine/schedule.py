@@ -107,8 +107,7 @@ class RefineResult:
         rgb_scale: (V, 3) float32 RGB scale per view (view 0 = its initial [1, 1, 1]).
         visibility: (N, V) bool visibility used by the last stage.
         stages: one :class:`StageLog` per stage.
-        timings: seconds: ``setup``, ``stage_1`` ... ``stage_S``, ``lighting`` (when run), ``total``.
-        lighting: the final lighting stage's log (None when ``lighting_iterations`` is 0).
+        timings: seconds: ``setup``, ``stage_1`` ... ``stage_S``, ``total``.
     """
 
     vertices: np.ndarray
@@ -119,7 +118,6 @@ class RefineResult:
     visibility: np.ndarray
     stages: list[StageLog] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
-    lighting: StageLog | None = None
 
 
 def resolve_device(name: str) -> torch.device:
@@ -160,7 +158,7 @@ class _Unknowns:
 class _Parametrization:
     """Flat, preconditioned unknowns z of one stage <-> (X, K, L_basis, L_scale).
 
-    Blocks of z: vertex motion (N for "normal", 3N for "free", none for "fixed"), albedo (3N, only when
+    Blocks of z: vertex motion (N for "normal", 3N for "free"), albedo (3N, only when
     ``joint_albedo``),
     SH L1..L8 per view (8V), RGB scale of views 1..V-1 (3(V-1)).
     """
@@ -175,7 +173,7 @@ class _Parametrization:
         per_view = torch.zeros(v, dtype=start.sh.dtype, device=start.sh.device)
         per_view.index_add_(0, pairs.view, pairs.weight)
         self.precond = per_view.clamp_min(1.0).rsqrt()
-        n_geo = {"normal": n, "free": 3 * n, "fixed": 0}[motion]
+        n_geo = n if motion == "normal" else 3 * n
         sizes = [n_geo, 3 * n if joint_albedo else 0, 8 * v, 3 * (v - 1)]
         self.bounds = np.cumsum([0] + sizes).tolist()
 
@@ -191,8 +189,6 @@ class _Parametrization:
         b, n = self.bounds, self.n
 
         def apply(z: torch.Tensor) -> torch.Tensor:
-            if self.motion == "fixed":
-                return z
             geo = z[b[0] : b[1]]
             geo = smoother(geo if self.motion == "normal" else geo.view(n, 3)).reshape(-1)
             return torch.cat([geo, z[b[1] :]])
@@ -205,10 +201,8 @@ class _Parametrization:
         geo = z[b[0] : b[1]]
         if self.motion == "normal":
             vertices = s.vertices + self.h * geo[:, None] * self.normal0
-        elif self.motion == "free":
+        else:
             vertices = s.vertices + self.h * geo.view(n, 3)
-        else:  # "fixed": lighting and albedo only
-            vertices = s.vertices
         albedo = z[b[1] : b[2]].view(n, 3) if self.joint_albedo else s.albedo
         sh_rest = s.sh[:, 1:] + z[b[2] : b[3]].view(v, 8) * self.precond[:, None]
         sh = torch.cat([torch.ones_like(s.sh[:, :1]), sh_rest], dim=1)
@@ -239,18 +233,11 @@ class _IterationLog:
         self.report, self.check_cancel = report, check_cancel
         self.energies: list[dict[str, float]] = []
         self.grad_max: list[float] = []
-        self.label = ""  # set: the whole run is one named stage, e.g. "lighting stage"
 
     def __call__(self, it: int, value: float, gmax: float, named: dict[str, float]) -> None:
         self.energies.append(named)
         self.grad_max.append(gmax)
         s, n = self.stage, self.n_stages
-        if self.label:
-            self.report(
-                min(it / self.max_iterations, 1.0), f"refine {self.label} iteration {it}: E = {value:.6g}"
-            )
-            self.check_cancel(f"in the {self.label} at iteration {it}")
-            return
         frac = min(it / self.max_iterations, 1.0)
         self.report((s + frac) / n, f"refine stage {s + 1}/{n} iteration {it}: E = {value:.6g}")
         self.check_cancel(f"at stage {s + 1} iteration {it}")
@@ -367,72 +354,6 @@ def _stage_problem(
     return problem, w
 
 
-def _lighting_stage(
-    state: _Unknowns,
-    topo: _Topology,
-    cameras: Sequence[Camera],
-    observations: Sequence[Observation],
-    views: ViewStack,
-    vis: np.ndarray,
-    visibility_fn: VisibilityFn | None,
-    smoother: GraphSmoother,
-    opts: RefineOptions,
-    report: ProgressFn,
-    check_cancel: Callable[[str], None],
-) -> tuple[_Unknowns, np.ndarray, StageLog]:
-    """Lighting and albedo for the final surface, held fixed, from every visible pair.
-
-    The geometric stages leave out grazing pairs (``min_view_cos``), so each view's lighting
-    is seen only over normals within that cone of its camera; here the whole visible
-    hemisphere of each view constrains it. Geometry does not move, so the grazing
-    samples cannot pull the surface. The last stage's tau_psm weights E_psm.
-    """
-    t0 = time.perf_counter()
-    report(0.0, "refine lighting stage: visibility and pairs")
-    cur_np = state.vertices.detach().cpu().numpy().astype(np.float64)
-    if opts.refresh_visibility and visibility_fn is not None:
-        vis = np.asarray(visibility_fn(cur_np, topo.faces.cpu().numpy()))
-    device, dtype = state.vertices.device, state.vertices.dtype
-    pairs = select_pairs(cur_np, vis, cameras, observations, device=device, dtype=dtype)
-    colour, observed, _ = _stage_observations(state.vertices, topo.faces, views, pairs)
-    tau_psm = opts.tau_psm[-1]
-    # the geometry is fixed: E_pol and E_gsm are constants here
-    problem, w = _stage_problem(
-        topo, views, pairs, colour, observed, opts, polarimetric=False, pol_mask=None, t=opts.gsm_exponent[-1]
-    )
-    joint = opts.albedo_solve == "joint"
-    h = mean_edge_length(cur_np, topo.edges_np)
-    param = _Parametrization(state, pairs, topo.faces, h, "fixed", joint)
-    solver = None if joint else AlbedoSolver(pairs, topo.edges_np, w, tau_psm, state.albedo)
-    n_stages = opts.n_stages
-    log = _IterationLog(opts.lighting_iterations, n_stages, n_stages, report, check_cancel)
-    log.label = "lighting stage"
-    res = _minimize(
-        param, problem, solver, (0.0, 0.0, tau_psm), smoother, opts, log, opts.lighting_iterations
-    )
-    state = _accepted(param, problem, solver, res.x)
-    seconds = time.perf_counter() - t0
-    return (
-        state,
-        vis,
-        StageLog(
-            index=n_stages,
-            tau_pol=0.0,
-            tau_gsm=0.0,
-            tau_psm=tau_psm,
-            t=opts.gsm_exponent[-1],
-            k=opts.pol_k,
-            n_pairs=pairs.size,
-            n_observed=int(observed.sum()),
-            energies=log.energies,
-            grad_max=log.grad_max,
-            evaluations=res.evaluations,
-            stop_reason=res.reason,
-            seconds=seconds,
-        ),
-    )
-
-
 def refine_surface(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -480,16 +401,9 @@ def refine_surface(
     if vis.shape != (n, n_views):
         raise ConfigError(f"expected ({n}, {n_views}) visibility, got {vis.shape}")
 
-    # The geometric stages share the progress bar with the lighting stage (half a stage's worth).
-    geo_share = opts.n_stages / (opts.n_stages + (0.5 if opts.lighting_iterations > 0 else 0.0))
-
     def report(fraction: float, message: str) -> None:
         if progress is not None:
-            progress(min(max(fraction * geo_share, 0.0), 1.0), message)
-
-    def report_lighting(fraction: float, message: str) -> None:
-        if progress is not None:
-            progress(min(max(geo_share + (1.0 - geo_share) * fraction, 0.0), 1.0), message)
+            progress(min(max(fraction, 0.0), 1.0), message)
 
     def check_cancel(where: str) -> None:
         if cancel is not None and cancel():
@@ -590,30 +504,11 @@ def refine_surface(
             )
         )
 
-    lighting_log = None
-    if opts.lighting_iterations > 0:
-        check_cancel("before the lighting stage")
-        state, vis, lighting_log = _lighting_stage(
-            state,
-            topo,
-            cameras,
-            observations,
-            views,
-            vis,
-            visibility_fn,
-            smoother,
-            opts,
-            report_lighting,
-            check_cancel,
-        )
-        timings["lighting"] = lighting_log.seconds
-
     out_vertices = state.vertices.cpu().numpy().astype(np.float64)
     with torch.no_grad():
         normals = vertex_normals(state.vertices, faces_t).cpu().numpy().astype(np.float32)
     timings["total"] = time.perf_counter() - t_start
-    if progress is not None:
-        progress(1.0, "refine done")
+    report(1.0, "refine done")
     return RefineResult(
         vertices=out_vertices,
         normals=normals,
@@ -623,5 +518,4 @@ def refine_surface(
         visibility=vis.astype(bool),
         stages=logs,
         timings=timings,
-        lighting=lighting_log,
     )

@@ -92,13 +92,12 @@ def test_every_term_is_logged_per_iteration_and_the_cost_decreases(plastic_runs)
 
 def test_visibility_is_refreshed_between_stages_and_progress_reported(plastic_runs) -> None:
     _, _, calls, progress = plastic_runs
-    assert len(calls) == 3  # before stages 2 and 3 and the lighting stage, at the refined geometry
+    assert len(calls) == 2  # before stages 2 and 3, at the refined geometry
     assert not np.allclose(calls[0], calls[1])
     fractions = [f for f, _ in progress]
     assert all(b >= a for a, b in itertools.pairwise(fractions))
     assert fractions[0] == 0.0 and fractions[-1] == 1.0
     assert any("stage 3/3" in m for _, m in progress)
-    assert any("lighting stage" in m for _, m in progress)
 
 
 def test_result_shapes_and_gauge(plastic, plastic_runs) -> None:
@@ -113,7 +112,7 @@ def test_result_shapes_and_gauge(plastic, plastic_runs) -> None:
     np.testing.assert_array_equal(full.sh[:, 0], 1.0)  # gauge: L0 = 1
     np.testing.assert_array_equal(full.rgb_scale[0], 1.0)  # gauge: view 0's scale
     assert full.visibility.shape == (n, v) and full.visibility.dtype == bool
-    assert set(full.timings) == {"setup", "stage_1", "stage_2", "stage_3", "lighting", "total"}
+    assert set(full.timings) == {"setup", "stage_1", "stage_2", "stage_3", "total"}
     # lighting and albedo: the rendered shading ratio between views matches the truth's
     true_ratio = scene.rgb_scale[1] * scene.sh[1, 0] / (scene.rgb_scale[0] * scene.sh[0, 0])
     np.testing.assert_allclose(full.rgb_scale[1], true_ratio, rtol=0.1)
@@ -121,28 +120,6 @@ def test_result_shapes_and_gauge(plastic, plastic_runs) -> None:
     d = scene.vertices / np.linalg.norm(scene.vertices, axis=1, keepdims=True)
     truth = d @ np.array([0.0, 0.6, 0.8]) > 0.85
     assert np.mean(cap == truth) > 0.95
-
-
-def test_lighting_stage_fits_every_visible_pair_and_leaves_the_surface(plastic, plastic_runs) -> None:
-    scene, obs, vis_fn, vis = plastic
-    full = plastic_runs[0]
-    without = refine_surface(
-        scene.vertices,
-        scene.faces,
-        scene.cameras,
-        obs,
-        vis,
-        options=RefineOptions(lighting_iterations=0),
-        visibility_fn=vis_fn,
-    )
-    assert without.lighting is None and "lighting" not in without.timings
-    np.testing.assert_allclose(full.vertices, without.vertices, atol=1e-9)  # the surface does not move
-    lit = full.lighting
-    assert lit is not None and lit.tau_pol == 0.0 and "pol" not in lit.energies[0]
-    assert lit.n_pairs > full.stages[-1].n_pairs  # the grazing pairs the stages left out
-    totals = [e["total"] for e in lit.energies]
-    assert all(b <= a for a, b in itertools.pairwise(totals)) and totals[-1] < totals[0]
-    assert not np.allclose(full.sh, without.sh)
 
 
 def test_lambert_capture_full_method_agrees_with_the_baseline() -> None:

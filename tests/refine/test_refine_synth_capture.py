@@ -22,9 +22,8 @@ from pmvir.pipeline import decode_views
 from pmvir.refine import make_visibility_fn, observation_from_decoded, refine_surface
 from pmvir.synth import synthesize
 
-#: Fewer iterations than the default keep the test short. The lighting stage moves no vertex
-#: (tested in test_refine_schedule.py), so it is left out here.
-OPTIONS = {"max_iterations": 10, "lighting_iterations": 0}
+#: Fewer iterations than the default keep the test short.
+OPTIONS = {"max_iterations": 10}
 
 
 @pytest.fixture(scope="module")
