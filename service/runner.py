@@ -167,6 +167,15 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
         max_lines=settings.max_log_lines,
     )
     out = files.run_dir(job_id, run_id)
+
+    def end(run: _Run, status: str, error: str | None = None) -> str:
+        # The run's scratch folder goes before the job turns terminal: a client that sees
+        # "canceled" or "failed" never finds the run's files still there.
+        files.remove_tree(out)
+        if status == "canceled":
+            return _end_canceled(store, files, job, run_id, run.final_timings())
+        return _end(store, job, run_id, status, run.final_timings(), error)
+
     try:
         with _Run(store, job, run_id, settings) as run:
             try:
@@ -183,29 +192,15 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
                     raise CanceledError("canceled after the last stage")
                 files.publish_result(job_id, out)
             except CanceledError:
-                return _end_canceled(store, files, job, run_id, run.final_timings())
+                return end(run, "canceled")
             except SoftTimeLimitExceeded:
-                return _end(
-                    store,
-                    job,
-                    run_id,
-                    "failed",
-                    run.final_timings(),
-                    f"time limit exceeded ({settings.job_soft_time_limit} s)",
-                )
+                return end(run, "failed", f"time limit exceeded ({settings.job_soft_time_limit} s)")
             except PmvirError as exc:
-                return _end(store, job, run_id, "failed", run.final_timings(), f"{type(exc).__name__}: {exc}")
+                return end(run, "failed", f"{type(exc).__name__}: {exc}")
             except Exception as exc:
                 log.exception("job %s: unexpected error", job_id)
-                return _end(
-                    store,
-                    job,
-                    run_id,
-                    "failed",
-                    run.final_timings(),
-                    f"internal error: {type(exc).__name__}: {exc}",
-                )
-            return _end(store, job, run_id, "succeeded", run.final_timings(), None)
+                return end(run, "failed", f"internal error: {type(exc).__name__}: {exc}")
+            return end(run, "succeeded")
     finally:
         files.remove_tree(out)
         if store.get(job_id) is None:  # deleted while running: leave nothing behind
