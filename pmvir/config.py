@@ -349,8 +349,8 @@ class RefineOptions(_Options):
         lt=1.0,
         description="A (vertex, view) pair enters a stage only when the vertex normal makes a cosine of at "
         "least this with the direction to the camera (0.5: within 60 degrees). Grazing pairs sample a "
-        "stretched footprint and pull the surface off the truth (bunny, 36 views: accuracy +37% with 0.5, "
-        "-12% with every visible pair). -1 keeps every visible pair.",
+        "stretched footprint and pull the surface off the truth (measurements in the README's Refinement "
+        "section). -1 keeps every visible pair, as the paper.",
     )
     min_view_pairs: int = Field(
         default=2,
@@ -394,7 +394,7 @@ class RefineOptions(_Options):
         "and E_psm. It sets the balance between E_pho/E_psm and E_pol/E_gsm, which the paper's tau weights "
         "assume but the paper's units do not fix. 64 brings E_pho near the maximum-likelihood balance with "
         "E_pol for intensity noise ~0.003 and Stokes noise ~0.01; 255 (8-bit units) leaves E_pol a "
-        "tie-breaker (see the README's table).",
+        "tie-breaker.",
     )
     psm_sigma_chroma: float = Field(
         default=0.05,
