@@ -478,12 +478,10 @@ def refine_surface(
         joint = opts.albedo_solve == "joint"
         tau = (tau_pol, tau_gsm, tau_psm)
         log = _IterationLog(opts.max_iterations, s, n_stages, report, check_cancel)
-        evaluations = 0
         param = _Parametrization(state, pairs, faces_t, h, opts.vertex_motion, joint)
         solver = None if joint else AlbedoSolver(pairs, edges_np, w, tau_psm, state.albedo)
         res = _minimize(param, problem, solver, tau, smoother, opts, log, opts.max_iterations)
         state = _accepted(param, problem, solver, res.x)
-        evaluations += res.evaluations
         seconds = time.perf_counter() - t_stage
         timings[f"stage_{s + 1}"] = seconds
         logs.append(
@@ -498,7 +496,7 @@ def refine_surface(
                 n_observed=int(observed.sum()),
                 energies=log.energies,
                 grad_max=log.grad_max,
-                evaluations=evaluations,
+                evaluations=res.evaluations,
                 stop_reason=res.reason,
                 seconds=seconds,
             )
