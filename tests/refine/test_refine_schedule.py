@@ -12,8 +12,9 @@ from refine_scene import accuracy, make_scene
 from pmvir.config import PipelineConfig, RefineOptions
 from pmvir.errors import CanceledError, ConfigError, MeshError, ReconstructionError
 from pmvir.refine import Observation, make_visibility_fn, observation_from_decoded, refine_surface
+from pmvir.sh import sh9_shading
 
-#: The tests run the default options (three stages of at most 40 L-BFGS iterations).
+#: The tests run the default options (three stages of at most 80 L-BFGS iterations).
 DEFAULTS = RefineOptions()
 
 
@@ -113,9 +114,17 @@ def test_result_shapes_and_gauge(plastic, plastic_runs) -> None:
     np.testing.assert_array_equal(full.rgb_scale[0], 1.0)  # gauge: view 0's scale
     assert full.visibility.shape == (n, v) and full.visibility.dtype == bool
     assert set(full.timings) == {"setup", "stage_1", "stage_2", "stage_3", "total"}
-    # lighting and albedo: the rendered shading ratio between views matches the truth's
-    true_ratio = scene.rgb_scale[1] * scene.sh[1, 0] / (scene.rgb_scale[0] * scene.sh[0, 0])
-    np.testing.assert_allclose(full.rgb_scale[1], true_ratio, rtol=0.1)
+    # lighting: the shading ratio between views 1 and 0, over the normals both see, matches the
+    # truth's (the ratio of rgb_scale alone is not identified: the SH's higher orders can trade
+    # with the DC term over a hemisphere of normals)
+    both = full.visibility[:, 0] & full.visibility[:, 1]
+    assert both.sum() > 100
+    normals = full.normals[both].astype(np.float64)
+
+    def ratio(sh, scale):
+        return sh9_shading(normals, sh[1]).mean() * scale[1] / (sh9_shading(normals, sh[0]).mean() * scale[0])
+
+    np.testing.assert_allclose(ratio(full.sh, full.rgb_scale), ratio(scene.sh, scene.rgb_scale), rtol=0.05)
     cap = full.albedo[:, 2] > full.albedo[:, 0]  # the blue cap is found as a different albedo
     d = scene.vertices / np.linalg.norm(scene.vertices, axis=1, keepdims=True)
     truth = d @ np.array([0.0, 0.6, 0.8]) > 0.85
