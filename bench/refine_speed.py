@@ -29,6 +29,7 @@ import torch
 from pmvir.camera import Camera, look_at
 from pmvir.config import RefineOptions
 from pmvir.geometry.visibility import vertex_visibility
+from pmvir.progress import Progress
 from pmvir.refine import observation_from_decoded, refine_surface
 from pmvir.refine.forward import render_decoded
 from pmvir.refine.schedule import make_visibility_fn
@@ -128,7 +129,9 @@ def main() -> None:
         vis,
         options=opts,
         visibility_fn=make_visibility_fn(cams, masks),
-        progress=lambda f, m: print(f"{time.perf_counter() - t1:8.1f}s {f:5.3f} {m}", file=sys.stderr, flush=True),
+        progress=Progress(
+            lambda _, f, m: print(f"{time.perf_counter() - t1:8.1f}s {f:5.3f} {m}", file=sys.stderr, flush=True)
+        ),
     )
     t_refine = time.perf_counter() - t1
     rss_peak = rss_gib()

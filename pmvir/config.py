@@ -11,6 +11,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from pmvir.stages import Stage
+
 
 class _Options(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -446,6 +448,4 @@ class PipelineConfig(_Options):
     decode: DecodeOptions = Field(default_factory=DecodeOptions)
     geometry: GeometryOptions = Field(default_factory=GeometryOptions)
     refine: RefineOptions = Field(default_factory=RefineOptions)
-    stop_after: Literal["decode", "geometry", "refine"] = Field(
-        default="refine", description="Last stage to run."
-    )
+    stop_after: Stage = Field(default=Stage.REFINE, description="Last stage to run.")

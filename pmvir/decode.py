@@ -26,7 +26,7 @@ background. Monochrome sensors give grey I_int / I_min repeated in R, G, B.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +44,7 @@ from pmvir.polarization.preview import (
     write_png,
 )
 from pmvir.polarization.stokes import PolarizationImages, polarization_images
+from pmvir.progress import Progress
 
 #: Arrays of a decoded-frame file: name -> (dtype, number of dimensions).
 NPZ_KEYS: dict[str, tuple[type, int]] = {
@@ -57,7 +58,6 @@ NPZ_KEYS: dict[str, tuple[type, int]] = {
 #: Suffixes of the preview PNGs written beside each ``<stem>.npz``.
 PREVIEW_SUFFIXES = ("_int.png", "_min.png", "_dop.png", "_aop.png")
 
-Progress = Callable[[int, int], None]
 
 
 def decode_frame(
@@ -213,8 +213,8 @@ def decode_capture(
         frames: stems or 0-based indices to decode (default: all), see :func:`select_frames`.
         previews: also write the PNG previews.
         compress: compress the ``.npz`` files.
-        progress: called as ``progress(done, total)`` before the first frame
-            (done = 0) and after each frame.
+        progress: reports after each frame (its fraction of the frames) and is polled
+            for cancellation.
 
     Returns:
         The ``.npz`` paths written, in decoding order.
@@ -241,8 +241,7 @@ def _decode_open(
     indices = select_frames(cap, frames)
     out_dir.mkdir(parents=True, exist_ok=True)
     total = len(indices)
-    if progress is not None:
-        progress(0, total)
+    progress = progress or Progress.none()
     written: list[Path] = []
     for done, i in enumerate(indices, start=1):
         raw = cap.read_raw(i)
@@ -253,6 +252,5 @@ def _decode_open(
         written.append(write_decoded(out_dir / f"{stem}.npz", images, compress=compress))
         if previews:
             write_previews(out_dir, stem, images)
-        if progress is not None:
-            progress(done, total)
+        progress.update(done / total, f"decoded {cap.frames[i].file}")
     return written

@@ -1,8 +1,9 @@
 """The stages wired together: capture in, result folder out (spec section 3).
 
 :func:`run` is what the CLI (`pmvir reconstruct`) and the service's Celery task
-call. It reports progress through one callback and checks a cancellation
-callable at every stage and iteration boundary.
+call. It reports progress, checks cancellation and times every stage through
+one :class:`~pmvir.progress.Progress` object, and writes every file through
+:class:`~pmvir.result.ResultFolder`.
 
 Stages, in order: ``decode`` (demosaicing and polarization quantities),
 ``geometry`` (poses, dense stereo, initial surface, visibility, sqrt(3)
@@ -16,12 +17,9 @@ run repeated on the same folder replaces its files.
 
 from __future__ import annotations
 
-import json
-import os
 import platform
 import tempfile
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -29,24 +27,22 @@ from pmvir import __version__
 from pmvir.capture import Capture, open_capture
 from pmvir.config import PipelineConfig
 from pmvir.decode import decode_frame, write_decoded, write_previews
-from pmvir.errors import CanceledError, ConfigError
 from pmvir.geometry.stage import GeometryResult, geometry_report, run_geometry, write_geometry
-from pmvir.io.illumination import illumination_from_arrays, write_illumination
-from pmvir.io.ply import Mesh, write_mesh_ply
+from pmvir.io.illumination import illumination_from_arrays
+from pmvir.io.ply import Mesh
 from pmvir.polarization.stokes import PolarizationImages
+from pmvir.progress import Progress
 from pmvir.refine import RefineResult, make_visibility_fn, observation_from_decoded, refine_surface
 from pmvir.refine.schedule import StageLog
-
-#: progress(stage, overall fraction in [0, 1], message)
-ProgressCallback = Callable[[str, float, str], None]
-#: should_cancel() -> True to stop at the next boundary
-CancelCheck = Callable[[], bool]
+from pmvir.result import ResultFolder
+from pmvir.stages import STAGES, Stage
 
 #: Share of the whole run each stage takes, for the overall progress fraction.
 STAGE_WEIGHTS: dict[str, float] = {"decode": 0.1, "geometry": 0.3, "refine": 0.6}
-STAGE_ORDER: tuple[str, ...] = ("decode", "geometry", "refine")
+#: The pipeline's stages, in order (the one definition; the CLI, config and service read it).
+STAGE_ORDER: tuple[Stage, ...] = STAGES
 #: Stages this build can run.
-AVAILABLE_STAGES: tuple[str, ...] = ("decode", "geometry", "refine")
+AVAILABLE_STAGES: tuple[Stage, ...] = STAGES
 
 
 @dataclass
@@ -69,45 +65,12 @@ class PipelineResult:
     files: list[str] = field(default_factory=list)
 
 
-class _Progress:
-    """Turns per-stage fractions into an overall fraction that never goes backwards."""
-
-    def __init__(
-        self, stages: list[str], callback: ProgressCallback | None, should_cancel: CancelCheck | None
-    ):
-        total = sum(STAGE_WEIGHTS[s] for s in stages)
-        self._start: dict[str, float] = {}
-        acc = 0.0
-        for s in stages:
-            self._start[s] = acc / total
-            acc += STAGE_WEIGHTS[s]
-        self._weight = {s: STAGE_WEIGHTS[s] / total for s in stages}
-        self._callback = callback
-        self._should_cancel = should_cancel
-        self._last = 0.0
-
-    def __call__(self, stage: str, fraction: float, message: str = "") -> None:
-        """Report ``fraction`` (0..1) of ``stage`` done; raise CanceledError when asked to stop."""
-        if self._should_cancel is not None and self._should_cancel():
-            raise CanceledError(f"canceled during {stage}")
-        overall = self._start[stage] + self._weight[stage] * min(max(fraction, 0.0), 1.0)
-        self._last = max(self._last, overall)
-        if self._callback is not None:
-            self._callback(stage, self._last, message)
-
-    def stage_callback(self, stage: str) -> Callable[[float, str], None]:
-        """A ``(fraction, message)`` callback for one stage's own code."""
-        return lambda fraction, message="": self(stage, fraction, message)
-
-
-def stages_for(config: PipelineConfig) -> list[str]:
+def stages_for(config: PipelineConfig) -> list[Stage]:
     """The stages a run with ``config`` executes, in order."""
-    return list(STAGE_ORDER[: STAGE_ORDER.index(config.stop_after) + 1])
+    return list(STAGES[: Stage(config.stop_after).position + 1])
 
 
-def decode_views(
-    cap: Capture, config: PipelineConfig, report: Callable[[float, str], None]
-) -> list[DecodedView]:
+def decode_views(cap: Capture, config: PipelineConfig, progress: Progress) -> list[DecodedView]:
     """Decode every frame of an open capture (stage 1)."""
     views = []
     n = len(cap.frames)
@@ -117,7 +80,7 @@ def decode_views(
             raw.mosaic, cap.layout, saturated=raw.saturated, mask=cap.read_mask(i), options=config.decode
         )
         views.append(DecodedView(index=i, name=frame.name, file=frame.file, images=images))
-        report((i + 1) / n, f"decoded {frame.file}")
+        progress.update((i + 1) / n, f"decoded {frame.file}")
     return views
 
 
@@ -126,8 +89,7 @@ def run(
     capture: str | Path,
     out: str | Path,
     *,
-    progress: ProgressCallback | None = None,
-    should_cancel: CancelCheck | None = None,
+    progress: Progress | None = None,
 ) -> PipelineResult:
     """Run the pipeline on a capture and write the result folder.
 
@@ -135,9 +97,8 @@ def run(
         config: the typed configuration (CLI and HTTP job options alike).
         capture: a capture folder, its capture.json, or a .zip.
         out: the result folder (created; files of the same names are replaced).
-        progress: called as ``progress(stage, overall_fraction, message)``; the
-            fraction never decreases.
-        should_cancel: checked at every stage and iteration boundary.
+        progress: reports ``(stage, overall fraction, message)`` (the fraction never
+            decreases) and is asked to cancel at every stage, step and iteration boundary.
 
     Returns:
         The stages run, their timings and the files written (relative to ``out``).
@@ -145,74 +106,48 @@ def run(
     Raises:
         CaptureError: the capture is unreadable or invalid (names the file).
         ReconstructionError: a stage could not produce a usable result.
-        CanceledError: ``should_cancel()`` returned True.
+        CanceledError: the progress object's ``should_cancel()`` returned True.
     """
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    progress = progress or Progress.none()
+    result = ResultFolder(out)
+    result.root.mkdir(parents=True, exist_ok=True)
     stages = stages_for(config)
-    missing = [s for s in stages if s not in AVAILABLE_STAGES]
-    if missing:
-        raise ConfigError(
-            f"stage(s) {missing} are not available in pmvir {__version__}; use stop_after='decode'"
-        )
-    tracker = _Progress(stages, progress, should_cancel)
-    timings: dict[str, float] = {}
-    files: list[str] = []
+    total = sum(STAGE_WEIGHTS[s] for s in stages)
+    weight = {s: STAGE_WEIGHTS[s] / total for s in stages}
     t_run = time.perf_counter()
     sections: dict[str, object] = {}
     with open_capture(capture) as cap, tempfile.TemporaryDirectory(prefix=".work-", dir=out) as work:
-        tracker("decode", 0.0, f"decoding {len(cap.frames)} frames")
-        t0 = time.perf_counter()
-        decode_only = config.stop_after == "decode"
-        # when the decoded frames are the result, writing them is the second half of the stage
-        share = 0.5 if decode_only else 1.0
-        views = decode_views(cap, config, lambda f, m="": tracker("decode", share * f, m))
-        if decode_only:
-            files += _write_decoded_views(out, views, lambda f, m="": tracker("decode", share + share * f, m))
-        timings["decode"] = time.perf_counter() - t0
         counts = {"frames": len(cap.frames)}
-        if "geometry" in stages:
-            t0 = time.perf_counter()
-            geometry = _geometry_stage(cap, views, config, Path(work), tracker, should_cancel)
-            files += _write_geometry(out, geometry)
-            sections["geometry"] = geometry_report(geometry)
-            timings["geometry"] = time.perf_counter() - t0
-        if "refine" in stages:
-            t0 = time.perf_counter()
-            refined, registered = _refine_stage(cap, views, geometry, config, tracker, should_cancel)
-            files += _write_refined(out, geometry, refined, [views[i].file for i in registered])
-            sections["refine"] = refine_report(refined)
-            timings["refine"] = time.perf_counter() - t0
+        with progress.step(Stage.DECODE, weight[Stage.DECODE]) as p:
+            if config.stop_after == Stage.DECODE:  # the decoded frames are the result
+                with p.step("read", 0.5) as q:
+                    views = decode_views(cap, config, q)
+                with p.step("write", 0.5) as q:
+                    result.write_folder("decoded", lambda d: _write_decoded_views(d, views, q))
+            else:
+                views = decode_views(cap, config, p)
+        if Stage.GEOMETRY in stages:
+            with progress.step(Stage.GEOMETRY, weight[Stage.GEOMETRY]) as p:
+                geometry = run_geometry(
+                    cap,
+                    [v.images for v in views],
+                    options=config.geometry,
+                    workdir=Path(work) / "geometry",
+                    progress=p,
+                )
+                write_geometry(result, geometry)
+                sections["geometry"] = geometry_report(geometry)
+        if Stage.REFINE in stages:
+            with progress.step(Stage.REFINE, weight[Stage.REFINE]) as p:
+                refined, registered = _refine_stage(cap, views, geometry, config, p)
+                _write_refined(result, geometry, refined, [views[i].file for i in registered])
+                sections["refine"] = refine_report(refined)
+    timings = {str(k): v for k, v in progress.timings.items()}
     timings["total"] = time.perf_counter() - t_run
-    _write_report(out, config, stages, timings, counts, sections)
-    files.append("report.json")
-    tracker(stages[-1], 1.0, "done")
-    return PipelineResult(out=out, stages_run=stages, timings=timings, files=files)
-
-
-def _geometry_stage(
-    cap: Capture,
-    views: list[DecodedView],
-    config: PipelineConfig,
-    work: Path,
-    tracker: _Progress,
-    should_cancel: CancelCheck | None,
-) -> GeometryResult:
-    """Poses, dense stereo, initial surface, visibility, subdivision (stage 2)."""
-    return run_geometry(
-        cap,
-        [v.images for v in views],
-        options=config.geometry,
-        workdir=work / "geometry",
-        progress=tracker.stage_callback("geometry"),
-        cancel=should_cancel,
+    result.write_json("report.json", _report(config, stages, timings, counts, sections))
+    return PipelineResult(
+        out=result.root, stages_run=[str(s) for s in stages], timings=timings, files=list(result.written)
     )
-
-
-def _write_geometry(out: Path, geometry: GeometryResult) -> list[str]:
-    written = write_geometry(out, geometry)
-    poses = sorted(p.relative_to(out).as_posix() for p in Path(written["poses"]).iterdir())
-    return ["initial.ply", *poses]
 
 
 def _refine_stage(
@@ -220,8 +155,7 @@ def _refine_stage(
     views: list[DecodedView],
     geometry: GeometryResult,
     config: PipelineConfig,
-    tracker: _Progress,
-    should_cancel: CancelCheck | None,
+    progress: Progress,
 ) -> tuple[RefineResult, list[int]]:
     """Polarimetric MVIR on the registered views (stage 3). Returns the result and those views' indices."""
     registered = [i for i, cam in enumerate(geometry.cameras) if cam is not None]
@@ -242,19 +176,17 @@ def _refine_stage(
         geometry.visibility[:, registered],
         options=config.refine,
         visibility_fn=visibility_fn,
-        progress=tracker.stage_callback("refine"),
-        cancel=should_cancel,
+        progress=progress,
     )
     return refined, registered
 
 
-def _write_refined(out: Path, geometry: GeometryResult, refined: RefineResult, files: list[str]) -> list[str]:
+def _write_refined(
+    result: ResultFolder, geometry: GeometryResult, refined: RefineResult, files: list[str]
+) -> None:
     mesh = Mesh(refined.vertices, geometry.faces, albedo=refined.albedo, normals=refined.normals)
-    write_mesh_ply(out / "mesh.ply", mesh)
-    write_illumination(
-        out / "illumination.json", illumination_from_arrays(files, refined.sh, refined.rgb_scale)
-    )
-    return ["mesh.ply", "illumination.json"]
+    result.write_mesh("mesh.ply", mesh)
+    result.write_illumination(illumination_from_arrays(files, refined.sh, refined.rgb_scale))
 
 
 def _stage_report(st: StageLog) -> dict:
@@ -286,18 +218,11 @@ def refine_report(refined: RefineResult) -> dict:
     }
 
 
-def _write_decoded_views(
-    out: Path, views: list[DecodedView], report: Callable[[float, str], None]
-) -> list[str]:
-    folder = out / "decoded"
-    folder.mkdir(exist_ok=True)
-    written = []
+def _write_decoded_views(folder: Path, views: list[DecodedView], progress: Progress) -> None:
     for k, view in enumerate(views):
         write_decoded(folder / f"{view.name}.npz", view.images)
-        written.append(f"decoded/{view.name}.npz")
-        written += [f"decoded/{p.name}" for p in write_previews(folder, view.name, view.images)]
-        report((k + 1) / len(views), f"wrote decoded/{view.name}.npz")
-    return written
+        write_previews(folder, view.name, view.images)
+        progress.update((k + 1) / len(views), f"wrote decoded/{view.name}.npz")
 
 
 def software_versions() -> dict[str, str]:
@@ -311,23 +236,19 @@ def software_versions() -> dict[str, str]:
     return versions
 
 
-def _write_report(
-    out: Path,
+def _report(
     config: PipelineConfig,
-    stages: list[str],
+    stages: list[Stage],
     timings: dict[str, float],
     counts: dict,
     sections: dict,
-) -> None:
-    report = {
+) -> dict:
+    return {
         "format": "pmvir-report/1",
-        "stages": stages,
+        "stages": [str(s) for s in stages],
         "timings_s": timings,
         "counts": counts,
         **sections,
         "parameters": config.model_dump(mode="json"),
         "software": software_versions(),
     }
-    tmp = out / "report.json.tmp"
-    tmp.write_text(json.dumps(report, indent=1))
-    os.replace(tmp, out / "report.json")

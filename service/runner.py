@@ -6,7 +6,7 @@ The Celery task stays thin and calls :func:`run_job`, which
    owner, its delivery counter goes up (a job started more than
    ``max_deliveries`` times - its worker keeps dying - is failed instead of
    looping), and a heartbeat lease starts;
-2. calls ``pmvir.pipeline.run(config, capture, out, progress=..., should_cancel=...)``
+2. calls ``pmvir.pipeline.run(config, capture, out, progress=Progress(...))``
    with ``out`` a folder private to this run (``runs/<run id>``);
 3. zips the run's folder and renames it to ``result/`` (so a repeated run
    replaces a result whole, never mixes with it), then marks the job succeeded.
@@ -146,6 +146,7 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
         ('gone', 'done', 'not_queued', 'busy', 'exhausted').
     """
     from pmvir import pipeline  # the library's entry point; imported here so the API never loads it
+    from pmvir.progress import Progress
 
     store = store or JobStore.from_url(settings.redis_url, prefix=settings.key_prefix)
     files = JobFiles(settings.storage)
@@ -185,8 +186,7 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
                     config,
                     files.capture_dir(job_id),
                     out,
-                    progress=run.progress,
-                    should_cancel=run.should_cancel,
+                    progress=Progress(run.progress, should_cancel=run.should_cancel),
                 )
                 if run.should_cancel():  # canceled after the last boundary: honour it
                     raise CanceledError("canceled after the last stage")

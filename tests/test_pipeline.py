@@ -15,6 +15,7 @@ from pmvir.errors import CanceledError, ConfigError
 from pmvir.io.frames import write_frame
 from pmvir.pipeline import run
 from pmvir.polarization.layout import ANGLES_DEG, IMX250MYR, mosaic
+from pmvir.progress import Progress
 
 
 def _write_capture(root: Path, n_frames: int = 3, size: tuple[int, int] = (48, 64)) -> Path:
@@ -44,7 +45,7 @@ def capture(tmp_path: Path) -> Path:
 def test_decode_stage_writes_decoded_frames_and_report(capture: Path, tmp_path: Path) -> None:
     events: list[tuple[str, float, str]] = []
     result = run(
-        PipelineConfig(stop_after="decode"), capture, tmp_path / "out", progress=lambda *e: events.append(e)
+        PipelineConfig(stop_after="decode"), capture, tmp_path / "out", progress=Progress(lambda *e: events.append(e))
     )
     assert result.stages_run == ["decode"]
     data = np.load(tmp_path / "out/decoded/001.npz")
@@ -68,14 +69,20 @@ def test_cancel_stops_at_a_boundary(capture: Path, tmp_path: Path) -> None:
         return calls["n"] > 2
 
     with pytest.raises(CanceledError):
-        run(PipelineConfig(stop_after="decode"), capture, tmp_path / "out", should_cancel=should_cancel)
+        run(
+            PipelineConfig(stop_after="decode"),
+            capture,
+            tmp_path / "out",
+            progress=Progress(should_cancel=should_cancel),
+        )
     assert not (tmp_path / "out/report.json").exists()
 
 
 def test_reconstruct_cli_maps_flags_onto_the_config_tree(capture: Path, tmp_path: Path, capsys) -> None:
+    import argparse
+
     from pmvir.commands.options import build_config
     from pmvir.commands.reconstruct import add_parser
-    import argparse
 
     parser = argparse.ArgumentParser()
     add_parser(parser.add_subparsers())

@@ -15,6 +15,7 @@ from pmvir.io.colmap_text import read_colmap_text_model
 from pmvir.io.illumination import read_illumination
 from pmvir.io.ply import read_mesh
 from pmvir.pipeline import run
+from pmvir.progress import Progress
 from pmvir.synth import synthesize
 
 
@@ -29,7 +30,7 @@ def result(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, list[t
         }
     )
     events: list[tuple[str, float, str]] = []
-    run(config, capture, root / "out", progress=lambda *e: events.append(e))
+    run(config, capture, root / "out", progress=Progress(lambda *e: events.append(e)))
     return capture, root / "out", events
 
 

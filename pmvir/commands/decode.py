@@ -8,7 +8,6 @@ summary to stdout.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from pydantic import ValidationError
@@ -57,8 +56,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
+    from pmvir.commands.bar import progress_bar
     from pmvir.decode import decode_capture
 
     try:
@@ -67,17 +65,7 @@ def run(args: argparse.Namespace) -> int:
         problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
         raise ConfigError(f"invalid decode options: {problems}") from None
 
-    bar = None
-
-    def progress(done: int, total: int) -> None:
-        nonlocal bar
-        if args.quiet:
-            return
-        if bar is None:
-            bar = tqdm(total=total, unit="frame", desc="decode", file=sys.stderr)
-        bar.update(done - bar.n)
-
-    try:
+    with progress_bar("decode", quiet=args.quiet) as progress:
         written = decode_capture(
             args.capture,
             args.out,
@@ -87,8 +75,5 @@ def run(args: argparse.Namespace) -> int:
             compress=args.compress,
             progress=progress,
         )
-    finally:
-        if bar is not None:
-            bar.close()
     print(f"decoded {len(written)} frame(s) to {args.out}")
     return 0

@@ -18,6 +18,7 @@ from pydantic import ValidationError
 
 from pmvir.config import PipelineConfig
 from pmvir.errors import ConfigError
+from pmvir.stages import Stage
 
 
 def add_option_arguments(p: argparse.ArgumentParser) -> None:
@@ -31,7 +32,7 @@ def add_option_arguments(p: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE",
         help="set one option, e.g. --set refine.pol_k=0.6 (VALUE is JSON, or a bare string)",
     )
-    p.add_argument("--stop-after", choices=("decode", "geometry", "refine"), help="last stage to run")
+    p.add_argument("--stop-after", choices=[str(s) for s in Stage], help="last stage to run")
     p.add_argument("--no-polarimetric", action="store_true", help="drop E_pol (the MVIR baseline)")
     p.add_argument("--no-dop-weight", action="store_true", help="E_pol without the DoP weight")
     p.add_argument("--intensity", choices=("int", "min"), help="photometric images: I_int or I_min")

@@ -9,6 +9,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from pmvir.commands.bar import progress_bar
 from pmvir.commands.options import add_option_arguments, build_config
 
 
@@ -31,23 +32,8 @@ def run(args: argparse.Namespace) -> int:
     from pmvir.pipeline import run as run_pipeline
 
     config = build_config(args)
-    bar = None
-    if not args.quiet:
-        from tqdm import tqdm
-
-        bar = tqdm(total=1000, unit="‰", file=sys.stderr, desc="reconstruct", dynamic_ncols=True)
-
-    def progress(stage: str, fraction: float, message: str) -> None:
-        if bar is not None:
-            bar.set_description(stage)
-            bar.set_postfix_str(message[:60], refresh=False)
-            bar.update(int(fraction * 1000) - bar.n)
-
-    try:
+    with progress_bar("reconstruct", quiet=args.quiet) as progress:
         result = run_pipeline(config, args.capture, args.out, progress=progress)
-    finally:
-        if bar is not None:
-            bar.close()
     timings = ", ".join(f"{k} {v:.1f} s" for k, v in result.timings.items())
     print(f"{result.out}: {', '.join(result.stages_run)} ({timings})", file=sys.stderr)
     return 0

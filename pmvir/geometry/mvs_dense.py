@@ -20,7 +20,7 @@ not overlap), instead of producing an empty mesh.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,12 +28,10 @@ import numpy as np
 
 from pmvir.camera import Camera
 from pmvir.config import GeometryOptions
-from pmvir.errors import CanceledError, ReconstructionError
+from pmvir.errors import ReconstructionError
 from pmvir.geometry.mvs import DepthMap, prepare_view, select_neighbours, sweep_depth, view_depth_range
 from pmvir.geometry.mvs_fusion import DensePoints, estimate_normals, filter_and_fuse, voxel_thin
-
-Progress = Callable[[float, str], None]
-Cancel = Callable[[], bool]
+from pmvir.progress import Progress
 
 
 @dataclass(frozen=True)
@@ -81,11 +79,6 @@ def resolve_backend(backend: str) -> str:
     return backend
 
 
-def _check_cancel(cancel: Cancel | None) -> None:
-    if cancel is not None and cancel():
-        raise CanceledError("canceled during dense stereo")
-
-
 def dense_stereo(
     images: Sequence[np.ndarray],
     masks: Sequence[np.ndarray | None],
@@ -96,7 +89,6 @@ def dense_stereo(
     options: GeometryOptions,
     workdir: str | Path | None = None,
     progress: Progress | None = None,
-    cancel: Cancel | None = None,
 ) -> DenseResult:
     """Dense oriented points of the registered views (module docstring).
 
@@ -108,16 +100,16 @@ def dense_stereo(
         names: per view a name for messages (the frame stem).
         options: the geometry options (``mvs_*`` fields).
         workdir: scratch folder (needed by the COLMAP backend).
-        progress: called as ``progress(fraction in [0, 1], message)``.
-        cancel: polled between views; True raises CanceledError.
+        progress: reports per view and is polled for cancellation between views.
 
     Returns:
         :class:`DenseResult`.
 
     Raises:
         ReconstructionError: no usable view pair, or fewer than ``options.mvs_min_points`` points.
-        CanceledError: ``cancel()`` returned True.
+        CanceledError: the progress object was asked to cancel.
     """
+    progress = progress or Progress.none()
     n = len(images)
     if not (len(masks) == len(cameras) == len(names) == n):
         raise ValueError(
@@ -149,9 +141,7 @@ def dense_stereo(
         return _dense_colmap(
             images, masks, cameras, pts, names, neighbours, registered, options, workdir, diag, progress
         )
-    return _dense_cpu(
-        images, masks, cameras, pts, names, neighbours, registered, options, diag, progress, cancel
-    )
+    return _dense_cpu(images, masks, cameras, pts, names, neighbours, registered, options, diag, progress)
 
 
 def _dense_cpu(
@@ -164,8 +154,7 @@ def _dense_cpu(
     registered: list[int],
     options: GeometryOptions,
     diag: float,
-    progress: Progress | None,
-    cancel: Cancel | None,
+    progress: Progress,
 ) -> DenseResult:
     n = len(images)
     t0 = time.perf_counter()
@@ -178,9 +167,7 @@ def _dense_cpu(
     depth_maps: list[DepthMap | None] = [None] * n
     valid = [-1] * n
     for k, i in enumerate(registered):
-        _check_cancel(cancel)
-        if progress is not None:
-            progress(k / len(registered), f"depth map {k + 1}/{len(registered)} (view {names[i]})")
+        progress.update(k / len(registered), f"depth map {k + 1}/{len(registered)} (view {names[i]})")
         ref = views[i]
         if ref is None or not neighbours[i]:
             continue
@@ -198,9 +185,7 @@ def _dense_cpu(
         )
         valid[i] = int(depth_maps[i].valid.sum())
     t1 = time.perf_counter()
-    _check_cancel(cancel)
-    if progress is not None:
-        progress(1.0, "fusing depth maps")
+    progress.update(1.0, "fusing depth maps")
     pts_f, views_f, counts_f = filter_and_fuse(
         depth_maps,
         neighbours,
@@ -245,7 +230,7 @@ def _dense_colmap(
     options: GeometryOptions,
     workdir: str | Path | None,
     diag: float,
-    progress: Progress | None,
+    progress: Progress,
 ) -> DenseResult:
     from pmvir.geometry.mvs_colmap import colmap_fusion, colmap_patch_match, write_workspace
 
@@ -269,12 +254,10 @@ def _dense_colmap(
     ranges = [r for r in ranges if r is not None]
     if not ranges:
         raise ReconstructionError("no registered view sees the sparse points: cannot bound the depth range")
-    if progress is not None:
-        progress(0.0, "COLMAP PatchMatch stereo (CUDA)")
+    progress.update(0.0, "COLMAP PatchMatch stereo (CUDA)")
     colmap_patch_match(root, depth_range=(min(r[0] for r in ranges), max(r[1] for r in ranges)))
     t1 = time.perf_counter()
-    if progress is not None:
-        progress(1.0, "COLMAP stereo fusion")
+    progress.update(1.0, "COLMAP stereo fusion")
     points, normals = colmap_fusion(
         root,
         max_reproj_error=2.0 * options.mvs_consistency_px / options.mvs_scale,

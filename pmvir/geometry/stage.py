@@ -22,7 +22,7 @@ JSON-ready counts and timings for ``report.json`` (spec section 3).
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,18 +32,17 @@ import numpy as np
 from pmvir.camera import Camera
 from pmvir.capture import Capture
 from pmvir.config import GeometryOptions
-from pmvir.errors import CanceledError, ReconstructionError
+from pmvir.errors import ReconstructionError
 from pmvir.geometry.mvs_dense import DenseResult, dense_stereo
 from pmvir.geometry.sfm import SparseModel, estimate_poses
 from pmvir.geometry.subdivision import subdivide_until
 from pmvir.geometry.surface import SurfaceResult, initial_surface
 from pmvir.geometry.visibility import vertex_visibility
 from pmvir.io.colmap_text import image_from_camera, pinhole_from_camera, write_colmap_text_model
-from pmvir.io.ply import Mesh, vertex_normals, write_mesh_ply
+from pmvir.io.ply import Mesh, vertex_normals
 from pmvir.polarization.stokes import PolarizationImages
-
-Progress = Callable[[float, str], None]
-Cancel = Callable[[], bool]
+from pmvir.progress import Progress
+from pmvir.result import ResultFolder
 
 #: Share of the stage's progress bar given to each step (they sum to 1).
 _STEP_WEIGHTS = {"poses": 0.25, "dense": 0.45, "surface": 0.1, "visibility": 0.1, "subdivision": 0.1}
@@ -88,33 +87,6 @@ class GeometryResult:
         return [c is not None for c in self.cameras]
 
 
-class _Steps:
-    """Progress and cancellation across the stage's steps."""
-
-    def __init__(self, progress: Progress | None, cancel: Cancel | None):
-        self.progress, self.cancel = progress, cancel
-        self.done = 0.0
-
-    def check(self, step: str) -> None:
-        if self.cancel is not None and self.cancel():
-            raise CanceledError(f"geometry stage canceled before {step}")
-
-    def sub(self, step: str) -> Progress:
-        start, width = self.done, _STEP_WEIGHTS[step]
-
-        def report(fraction: float, message: str) -> None:
-            self.check(step)
-            if self.progress is not None:
-                self.progress(min(1.0, start + width * min(max(fraction, 0.0), 1.0)), f"{step}: {message}")
-
-        return report
-
-    def finish(self, step: str) -> None:
-        self.done += _STEP_WEIGHTS[step]
-        if self.progress is not None:
-            self.progress(min(self.done, 1.0), f"{step}: done")
-
-
 def run_geometry(
     capture: Capture,
     views: Sequence[PolarizationImages],
@@ -122,7 +94,6 @@ def run_geometry(
     options: GeometryOptions | None = None,
     workdir: str | Path,
     progress: Progress | None = None,
-    cancel: Cancel | None = None,
 ) -> GeometryResult:
     """Poses, dense points, initial surface, visibility and subdivision (module docstring).
 
@@ -131,8 +102,8 @@ def run_geometry(
         views: per frame, in capture order, its decoded images (``i_int`` is used).
         options: geometry options (default ``GeometryOptions()``).
         workdir: scratch folder for SfM and (CUDA) dense workspaces; created.
-        progress: called as ``progress(fraction in [0, 1], message)``.
-        cancel: polled between steps and views; True raises CanceledError.
+        progress: reports each step (poses, dense, surface, visibility, subdivision), times it and
+            is polled for cancellation between steps and views.
 
     Returns:
         :class:`GeometryResult`.
@@ -140,106 +111,84 @@ def run_geometry(
     Raises:
         ReconstructionError: too few registered views (naming those that failed), too few
             dense points (textureless or non-overlapping views), or no surface.
-        CanceledError: ``cancel()`` returned True.
+        CanceledError: the progress object was asked to cancel.
     """
     options = options or GeometryOptions()
+    progress = progress or Progress.none()
     n = len(capture.frames)
     if len(views) != n:
         raise ValueError(f"expected {n} decoded views (one per frame), got {len(views)}")
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    steps = _Steps(progress, cancel)
-    timings: dict[str, float] = {}
     t_start = time.perf_counter()
     names = [f.name for f in capture.frames]
     files = [f.file for f in capture.frames]
     images = [np.asarray(v.i_int, np.float32) for v in views]
     masks = [capture.read_mask(i) for i in range(n)]
 
-    steps.check("poses")
-    t = time.perf_counter()
-    known = capture.has_all_poses
-    intrinsics = [None if f.intrinsics is None else _k_matrix(f.intrinsics) for f in capture.frames]
-    sparse = estimate_poses(
-        images,
-        names,
-        cameras=[f.camera for f in capture.frames] if known else None,
-        intrinsics=intrinsics if any(k is not None for k in intrinsics) else None,
-        masks=masks,
-        options=options,
-        workdir=workdir / "sfm",
-        progress=steps.sub("poses"),
-    )
-    timings["poses"] = time.perf_counter() - t
-    steps.finish("poses")
+    with progress.step("poses", _STEP_WEIGHTS["poses"]) as p:
+        known = capture.has_all_poses
+        intrinsics = [None if f.intrinsics is None else _k_matrix(f.intrinsics) for f in capture.frames]
+        sparse = estimate_poses(
+            images,
+            names,
+            cameras=[f.camera for f in capture.frames] if known else None,
+            intrinsics=intrinsics if any(k is not None for k in intrinsics) else None,
+            masks=masks,
+            options=options,
+            workdir=workdir / "sfm",
+            progress=p.update,
+        )
     cameras = list(sparse.cameras)
-
-    steps.check("dense stereo")
-    dense = dense_stereo(
-        images,
-        masks,
-        cameras,
-        sparse.points,
-        names=names,
-        options=options,
-        workdir=workdir,
-        progress=steps.sub("dense"),
-        cancel=cancel,
-    )
-    timings.update(dense.timings)
-    steps.finish("dense")
-
-    steps.check("surface")
-    t = time.perf_counter()
     reg = [i for i in range(n) if cameras[i] is not None]
-    surface = initial_surface(
-        dense.points.points,
-        dense.points.normals,
-        cameras=[cameras[i] for i in reg],
-        masks=[masks[i] for i in reg],
-        poisson_depth=options.surface_poisson_depth,
-        poisson_voxel_px=options.surface_poisson_voxel_px,
-        trim_density_quantile=options.surface_trim_density_quantile,
-        trim_distance=options.surface_trim_distance,
-        target_faces=options.surface_target_faces,
-        min_angle_deg=options.surface_min_angle_deg,
-        max_area_px=options.surface_split_factor * options.subdivision_max_area_px,
-    )
-    timings["surface"] = time.perf_counter() - t
-    steps.finish("surface")
-
-    steps.check("visibility")
-    t = time.perf_counter()
     reg_cams = [cameras[i] for i in reg]
-    vis = vertex_visibility(
-        surface.vertices,
-        surface.faces,
-        reg_cams,
-        [masks[i] for i in reg],
-        min_cos=options.visibility_min_cos,
-        rel_tol=options.visibility_rel_tol,
-    )
-    timings["visibility"] = time.perf_counter() - t
-    if not vis.any():
-        raise ReconstructionError("no vertex of the initial surface is visible in any registered view")
-    steps.finish("visibility")
 
-    steps.check("subdivision")
-    t = time.perf_counter()
-    sub = subdivide_until(
-        surface.vertices,
-        surface.faces,
-        vis,
-        reg_cams,
-        max_area_px=options.subdivision_max_area_px,
-        max_rounds=options.subdivision_max_rounds,
-        max_vertices=options.subdivision_max_vertices,
-        min_visible_corners=options.subdivision_min_visible_corners,
-    )
+    with progress.step("dense", _STEP_WEIGHTS["dense"]) as p:
+        dense = dense_stereo(
+            images, masks, cameras, sparse.points, names=names, options=options, workdir=workdir, progress=p
+        )
+
+    with progress.step("surface", _STEP_WEIGHTS["surface"]):
+        surface = initial_surface(
+            dense.points.points,
+            dense.points.normals,
+            cameras=reg_cams,
+            masks=[masks[i] for i in reg],
+            poisson_depth=options.surface_poisson_depth,
+            poisson_voxel_px=options.surface_poisson_voxel_px,
+            trim_density_quantile=options.surface_trim_density_quantile,
+            trim_distance=options.surface_trim_distance,
+            target_faces=options.surface_target_faces,
+            min_angle_deg=options.surface_min_angle_deg,
+            max_area_px=options.surface_split_factor * options.subdivision_max_area_px,
+        )
+
+    with progress.step("visibility", _STEP_WEIGHTS["visibility"]):
+        vis = vertex_visibility(
+            surface.vertices,
+            surface.faces,
+            reg_cams,
+            [masks[i] for i in reg],
+            min_cos=options.visibility_min_cos,
+            rel_tol=options.visibility_rel_tol,
+        )
+        if not vis.any():
+            raise ReconstructionError("no vertex of the initial surface is visible in any registered view")
+
+    with progress.step("subdivision", _STEP_WEIGHTS["subdivision"]):
+        sub = subdivide_until(
+            surface.vertices,
+            surface.faces,
+            vis,
+            reg_cams,
+            max_area_px=options.subdivision_max_area_px,
+            max_rounds=options.subdivision_max_rounds,
+            max_vertices=options.subdivision_max_vertices,
+            min_visible_corners=options.subdivision_min_visible_corners,
+        )
     full_vis = np.zeros((len(sub.vertices), n), bool)
     full_vis[:, reg] = sub.visibility
-    timings["subdivision"] = time.perf_counter() - t
-    steps.finish("subdivision")
+    timings = {k: v for k, v in progress.timings.items() if k != "dense"} | dict(dense.timings)
     timings["total"] = time.perf_counter() - t_start
     return GeometryResult(
         names=names,
@@ -273,18 +222,11 @@ def write_poses(directory: str | Path, result: GeometryResult) -> None:
     write_colmap_text_model(directory, cams, imgs)
 
 
-def write_geometry(out_dir: str | Path, result: GeometryResult) -> dict[str, Path]:
-    """Write ``initial.ply`` (the subdivided initial surface, spec PLY) and ``poses/`` into ``out_dir``.
-
-    Returns:
-        {'initial': path of initial.ply, 'poses': path of poses/}.
-    """
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    mesh = Mesh(result.vertices, result.faces, normals=vertex_normals(result.vertices, result.faces))
-    write_mesh_ply(out_dir / "initial.ply", mesh)
-    write_poses(out_dir / "poses", result)
-    return {"initial": out_dir / "initial.ply", "poses": out_dir / "poses"}
+def write_geometry(result: ResultFolder, geometry: GeometryResult) -> None:
+    """Write ``initial.ply`` (the subdivided initial surface, spec PLY) and ``poses/`` into the result."""
+    mesh = Mesh(geometry.vertices, geometry.faces, normals=vertex_normals(geometry.vertices, geometry.faces))
+    result.write_mesh("initial.ply", mesh)
+    result.write_folder("poses", lambda folder: write_poses(folder, geometry))
 
 
 def geometry_report(result: GeometryResult) -> dict[str, Any]:

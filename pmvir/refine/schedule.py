@@ -37,7 +37,8 @@ import torch
 
 from pmvir.camera import Camera
 from pmvir.config import RefineOptions
-from pmvir.errors import CanceledError, ConfigError, ReconstructionError
+from pmvir.errors import ConfigError, ReconstructionError
+from pmvir.progress import Progress
 from pmvir.refine.albedo import AlbedoSolver
 from pmvir.refine.energy import StageProblem, energy_terms, psm_weights, total_energy
 from pmvir.refine.lbfgs import minimize_lbfgs
@@ -60,8 +61,6 @@ from pmvir.refine.sampling import (
 
 #: vertices (N, 3) float64, faces (F, 3) int64 -> (N, V) bool visibility.
 VisibilityFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
-#: (fraction in [0, 1], message) -> None.
-ProgressFn = Callable[[float, str], None]
 
 
 @dataclass(frozen=True)
@@ -363,8 +362,7 @@ def refine_surface(
     *,
     options: RefineOptions | None = None,
     visibility_fn: VisibilityFn | None = None,
-    progress: ProgressFn | None = None,
-    cancel: Callable[[], bool] | None = None,
+    progress: Progress | None = None,
 ) -> RefineResult:
     """Polarimetric MVIR: refine a mesh, its albedo and per-view lighting (paper sections 4.3, 5.1).
 
@@ -378,15 +376,15 @@ def refine_surface(
         options: the stage's options (default :class:`pmvir.config.RefineOptions`).
         visibility_fn: recomputes visibility from (vertices, faces) between stages (e.g.
             :func:`make_visibility_fn`); without it the initial visibility is kept.
-        progress: called with (fraction done, message) at stage and iteration boundaries.
-        cancel: polled at stage and iteration boundaries; returning True raises CanceledError.
+        progress: reports stage and iteration boundaries and is polled there for cancellation.
 
     Returns:
         :class:`RefineResult`.
 
     Raises:
         MeshError: malformed mesh. ConfigError: inconsistent inputs or options.
-        ReconstructionError: no vertex has a usable view. CanceledError: ``cancel`` returned True.
+        ReconstructionError: no vertex has a usable view. CanceledError: the progress object was
+        asked to cancel.
     """
     t_start = time.perf_counter()
     opts = options if options is not None else RefineOptions()
@@ -401,13 +399,8 @@ def refine_surface(
     if vis.shape != (n, n_views):
         raise ConfigError(f"expected ({n}, {n_views}) visibility, got {vis.shape}")
 
-    def report(fraction: float, message: str) -> None:
-        if progress is not None:
-            progress(min(max(fraction, 0.0), 1.0), message)
-
-    def check_cancel(where: str) -> None:
-        if cancel is not None and cancel():
-            raise CanceledError(f"refinement canceled {where}")
+    progress = progress or Progress.none()
+    report, check_cancel = progress.update, progress.check_cancel
 
     topo = _Topology.of(faces_np, device)
     faces_t, edges_np = topo.faces, topo.edges_np

@@ -42,6 +42,7 @@ from pmvir.geometry.stage import GeometryResult, run_geometry
 from pmvir.io.frames import write_frame
 from pmvir.io.ply import Mesh, read_mesh, write_mesh_ply
 from pmvir.polarization.stokes import PolarizationImages
+from pmvir.progress import Progress
 from pmvir.synth.builtin_renderer import render_view
 from pmvir.synth.generate import synthesize
 from pmvir.synth.lighting import sh_lights
@@ -155,7 +156,7 @@ def blob_geometry(
             blob_views,
             options=GeometryOptions(**BLOB_OPTIONS),
             workdir=geometry_data / "blob-work",
-            progress=lambda fraction, message: blob_progress.append((fraction, message)),
+            progress=Progress(lambda stage, fraction, message: blob_progress.append((fraction, message))),
         )
 
 

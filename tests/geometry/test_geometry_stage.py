@@ -19,6 +19,8 @@ from pmvir.geometry.mesh_ops import edge_topology
 from pmvir.geometry.stage import geometry_report, run_geometry, write_geometry
 from pmvir.io.colmap_text import camera_from_colmap, read_colmap_text_model
 from pmvir.io.ply import Mesh, read_mesh
+from pmvir.progress import Progress
+from pmvir.result import ResultFolder
 
 
 def test_initial_surface_accuracy_and_completeness(blob_geometry, blob_capture: Path):
@@ -47,11 +49,13 @@ def test_initial_surface_is_one_manifold_component_seen_by_the_views(blob_geomet
 
 def test_outputs_and_report(blob_geometry, blob_capture: Path, tmp_path: Path):
     g = blob_geometry
-    paths = write_geometry(tmp_path, g)
-    mesh = read_mesh(paths["initial"])
+    result = ResultFolder(tmp_path)
+    write_geometry(result, g)
+    assert result.present() == sorted(["initial.ply", "poses/cameras.txt", "poses/images.txt", "poses/points3D.txt"])
+    mesh = read_mesh(result.path("initial.ply"))
     np.testing.assert_allclose(mesh.vertices, g.vertices, atol=1e-6)  # float32 in the PLY
     np.testing.assert_array_equal(mesh.faces, g.faces)
-    cams, imgs = read_colmap_text_model(paths["poses"])
+    cams, imgs = read_colmap_text_model(result.path("poses"))
     assert sorted(m.name for m in imgs.values()) == sorted(g.files)
     with open_capture(blob_capture) as cap:
         true = {f.file: f.camera for f in cap.frames}
@@ -81,7 +85,7 @@ def test_cancel_stops_the_stage(unrelated_capture: Path, unrelated_views, tmp_pa
     views = unrelated_views
     with open_capture(unrelated_capture) as cap:
         with pytest.raises(CanceledError, match="before poses"):
-            run_geometry(cap, views, workdir=tmp_path / "a", cancel=lambda: True)
+            run_geometry(cap, views, workdir=tmp_path / "a", progress=Progress(should_cancel=lambda: True))
         calls = []
 
         def cancel() -> bool:  # let the first check pass, stop at the first progress report of SfM
@@ -89,7 +93,7 @@ def test_cancel_stops_the_stage(unrelated_capture: Path, unrelated_views, tmp_pa
             return len(calls) > 1
 
         with pytest.raises(CanceledError, match="poses"):
-            run_geometry(cap, views, workdir=tmp_path / "b", cancel=cancel)
+            run_geometry(cap, views, workdir=tmp_path / "b", progress=Progress(should_cancel=cancel))
 
 
 def test_too_few_views_raise(blob_capture: Path, blob_views, tmp_path: Path):

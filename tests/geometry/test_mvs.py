@@ -35,6 +35,7 @@ from pmvir.geometry.mvs_colmap import (
 from pmvir.geometry.mvs_dense import dense_stereo
 from pmvir.geometry.mvs_fusion import backproject
 from pmvir.io.ply import read_mesh
+from pmvir.progress import Progress
 from pmvir.synth.rig import ring_cameras
 
 
@@ -250,7 +251,13 @@ def test_dense_stereo_stops_when_canceled(unrelated_set):
 
     with pytest.raises(CanceledError):
         dense_stereo(
-            s.images, s.masks, s.cameras, s.points, names=s.names, options=GeometryOptions(), cancel=cancel
+            s.images,
+            s.masks,
+            s.cameras,
+            s.points,
+            names=s.names,
+            options=GeometryOptions(),
+            progress=Progress(should_cancel=cancel),
         )
     assert len(polls) == 3
 

@@ -23,6 +23,7 @@ from pmvir.errors import CaptureError, ConfigError
 from pmvir.polarization.demosaic import support_radius
 from pmvir.polarization.layout import IMX250MYR, IMX250MZR, layout_from_sensor, mosaic
 from pmvir.polarization.stokes import intensities_from_polarization
+from pmvir.progress import Progress
 
 H, W = 48, 64
 AOP_DEG, DOP = 30.0, 0.4
@@ -76,11 +77,11 @@ def test_decode_capture_writes_the_spec_files(tmp_path: Path) -> None:
     mask[:, :10] = False
     cap = _write_capture(tmp_path / "cap", {"000": _raw_samples(IMX250MYR), "001": sat},
                          masks={"001": mask})
-    calls: list[tuple[int, int]] = []
+    calls: list[tuple[float, str]] = []
     out = tmp_path / "out"
-    written = decode_capture(cap, out, progress=lambda done, total: calls.append((done, total)))
+    written = decode_capture(cap, out, progress=Progress(lambda _, f, m: calls.append((f, m))))
     assert written == [out / "000.npz", out / "001.npz"]
-    assert calls == [(0, 2), (1, 2), (2, 2)]
+    assert calls == [(0.5, "decoded frames/000.png"), (1.0, "decoded frames/001.png")]
     for stem in ("000", "001"):
         with np.load(out / f"{stem}.npz") as z:
             assert sorted(z.files) == sorted(NPZ_KEYS)

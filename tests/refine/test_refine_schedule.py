@@ -11,6 +11,7 @@ from refine_scene import accuracy, make_scene
 
 from pmvir.config import PipelineConfig, RefineOptions
 from pmvir.errors import CanceledError, ConfigError, MeshError, ReconstructionError
+from pmvir.progress import Progress
 from pmvir.refine import Observation, make_visibility_fn, observation_from_decoded, refine_surface
 from pmvir.sh import sh9_shading
 
@@ -48,7 +49,7 @@ def plastic_runs(plastic):
         vis,
         options=DEFAULTS,
         visibility_fn=counting_vis,
-        progress=lambda frac, msg: progress.append((frac, msg)),
+        progress=Progress(lambda stage, frac, msg: progress.append((frac, msg))),
     )
     baseline = refine_surface(
         scene.vertices,
@@ -187,7 +188,7 @@ def test_cancel_raises_at_an_iteration_boundary(plastic) -> None:
             obs,
             vis,
             options=RefineOptions(max_iterations=10),
-            cancel=cancel,
+            progress=Progress(should_cancel=cancel),
         )
     assert len(polls) == 4
 
@@ -195,7 +196,14 @@ def test_cancel_raises_at_an_iteration_boundary(plastic) -> None:
 def test_cancel_before_the_first_stage(plastic) -> None:
     scene, obs, _, vis = plastic
     with pytest.raises(CanceledError, match="before stage 1"):
-        refine_surface(scene.vertices, scene.faces, scene.cameras, obs, vis, cancel=lambda: True)
+        refine_surface(
+            scene.vertices,
+            scene.faces,
+            scene.cameras,
+            obs,
+            vis,
+            progress=Progress(should_cancel=lambda: True),
+        )
 
 
 # --- bad inputs ------------------------------------------------------------------------------------
