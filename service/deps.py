@@ -11,7 +11,8 @@ from fastapi import Request
 from service.errors import ApiError, ErrorItem, not_found
 from service.models import JobOut, PartialOut
 from service.settings import Settings
-from service.storage import RESULT_FILES, JobFiles
+from pmvir.result import downloadable_names
+from service.storage import JobFiles
 from service.store import Job, JobStore
 
 _JOB_ID = re.compile(r"^[0-9a-f]{32}$")
@@ -74,7 +75,7 @@ def job_out(svc: Services, job: Job) -> JobOut:
         p = svc.files.partial_path(job.id, path)
         received = p.stat().st_size if p.exists() else 0
         partial.append(PartialOut(path=path, received=received, total=total))
-    results = [n for n in RESULT_FILES if svc.files.result_file(job.id, n) is not None]
+    results = [n for n in downloadable_names() if svc.files.result_file(job.id, n) is not None]
     return JobOut.of(job, files=files, partial=partial, results=results)
 
 

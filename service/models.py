@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 from datetime import UTC, datetime
+from enum import StrEnum
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from pmvir.config import PipelineConfig
-from service.store import FileInfo, Job
+from pmvir.result import downloadable_names
+from service.store import FileInfo, Job, JobStatus
 
-Status = Literal["created", "queued", "running", "succeeded", "failed", "canceled"]
-ResultName = Literal["mesh.ply", "illumination.json", "report.json", "result.zip"]
+#: The result files served by name (pmvir.result's table: single files, folders as .zip, result.zip).
+ResultName = StrEnum("ResultName", {n: n for n in downloadable_names()})  # type: ignore[misc]
 
 
 class JobCreate(BaseModel):
@@ -66,7 +68,7 @@ class JobOut(BaseModel):
     """A job: its state, progress and files."""
 
     id: str
-    status: Status = Field(description="created, queued, running, succeeded, failed or canceled.")
+    status: JobStatus = Field(description="created, queued, running, succeeded, failed or canceled.")
     stage: str | None = Field(default=None, description="The pipeline stage running or last run.")
     progress: float = Field(ge=0.0, le=1.0, description="Overall fraction done, 0..1; never goes backwards.")
     label: str | None = None
@@ -82,7 +84,9 @@ class JobOut(BaseModel):
     deliveries: int = Field(ge=0, description="How many times a worker started the job.")
     files: list[FileOut] = Field(default_factory=list, description="Complete capture files.")
     partial_uploads: list[PartialOut] = Field(default_factory=list)
-    results: list[ResultName] = Field(default_factory=list, description="Result files ready to download.")
+    results: list[ResultName] = Field(  # type: ignore[valid-type]
+        default_factory=list, description="Result files ready to download."
+    )
 
     @classmethod
     def of(cls, job: Job, *, files: list[FileInfo], partial: list[PartialOut], results: list[str]) -> JobOut:
@@ -112,7 +116,7 @@ class JobSummary(BaseModel):
     """A job in a list."""
 
     id: str
-    status: Status
+    status: JobStatus
     stage: str | None = None
     progress: float = Field(ge=0.0, le=1.0)
     label: str | None = None

@@ -25,9 +25,7 @@ import zipfile
 from pathlib import Path, PurePosixPath
 
 from pmvir.io.frames import FRAME_SUFFIXES
-
-#: The result files the API serves by name (section 3 of the capture-format spec, plus the zip).
-RESULT_FILES = ("mesh.ply", "illumination.json", "report.json", "result.zip")
+from pmvir.result import RESULT_FILES, RESULT_ZIP, downloadable_names
 
 _NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.+-]{0,127}$")
 _LAYOUT = {
@@ -128,7 +126,7 @@ class JobFiles:
 
     def result_file(self, job_id: str, name: str) -> Path | None:
         """A finished result file, or None when the job has none of that name."""
-        if name not in RESULT_FILES:
+        if name not in downloadable_names():
             return None
         p = self.result_dir(job_id) / name
         return p if p.is_file() else None
@@ -165,10 +163,15 @@ class JobFiles:
             return False
 
     def publish_result(self, job_id: str, run_dir: Path) -> Path:
-        """Zip a finished run's folder into result.zip inside it, then rename it to result/.
+        """Zip a finished run's folder into result.zip inside it (and each result folder into
+        ``<folder>.zip``, to be served singly), then rename it to result/.
 
         Running twice is harmless: an earlier result folder is moved away first.
         """
+        for entry in RESULT_FILES:
+            folder = run_dir / entry.name.rstrip("/")
+            if entry.is_folder and entry.single and folder.is_dir():
+                write_folder_zip(folder, run_dir / entry.download_name)
         write_result_zip(run_dir)
         final = self.result_dir(job_id)
         if final.exists():
@@ -182,12 +185,18 @@ def write_result_zip(folder: Path) -> Path:
 
     Text and PLY members are deflated; arrays and images are stored as they are (see ``_STORED``).
     """
-    target = folder / "result.zip"
-    tmp = folder / f".result.zip.{uuid.uuid4().hex}.tmp"
+    return write_folder_zip(folder, folder / RESULT_ZIP)
+
+
+def write_folder_zip(folder: Path, target: Path) -> Path:
+    """Zip every file under ``folder`` (but ``target`` and other .zip files beside it) into ``target``."""
+    tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex}.tmp")
     try:
         with zipfile.ZipFile(tmp, "w", allowZip64=True) as zf:
             for p in sorted(folder.rglob("*")):
                 if not p.is_file() or p.is_symlink() or p == target or p.name.endswith(".tmp"):
+                    continue
+                if p.parent == target.parent and p.suffix == ".zip":  # the folder zips beside result.zip
                     continue
                 stored = p.suffix.lower() in _STORED
                 zf.write(

@@ -23,7 +23,7 @@ from pmvir.io.capture_zip import extract_capture_zip
 from service.deps import Services
 from service.errors import ApiError, ErrorItem, too_large
 from service.storage import CHUNK, capture_path_problem, is_frame, sha256_file
-from service.store import FileInfo
+from service.store import FileInfo, Gate
 from service.uploads import file_limit
 
 
@@ -140,7 +140,7 @@ def import_zip(svc: Services, job_id: str, zip_path: Path) -> list[FileInfo]:
             info = FileInfo(path=rel, size=p.stat().st_size, sha256=sha256_file(p))
             svc.files.place(job_id, p, rel)
             why = svc.store.upload_commit(job_id, "", info)
-            if why != "ok":
+            if why is not Gate.OK:
                 raise ApiError(409, "conflict", f"the job is {why}")
             recorded.append(info)
         return recorded

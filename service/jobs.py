@@ -1,0 +1,233 @@
+"""What the job routes do: create (with idempotency), start, cancel, delete.
+
+The routes parse a request, call one function here with keyword arguments and
+turn the job it returns into a response model. Every check of a job's state is
+the store's (:class:`service.store.JobStore`, one Lua script per change); the
+functions here put those steps in order and say, as an :class:`ApiError`, why a
+request cannot go ahead.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import uuid
+from typing import BinaryIO
+
+from pmvir.capture import open_capture, validate_capture
+from pmvir.config import PipelineConfig
+from pmvir.errors import CaptureError
+from service.deps import Services
+from service.errors import ApiError, ErrorItem, conflict, not_found
+from service.models import JobCreate
+from service.queue import RUN_JOB
+from service.store import Gate, Job, JobStatus
+from service.zipped import import_zip, save_upload
+
+
+def fingerprint(spec: JobCreate, capture: BinaryIO | None = None) -> str:
+    """What an Idempotency-Key is bound to: the options, the label, and a zipped capture's bytes."""
+    h = hashlib.sha256(spec.model_dump_json().encode())
+    if capture is not None:
+        capture.seek(0)
+        while chunk := capture.read(1 << 20):
+            h.update(chunk)
+        capture.seek(0)
+    return h.hexdigest()
+
+
+def create_job(
+    svc: Services,
+    *,
+    owner: str,
+    spec: JobCreate,
+    idempotency_key: str | None = None,
+    capture: BinaryIO | None = None,
+    extra: dict[str, str] | None = None,
+) -> tuple[Job, bool]:
+    """Create a job (with its files when ``capture`` is a zipped capture), or find the one
+    this Idempotency-Key made.
+
+    Returns:
+        (the job, True when it was created now).
+
+    Raises:
+        ApiError: 409 (key reused with another request), 429 (too many unfinished jobs),
+            413/422 (the zip breaks a limit or the capture layout; nothing is kept).
+    """
+    key_hash = hashlib.sha256(idempotency_key.encode()).hexdigest() if idempotency_key else None
+    fp = fingerprint(spec, capture)
+    job_id = uuid.uuid4().hex
+    if key_hash:
+        bound = svc.store.bind_idempotency_key(owner, key_hash, job_id, ttl=svc.settings.idempotency_ttl)
+        if bound is not None:
+            if bound.fingerprint and bound.fingerprint != fp:
+                raise conflict("this Idempotency-Key was used with a different request")
+            return _get(svc, bound.job_id), False
+    n_open = svc.store.create(
+        job_id,
+        owner,
+        options=spec.options.model_dump(mode="json"),
+        label=spec.label,
+        max_open=svc.settings.max_jobs_in_flight,
+        extra={"idem_fp": fp, "idem_key": key_hash or "", **(extra or {})},
+    )
+    if n_open is not None:
+        if key_hash:
+            svc.store.forget_idempotency(owner, key_hash)
+        raise ApiError(
+            429,
+            "too_many_jobs",
+            f"this key has {n_open} unfinished jobs, the limit is "
+            f"{svc.settings.max_jobs_in_flight}; finish, cancel or delete some first",
+            headers={"Retry-After": "30"},
+        )
+    svc.files.create(job_id)
+    svc.store.log(job_id, "job created")
+    if capture is not None:
+        try:
+            _import_capture(svc, job_id, capture)
+        except BaseException:
+            _discard(svc, owner, job_id, key_hash)
+            raise
+    return _get(svc, job_id), True
+
+
+def _get(svc: Services, job_id: str) -> Job:
+    job = svc.store.get(job_id)
+    if job is None:
+        raise not_found("job")
+    return job
+
+
+def _import_capture(svc: Services, job_id: str, capture: BinaryIO) -> None:
+    zip_path = svc.files.job_dir(job_id) / "incoming" / f"{uuid.uuid4().hex}.zip"
+    zip_path.parent.mkdir(parents=True, exist_ok=True)
+    save_upload(capture, zip_path, svc.settings.max_zip_bytes)
+    files = import_zip(svc, job_id, zip_path)
+    svc.store.log(job_id, f"zipped capture imported: {len(files)} files")
+
+
+def _discard(svc: Services, owner: str, job_id: str, key_hash: str | None) -> None:
+    job = svc.store.get(job_id)
+    if job is not None:
+        svc.store.delete(job)
+    svc.files.delete(job_id)
+    if key_hash:
+        svc.store.forget_idempotency(owner, key_hash)
+
+
+def start_job(svc: Services, *, job: Job) -> None:
+    """Validate the whole capture and queue the job.
+
+    Raises:
+        ApiError: 404 (gone), 409 (not created, uploads in progress, being started),
+            422 (the options name a stage this build lacks, or the capture is invalid:
+            each file's problem named), 503 (the queue is unreachable).
+    """
+    why = svc.store.start_lock(job.id)
+    if why is Gate.GONE:
+        raise not_found("job")
+    if why is Gate.UPLOADING:
+        raise conflict("uploads to this job are still in progress")
+    if why is Gate.STARTING:
+        raise conflict("the job is already being started")
+    if why is not Gate.OK:
+        raise conflict(f"the job is {why}; only a created job can be started")
+    try:
+        items = stage_problems(job) or capture_problems(svc, job.id)
+        if items:
+            svc.store.log(job.id, f"start refused: {len(items)} problem(s) in the capture")
+            code = "invalid_options" if items[0].loc else "invalid_capture"
+            raise ApiError(422, code, f"the job cannot start: {len(items)} problem(s)", errors=items)
+        queue_job(svc, job=job)
+        svc.store.log(job.id, "capture valid; job queued")
+    finally:
+        svc.store.start_unlock(job.id)
+
+
+def queue_job(svc: Services, *, job: Job) -> None:
+    """Move a created job to queued and send its task (back to created when the broker is away)."""
+    ok, before = svc.store.transition(job, (JobStatus.CREATED,), JobStatus.QUEUED, cancel=False)
+    if not ok:
+        raise conflict(f"the job is {before or 'gone'}; only a created job can be started")
+    try:
+        svc.celery.send_task(RUN_JOB, args=[job.id], queue=svc.settings.queue)
+    except Exception as exc:  # the broker's client raises many types when Redis is away
+        svc.store.transition(job, (JobStatus.QUEUED,), JobStatus.CREATED, queued_at="")
+        raise ApiError(
+            503,
+            "unavailable",
+            f"the job could not be queued ({type(exc).__name__}); retry",
+            headers={"Retry-After": "5"},
+        ) from exc
+
+
+def cancel_job(svc: Services, *, job: Job) -> None:
+    """Cancel: a created or queued job ends now; a running one stops at its next boundary.
+
+    Raises:
+        ApiError: 409 when the job already succeeded or failed.
+    """
+    after = svc.store.cancel(job)
+    if after in (JobStatus.SUCCEEDED, JobStatus.FAILED):
+        raise conflict(f"the job already {after}")
+    if after is JobStatus.RUNNING:
+        svc.store.log(job.id, "cancellation requested")
+    elif after is JobStatus.CANCELED and job.status is not JobStatus.CANCELED:
+        svc.store.log(job.id, "job canceled")
+
+
+def delete_job(svc: Services, *, job: Job) -> None:
+    """Delete a job's record and files (a running job is canceled first)."""
+    svc.store.cancel(job)
+    svc.store.delete(job)
+    svc.files.delete(job.id)
+
+
+def stage_problems(job: Job) -> list[ErrorItem]:
+    """A stop_after naming a stage this build cannot run (the pipeline would fail at once)."""
+    from pmvir import pipeline
+
+    config = PipelineConfig.model_validate(job.options)
+    missing = [s for s in pipeline.stages_for(config) if s not in pipeline.AVAILABLE_STAGES]
+    if not missing:
+        return []
+    return [
+        ErrorItem(
+            loc=["options", "stop_after"],
+            type="unavailable_stage",
+            msg=f"stage(s) {', '.join(missing)} are not available in this build; "
+            f"available: {', '.join(pipeline.AVAILABLE_STAGES)}",
+        )
+    ]
+
+
+def capture_problems(svc: Services, job_id: str) -> list[ErrorItem]:
+    """Every problem of the job's capture, each naming its file (empty when it can run).
+
+    Frame sizes are read from the headers and checked first; frames are decoded (sample
+    ranges) only when every header is right, so a frame whose header declares a huge
+    image is refused without being decoded.
+    """
+    root = svc.files.capture_dir(job_id)
+    problems: list[CaptureError] = validate_capture(root, decode_frames=False)
+    if not problems:
+        problems = validate_capture(root, decode_frames=True)
+    hide = (str(root.resolve()), str(root))  # messages must not reveal the storage layout
+    items = []
+    for p in problems:
+        msg = p.problem
+        for h in hide:
+            msg = msg.replace(h, "the capture")
+        items.append(ErrorItem(file=p.path, msg=msg, type=type(p).__name__))
+    if not problems:
+        with open_capture(root) as cap:
+            if len(cap) > svc.settings.max_frames:
+                items.append(
+                    ErrorItem(
+                        file="capture.json",
+                        msg=f"{len(cap)} frames, more than the limit of {svc.settings.max_frames}",
+                        type="limit",
+                    )
+                )
+    return items
