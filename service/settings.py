@@ -60,7 +60,9 @@ class Settings(BaseSettings):
     )
     max_zip_members: int = Field(default=2100, gt=0, description="Most members in a zipped capture.")
     max_zip_ratio: float = Field(
-        default=200.0, gt=1.0, description="Largest uncompressed/compressed ratio of a zip member over 1 MiB."
+        default=200.0,
+        gt=1.0,
+        description="Largest uncompressed/compressed ratio of a zip member over 1 MiB, and of the whole zip.",
     )
 
     # -- worker
