@@ -20,7 +20,7 @@ resume with ``Range`` into ``<dest>.part``. Uploaded files are checked
 against the sha256 the server returns.
 
 Errors from the server raise :class:`ServiceError` (a :class:`pmvir.errors.PmvirError`)
-with the HTTP status and the JSON error body. Needs ``httpx`` (``pip install pmvir[service]``).
+with the HTTP status and the JSON error body. Needs only ``httpx`` (``pip install 'pmvir[client]'``).
 """
 
 from __future__ import annotations
@@ -253,6 +253,25 @@ class PmvirClient:
                 if job["status"] != "created":
                     return job
             raise
+
+    def rerun(
+        self,
+        job_id: str,
+        options: dict[str, Any] | None = None,
+        *,
+        from_stage: str = "refine",
+        label: str | None = None,
+    ) -> dict[str, Any]:
+        """A new, queued job on ``job_id``'s capture with ``options`` merged into its options,
+        computing the stages from ``from_stage`` on (earlier ones come from the source's cache)."""
+        payload: dict[str, Any] = {"options": options or {}, "from_stage": from_stage}
+        if label:
+            payload["label"] = label
+        return self.request("POST", f"/v1/jobs/{job_id}/rerun", ok=(201,), json=payload).json()
+
+    def info(self) -> dict[str, Any]:
+        """The service's version, limits, queue length, workers and disk use (GET /v1/info)."""
+        return self.request("GET", "/v1/info").json()
 
     def cancel(self, job_id: str) -> dict[str, Any]:
         return self.request("POST", f"/v1/jobs/{job_id}/cancel", ok=(200, 202)).json()

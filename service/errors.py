@@ -15,7 +15,7 @@ import redis
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
@@ -65,6 +65,16 @@ class ApiError(Exception):
         self.status = status
         self.body = ErrorBody(error=code, message=message, errors=errors or [], received=received)
         self.headers = headers
+
+
+def invalid(exc: ValidationError, prefix: tuple[str, ...], message: str = "invalid request") -> ApiError:
+    """A 422 naming every field pydantic refused, under ``prefix`` (e.g. ("body", "options"))."""
+    items = [
+        ErrorItem(loc=[*prefix, *e["loc"]], msg=e["msg"], type=e["type"])
+        for e in exc.errors(include_url=False)
+    ]
+    names = ", ".join(".".join(str(p) for p in i.loc or ()) for i in items)
+    return ApiError(422, "validation_error", f"{message}: {names}", errors=items)
 
 
 def not_found(what: str) -> ApiError:

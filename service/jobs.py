@@ -1,4 +1,4 @@
-"""What the job routes do: create (with idempotency), start, cancel, delete.
+"""What the job routes do: create (with idempotency), start, rerun, cancel, delete.
 
 The routes parse a request, call one function here with keyword arguments and
 turn the job it returns into a response model. Every check of a job's state is
@@ -11,13 +11,17 @@ from __future__ import annotations
 
 import hashlib
 import uuid
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
+from pydantic import ValidationError
+
+from pmvir import stage_cache
 from pmvir.capture import open_capture, validate_capture
 from pmvir.config import PipelineConfig
 from pmvir.errors import CaptureError
+from pmvir.stages import Stage
 from service.deps import Services
-from service.errors import ApiError, ErrorItem, conflict, not_found
+from service.errors import ApiError, ErrorItem, conflict, invalid, not_found
 from service.models import JobCreate
 from service.queue import RUN_JOB
 from service.store import Gate, Job, JobStatus
@@ -160,6 +164,77 @@ def queue_job(svc: Services, *, job: Job) -> None:
             f"the job could not be queued ({type(exc).__name__}); retry",
             headers={"Retry-After": "5"},
         ) from exc
+
+
+def rerun_job(
+    svc: Services,
+    *,
+    owner: str,
+    source: Job,
+    changes: dict[str, Any],
+    from_stage: Stage,
+    label: str | None = None,
+) -> Job:
+    """A new job on the source job's capture with changed options, computing stages from ``from_stage`` on.
+
+    The capture and the source's cached stage outputs are shared (hard links), so nothing is
+    uploaded again; the job is queued at once (the capture was validated when the source started).
+
+    Raises:
+        ApiError: 409 (the source never started or has not finished, or it has no cached output of
+            an earlier stage made with these options: the message names the stage and group),
+            422 (the merged options are invalid, or from_stage is after stop_after), 429.
+    """
+    if not source.status.terminal or source.queued_at is None:
+        raise conflict(
+            f"the source job is {source.status}; a rerun needs a job that was started and finished"
+        )
+    try:
+        config = PipelineConfig.model_validate(merge_options(source.options, changes))
+    except ValidationError as exc:
+        raise invalid(exc, ("body", "options"), "the merged options are invalid") from exc
+    if from_stage.position > Stage(config.stop_after).position:
+        raise ApiError(
+            422,
+            "validation_error",
+            f"from_stage {from_stage} is after stop_after {config.stop_after}",
+            errors=[ErrorItem(loc=["body", "from_stage"], msg="after stop_after", type="value_error")],
+        )
+    cache = svc.files.cache_dir(source.id)
+    for stage in (s for s in Stage if s.position < from_stage.position):
+        if not stage_cache.has_stage(cache, stage, config):
+            raise conflict(
+                f"the source job has no cached {stage} output made with these options (it did not run "
+                f"{stage}, or options for {stage} or an earlier stage changed); rerun from {stage}"
+            )
+    spec = JobCreate(options=config, label=label or source.label)
+    job, _ = create_job(
+        svc, owner=owner, spec=spec, extra={"source_job": source.id, "resume_from": str(from_stage)}
+    )
+    try:
+        svc.files.share(source.id, job.id)
+        n = svc.store.copy_files(source.id, job.id)
+        svc.store.log(job.id, f"rerun of job {source.id} from {from_stage}: {n} capture files shared")
+        queue_job(svc, job=job)
+    except BaseException:
+        _discard(svc, owner, job.id, None)
+        raise
+    return _get(svc, job.id)
+
+
+def merge_options(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with ``changes`` applied: nested dicts merged key by key, anything else replaced.
+
+    >>> merge_options({"refine": {"pol_k": 0.5, "dop_min": 0.1}}, {"refine": {"pol_k": 0.7}})
+    {'refine': {'pol_k': 0.7, 'dop_min': 0.1}}
+    """
+    out = dict(base)
+    for key, value in changes.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge_options(out[key], value)
+        else:
+            out[key] = value
+    return out
 
 
 def cancel_job(svc: Services, *, job: Job) -> None:

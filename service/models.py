@@ -10,6 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from pmvir.config import PipelineConfig
 from pmvir.result import downloadable_names
+from pmvir.stages import Stage
 from service.store import FileInfo, Job, JobStatus
 
 #: The result files served by name (pmvir.result's table: single files, folders as .zip, result.zip).
@@ -27,6 +28,25 @@ class JobCreate(BaseModel):
         "out-of-range values are 422 errors naming each field.",
     )
     label: str | None = Field(default=None, max_length=200, description="Free text shown in job lists.")
+
+
+class JobRerun(BaseModel):
+    """POST /v1/jobs/{id}/rerun: a new job on the same capture, from a stage on."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    options: dict[str, Any] = Field(
+        default_factory=dict,
+        description="Changes to the source job's options, merged into them key by key (nested groups "
+        'merged, lists replaced), e.g. {"refine": {"max_iterations": 40}}; the result is validated '
+        "as PipelineConfig.",
+    )
+    from_stage: Stage = Field(
+        default=Stage.REFINE,
+        description="The first stage to compute. The earlier stages' outputs are reused from the source "
+        "job, which must have run them with the same options for them (else 409 naming the group).",
+    )
+    label: str | None = Field(default=None, max_length=200, description="Default: the source job's label.")
 
 
 class FileOut(BaseModel):
@@ -87,6 +107,10 @@ class JobOut(BaseModel):
     results: list[ResultName] = Field(  # type: ignore[valid-type]
         default_factory=list, description="Result files ready to download."
     )
+    source_job: str | None = Field(default=None, description="For a rerun: the job whose capture it uses.")
+    resume_from: Stage | None = Field(
+        default=None, description="For a rerun: the first stage computed (earlier ones came from the cache)."
+    )
 
     @classmethod
     def of(cls, job: Job, *, files: list[FileInfo], partial: list[PartialOut], results: list[str]) -> JobOut:
@@ -109,6 +133,8 @@ class JobOut(BaseModel):
             files=[FileOut.of(f) for f in files],
             partial_uploads=partial,
             results=results,  # type: ignore[arg-type]
+            source_job=job.source_job,
+            resume_from=job.resume_from,  # type: ignore[arg-type]
         )
 
 

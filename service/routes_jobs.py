@@ -6,7 +6,6 @@ from functools import partial
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
-from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
@@ -17,8 +16,8 @@ from pmvir.io import json_limits
 from service import jobs
 from service.auth import require_owner
 from service.deps import Services, job_out, owned_job, reject_unknown_query, services
-from service.errors import ApiError, ErrorBody, ErrorItem, too_large
-from service.models import JobCreate, JobList, JobOut, JobSummary, LogLine, LogOut
+from service.errors import ApiError, ErrorBody, ErrorItem, invalid, too_large
+from service.models import JobCreate, JobList, JobOut, JobRerun, JobSummary, LogLine, LogOut
 from service.store import Job
 from service.uploads import check_free_disk
 
@@ -66,13 +65,6 @@ _CREATE_BODY = {
 }
 
 
-def _validation_error(exc: ValidationError, prefix: tuple[str, ...]) -> RequestValidationError:
-    errors = []
-    for e in exc.errors(include_url=False):
-        errors.append({"loc": (*prefix, *e["loc"]), "msg": e["msg"], "type": e["type"]})
-    return RequestValidationError(errors)
-
-
 def _parse_json(data: bytes | str, loc: list[str | int], what: str) -> Any:
     """A JSON document from the request: 422 naming ``loc`` when malformed, too deep or too big a number."""
     try:
@@ -90,7 +82,7 @@ def _job_spec(data: Any, loc: tuple[str, ...]) -> JobCreate:
     try:
         return JobCreate.model_validate(data)
     except ValidationError as exc:
-        raise _validation_error(exc, loc) from exc
+        raise invalid(exc, loc) from exc
 
 
 async def _read_json_body(request: Request) -> Any:
@@ -250,6 +242,34 @@ def get_job(job_id: JobId, owner: Owner, svc: Svc) -> JobOut:
 def start_job(job_id: JobId, owner: Owner, svc: Svc) -> JobOut:
     jobs.start_job(svc, job=owned_job(svc, job_id, owner))
     return job_out(svc, owned_job(svc, job_id, owner))
+
+
+@router.post(
+    "/{job_id}/rerun",
+    summary="Rerun a finished job with changed options, from a stage on (no re-upload)",
+    description="Creates and queues a new job on the same capture. Its options are the source job's with "
+    "the given changes merged in; the stages before from_stage are not computed again: their outputs "
+    "come from the source job's cache (which must have been made with the same options for them).",
+    response_model=JobOut,
+    status_code=201,
+    responses={
+        **_JOB_ERRORS,
+        201: {"description": "Created and queued."},
+        409: {**_E, "description": "The source has not finished, or lacks a cached stage for these options."},
+        429: {**_E, "description": "Too many unfinished jobs for this key."},
+    },
+)
+def rerun_job(job_id: JobId, body: JobRerun, response: Response, owner: Owner, svc: Svc) -> JobOut:
+    job = jobs.rerun_job(
+        svc,
+        owner=owner,
+        source=owned_job(svc, job_id, owner),
+        changes=body.options,
+        from_stage=body.from_stage,
+        label=body.label,
+    )
+    response.headers["Location"] = f"/v1/jobs/{job.id}"
+    return job_out(svc, job)
 
 
 @router.post(

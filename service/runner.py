@@ -187,6 +187,8 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
                     files.capture_dir(job_id),
                     out,
                     progress=Progress(run.progress, should_cancel=run.should_cancel),
+                    cache=files.cache_dir(job_id),
+                    resume_from=job.resume_from,
                 )
                 if run.should_cancel():  # canceled after the last boundary: honour it
                     raise CanceledError("canceled after the last stage")

@@ -7,6 +7,7 @@ Layout::
     <root>/jobs/<id>/partial/<h>.part    resumable (Content-Range) uploads not complete yet
     <root>/jobs/<id>/runs/<run id>/      a run's output while it is produced
     <root>/jobs/<id>/result/             the finished result (a run's folder, renamed)
+    <root>/jobs/<id>/cache/              stage outputs a rerun resumes from (pmvir.stage_cache)
     <root>/trash/                        folders being deleted (renamed here first, then removed)
 
 Everything that becomes visible appears by rename, so a reader never sees a
@@ -94,6 +95,16 @@ class JobFiles:
 
     def result_dir(self, job_id: str) -> Path:
         return self.job_dir(job_id) / "result"
+
+    def cache_dir(self, job_id: str) -> Path:
+        return self.job_dir(job_id) / "cache"
+
+    def share(self, source_id: str, job_id: str) -> None:
+        """Give a rerun the source job's capture and stage cache: hard links (copies across devices)."""
+        for part in ("capture", "cache"):
+            src, dst = self.job_dir(source_id) / part, self.job_dir(job_id) / part
+            if src.is_dir():
+                shutil.copytree(src, dst, copy_function=_link_or_copy, dirs_exist_ok=True)
 
     def run_dir(self, job_id: str, run_id: str) -> Path:
         return self.job_dir(job_id) / "runs" / run_id
@@ -209,6 +220,13 @@ def write_folder_zip(folder: Path, target: Path) -> Path:
     finally:
         tmp.unlink(missing_ok=True)
     return target
+
+
+def _link_or_copy(src: str, dst: str) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
 
 
 def sha256_file(path: Path) -> str:

@@ -86,6 +86,7 @@ class IdempotentJob:
     job_id: str
     fingerprint: str
 
+
 @dataclass(frozen=True)
 class FileInfo:
     """A complete capture file of a job."""
@@ -116,6 +117,8 @@ class Job:
     deliveries: int = 0
     run_id: str = ""
     stage_timings: dict[str, float] = field(default_factory=dict)
+    source_job: str | None = None
+    resume_from: str | None = None
 
     @classmethod
     def from_hash(cls, h: dict[str, str]) -> Job:
@@ -141,6 +144,8 @@ class Job:
             deliveries=int(h.get("deliveries") or 0),
             run_id=h.get("run_id") or "",
             stage_timings=json.loads(h.get("stage_timings") or "{}"),
+            source_job=h.get("source_job") or None,
+            resume_from=h.get("resume_from") or None,
         )
 
 
@@ -346,6 +351,13 @@ class JobStore:
             out[path] = FileInfo(path=path, size=int(d["size"]), sha256=d["sha256"])
         return out
 
+    def copy_files(self, source_id: str, job_id: str) -> int:
+        """Record the source job's complete files as the job's (a rerun shares its capture); how many."""
+        files = self.r.hgetall(self.key(source_id, "files"))
+        if files:
+            self.r.hset(self.key(job_id, "files"), mapping=files)
+        return len(files)
+
     def partial_total(self, job_id: str, path: str) -> int | None:
         v = self.r.hget(self.key(job_id, "partial"), path)
         return int(v) if v is not None else None
@@ -361,10 +373,12 @@ class JobStore:
 
     def upload_begin(self, job_id: str, token: str, *, ttl: float = 120.0) -> Gate | JobStatus:
         """Register an upload in progress; Gate.OK, or why not (GONE, STARTING, or the job's status)."""
-        return _gate(self._upload_begin(
-            keys=[self.key(job_id), self.key(job_id, "uploads"), self.key(job_id, "starting")],
-            args=[token, repr(time.time() + ttl)],
-        ))
+        return _gate(
+            self._upload_begin(
+                keys=[self.key(job_id), self.key(job_id, "uploads"), self.key(job_id, "starting")],
+                args=[token, repr(time.time() + ttl)],
+            )
+        )
 
     def upload_touch(self, job_id: str, token: str, *, ttl: float = 120.0) -> None:
         self.r.zadd(self.key(job_id, "uploads"), {token: time.time() + ttl}, xx=True)
@@ -374,15 +388,17 @@ class JobStore:
 
     def upload_commit(self, job_id: str, token: str, info: FileInfo) -> Gate | JobStatus:
         """Record a complete file if the job still takes uploads; Gate.OK or why not."""
-        return _gate(self._upload_commit(
-            keys=[
-                self.key(job_id),
-                self.key(job_id, "files"),
-                self.key(job_id, "uploads"),
-                self.key(job_id, "partial"),
-            ],
-            args=[token, info.path, json.dumps({"size": info.size, "sha256": info.sha256})],
-        ))
+        return _gate(
+            self._upload_commit(
+                keys=[
+                    self.key(job_id),
+                    self.key(job_id, "files"),
+                    self.key(job_id, "uploads"),
+                    self.key(job_id, "partial"),
+                ],
+                args=[token, info.path, json.dumps({"size": info.size, "sha256": info.sha256})],
+            )
+        )
 
     def path_lock(self, job_id: str, path: str, *, timeout: float = 60.0) -> redis.lock.Lock:
         """A lock held while one upload of ``path`` is recorded and renamed into the capture."""
