@@ -63,6 +63,28 @@ class ServiceError(PmvirError):
         super().__init__(f"{method} {url}: HTTP {status} {message}{detail}".strip())
 
 
+def verify_webhook(
+    secret: str, body: bytes, signature: str, *, tolerance: float = 300.0, now: float | None = None
+) -> bool:
+    """Whether a webhook event is authentic: ``signature`` is its ``X-Pmvir-Signature`` header.
+
+    The header is ``t=<unix seconds>,v1=<hex>`` with ``<hex>`` the HMAC-SHA256, keyed with the
+    service's PMVIR_WEBHOOK_SECRET, of ``b"<t>." + body``; events older or newer than ``tolerance``
+    seconds are refused (replays).
+    """
+    import hmac
+
+    fields = dict(part.split("=", 1) for part in signature.split(",") if "=" in part)
+    try:
+        t = int(fields["t"])
+    except (KeyError, ValueError):
+        return False
+    if abs((time.time() if now is None else now) - t) > tolerance:
+        return False
+    expected = hmac.new(secret.encode(), f"{t}.".encode() + body, hashlib.sha256).hexdigest()
+    return hmac.compare_digest(expected, fields.get("v1", ""))
+
+
 def sha256_of(path: Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:

@@ -17,7 +17,7 @@ from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
 import pmvir
-from service import routes_files, routes_jobs
+from service import routes_files, routes_info, routes_jobs
 from service.queue import make_celery
 from service.deps import Services
 from service.errors import install_error_handlers
@@ -59,6 +59,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     app.include_router(routes_jobs.router)
     app.include_router(routes_files.router)
+    app.include_router(routes_info.router)
 
     @app.get("/healthz", tags=["health"], summary="The process is up", response_model=Health)
     def healthz() -> Health:

@@ -8,10 +8,10 @@ from dataclasses import dataclass
 from celery import Celery
 from fastapi import Request
 
+from pmvir.result import downloadable_names
 from service.errors import ApiError, ErrorItem, not_found
 from service.models import JobOut, PartialOut
 from service.settings import Settings
-from pmvir.result import downloadable_names
 from service.storage import JobFiles
 from service.store import Job, JobStore
 
@@ -52,7 +52,7 @@ def reject_unknown_query(request: Request) -> None:
         )
 
 
-def _all_query_params(dependant):  # noqa: ANN001, ANN202
+def _all_query_params(dependant):
     yield from dependant.query_params
     for sub in dependant.dependencies:
         yield from _all_query_params(sub)
@@ -76,7 +76,8 @@ def job_out(svc: Services, job: Job) -> JobOut:
         received = p.stat().st_size if p.exists() else 0
         partial.append(PartialOut(path=path, received=received, total=total))
     results = [n for n in downloadable_names() if svc.files.result_file(job.id, n) is not None]
-    return JobOut.of(job, files=files, partial=partial, results=results)
+    deliveries = svc.store.deliveries(job.id) if job.callback_url else None
+    return JobOut.of(job, files=files, partial=partial, results=results, deliveries=deliveries)
 
 
 def path_error(path: str, problem: str) -> ApiError:

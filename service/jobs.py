@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import uuid
 from typing import Any, BinaryIO
+from urllib.parse import urlsplit
 
 from pydantic import ValidationError
 
@@ -58,6 +59,7 @@ def create_job(
         ApiError: 409 (key reused with another request), 429 (too many unfinished jobs),
             413/422 (the zip breaks a limit or the capture layout; nothing is kept).
     """
+    check_callback(svc, spec.callback_url)
     key_hash = hashlib.sha256(idempotency_key.encode()).hexdigest() if idempotency_key else None
     fp = fingerprint(spec, capture)
     job_id = uuid.uuid4().hex
@@ -73,7 +75,13 @@ def create_job(
         options=spec.options.model_dump(mode="json"),
         label=spec.label,
         max_open=svc.settings.max_jobs_in_flight,
-        extra={"idem_fp": fp, "idem_key": key_hash or "", **(extra or {})},
+        extra={
+            "idem_fp": fp,
+            "idem_key": key_hash or "",
+            "ttl": str(svc.settings.result_ttl if spec.result_ttl is None else spec.result_ttl),
+            "callback_url": spec.callback_url or "",
+            **(extra or {}),
+        },
     )
     if n_open is not None:
         if key_hash:
@@ -94,6 +102,27 @@ def create_job(
             _discard(svc, owner, job_id, key_hash)
             raise
     return _get(svc, job_id), True
+
+
+def check_callback(svc: Services, url: str | None) -> None:
+    """422 unless ``url`` is None or an http(s) URL on one of the allowed webhook hosts."""
+    if url is None:
+        return
+    try:
+        parts = urlsplit(url)
+        scheme, host = parts.scheme, (parts.hostname or "").lower()
+        hostport = f"{host}:{parts.port}" if parts.port else host
+    except ValueError:  # a port out of range, a malformed IPv6 literal
+        scheme = host = hostport = ""
+    allowed = {h.lower() for h in svc.settings.webhook_hosts}
+    if scheme not in ("http", "https") or not host or (host not in allowed and hostport not in allowed):
+        shown = ", ".join(sorted(allowed)) or "none: PMVIR_WEBHOOK_HOSTS is empty"
+        raise ApiError(
+            422,
+            "validation_error",
+            f"callback_url host {host or '(none)'!r} is not an allowed webhook host ({shown})",
+            errors=[ErrorItem(loc=["body", "callback_url"], msg="host not allowed", type="value_error")],
+        )
 
 
 def _get(svc: Services, job_id: str) -> Job:
@@ -207,7 +236,9 @@ def rerun_job(
                 f"the source job has no cached {stage} output made with these options (it did not run "
                 f"{stage}, or options for {stage} or an earlier stage changed); rerun from {stage}"
             )
-    spec = JobCreate(options=config, label=label or source.label)
+    spec = JobCreate(
+        options=config, label=label or source.label, callback_url=source.callback_url, result_ttl=source.ttl
+    )
     job, _ = create_job(
         svc, owner=owner, spec=spec, extra={"source_job": source.id, "resume_from": str(from_stage)}
     )

@@ -28,6 +28,19 @@ class JobCreate(BaseModel):
         "out-of-range values are 422 errors naming each field.",
     )
     label: str | None = Field(default=None, max_length=200, description="Free text shown in job lists.")
+    callback_url: str | None = Field(
+        default=None,
+        max_length=2000,
+        pattern=r"^https?://",
+        description="http(s) URL POSTed a signed JSON event when the job ends (succeeded, failed or "
+        "canceled); its host must be one of the service's PMVIR_WEBHOOK_HOSTS.",
+    )
+    result_ttl: int | None = Field(
+        default=None,
+        ge=0,
+        le=10 * 365 * 86400,
+        description="Seconds after it finished that the job is deleted (0: kept); default PMVIR_RESULT_TTL.",
+    )
 
 
 class JobRerun(BaseModel):
@@ -84,6 +97,23 @@ def _dt(t: float | None) -> datetime | None:
     return None if t is None else datetime.fromtimestamp(t, tz=UTC)
 
 
+class WebhookAttempt(BaseModel):
+    """One delivery attempt of a job's webhook event."""
+
+    attempt: int = Field(ge=1)
+    time: float = Field(description="Unix seconds when the attempt was made.")
+    status_code: int | None = Field(default=None, description="The receiver's HTTP status, if it answered.")
+    error: str | None = Field(default=None, description="Why the attempt failed, if it did.")
+    ok: bool = Field(description="The receiver answered 2xx.")
+
+
+class WebhookOut(BaseModel):
+    """A job's callback URL and what became of its event."""
+
+    url: str
+    deliveries: list[WebhookAttempt] = Field(default_factory=list)
+
+
 class JobOut(BaseModel):
     """A job: its state, progress and files."""
 
@@ -108,12 +138,29 @@ class JobOut(BaseModel):
         default_factory=list, description="Result files ready to download."
     )
     source_job: str | None = Field(default=None, description="For a rerun: the job whose capture it uses.")
+    result_ttl: int = Field(ge=0, description="Seconds after it finished that the job is deleted (0: kept).")
+    expires_at: datetime | None = Field(default=None, description="When the finished job will be deleted.")
+    webhook: WebhookOut | None = Field(default=None, description="The job's callback and its deliveries.")
     resume_from: Stage | None = Field(
         default=None, description="For a rerun: the first stage computed (earlier ones came from the cache)."
     )
 
     @classmethod
-    def of(cls, job: Job, *, files: list[FileInfo], partial: list[PartialOut], results: list[str]) -> JobOut:
+    def of(
+        cls,
+        job: Job,
+        *,
+        files: list[FileInfo],
+        partial: list[PartialOut],
+        results: list[str],
+        deliveries: list[dict[str, Any]] | None = None,
+    ) -> JobOut:
+        expires = job.finished_at + job.ttl if job.ttl and job.finished_at else None
+        webhook = None
+        if job.callback_url:
+            webhook = WebhookOut(
+                url=job.callback_url, deliveries=[WebhookAttempt(**d) for d in deliveries or []]
+            )
         return cls(
             id=job.id,
             status=job.status,
@@ -134,6 +181,9 @@ class JobOut(BaseModel):
             partial_uploads=partial,
             results=results,  # type: ignore[arg-type]
             source_job=job.source_job,
+            result_ttl=job.ttl,
+            expires_at=_dt(expires),
+            webhook=webhook,
             resume_from=job.resume_from,  # type: ignore[arg-type]
         )
 
@@ -185,6 +235,42 @@ class LogOut(BaseModel):
     lines: list[LogLine]
     next: int = Field(ge=0, description="The since to ask for next.")
     total: int = Field(ge=0, description="Lines in the log so far.")
+
+
+class WorkerOut(BaseModel):
+    """A worker that renewed its heartbeat within the last few seconds."""
+
+    name: str
+    pid: int
+    version: str
+    cuda: bool = Field(description="torch sees a CUDA device in this worker.")
+    cuda_devices: int = Field(ge=0)
+    seen_at: float = Field(description="Unix seconds of its last heartbeat.")
+
+
+class DiskOut(BaseModel):
+    """The storage disk, in bytes, and what the jobs hold (walked at most every 30 s)."""
+
+    total: int = Field(ge=0)
+    used: int = Field(ge=0)
+    free: int = Field(ge=0)
+    jobs_bytes: int = Field(ge=0, description="Bytes under the job folders (captures, caches, results).")
+    jobs: int = Field(ge=0, description="Job folders on disk.")
+
+
+class InfoOut(BaseModel):
+    """GET /v1/info."""
+
+    version: str = Field(description="pmvir's version.")
+    stages: list[str] = Field(description="The pipeline's stages, in order.")
+    limits: dict[str, float] = Field(description="Size, count, time and retention limits (PMVIR_* settings).")
+    queue: str = Field(description="The Celery queue jobs go to.")
+    queue_length: int = Field(ge=0, description="Jobs waiting in the queue for a worker.")
+    workers_online: int = Field(ge=0)
+    workers: list[WorkerOut]
+    cuda_available: bool = Field(description="At least one online worker has CUDA.")
+    webhooks_enabled: bool = Field(description="Callback URLs are accepted (PMVIR_WEBHOOK_HOSTS is set).")
+    disk: DiskOut
 
 
 class Health(BaseModel):

@@ -21,6 +21,7 @@ import hashlib
 import os
 import re
 import shutil
+import time
 import uuid
 import zipfile
 from pathlib import Path, PurePosixPath
@@ -158,6 +159,30 @@ class JobFiles:
     def delete(self, job_id: str) -> None:
         self.remove_tree(self.job_dir(job_id))
 
+    def usage(self, *, max_age: float = 30.0) -> dict[str, int]:
+        """Disk use: the storage disk's total/used/free bytes and the bytes and count of job folders.
+
+        The job folders are walked at most every ``max_age`` seconds (the last answer is reused).
+        """
+        self.root.mkdir(parents=True, exist_ok=True)
+        cached = _USAGE.get(self.root)
+        if cached is None or time.monotonic() - cached[0] > max_age:
+            jobs = self.root / "jobs"
+            folders = [d for d in jobs.iterdir() if d.is_dir()] if jobs.is_dir() else []
+            _USAGE[self.root] = cached = (
+                time.monotonic(),
+                sum(_tree_bytes(d) for d in folders),
+                len(folders),
+            )
+        disk = shutil.disk_usage(self.root)
+        return {
+            "total": disk.total,
+            "used": disk.used,
+            "free": disk.free,
+            "jobs_bytes": cached[1],
+            "jobs": cached[2],
+        }
+
     def free_bytes(self) -> int:
         self.root.mkdir(parents=True, exist_ok=True)
         return shutil.disk_usage(self.root).free
@@ -220,6 +245,25 @@ def write_folder_zip(folder: Path, target: Path) -> Path:
     finally:
         tmp.unlink(missing_ok=True)
     return target
+
+
+_USAGE: dict[Path, tuple[float, int, int]] = {}
+
+
+def _tree_bytes(folder: Path) -> int:
+    """Bytes of the regular files under ``folder`` (hard links shared by reruns are counted per job)."""
+    total, stack = 0, [folder]
+    while stack:
+        try:
+            entries = list(os.scandir(stack.pop()))
+        except OSError:  # removed meanwhile
+            continue
+        for e in entries:
+            if e.is_dir(follow_symlinks=False):
+                stack.append(Path(e.path))
+            elif e.is_file(follow_symlinks=False):
+                total += e.stat(follow_symlinks=False).st_size
+    return total
 
 
 def _link_or_copy(src: str, dst: str) -> None:

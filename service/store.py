@@ -13,6 +13,10 @@ Keys (``P`` is ``Settings.key_prefix``)::
     P:owner:<owner>:open   set: the owner's unfinished jobs (created, queued, running)
     P:running              set: jobs in status running (scanned for lapsed leases)
     P:idem:<owner>:<hash>  string with a TTL: Idempotency-Key -> job id
+    P:job:<id>:webhook     list of JSON delivery attempts of the job's webhook
+    P:expiry               zset: finished jobs with a ttl, scored by when they are to be deleted
+    P:webhooks             zset: jobs whose webhook event is due, scored by the next attempt's time
+    P:worker:<name>        string with a TTL: a live worker's JSON self-description (heartbeat)
 
 Every state change that depends on the current state is one Lua script
 (:mod:`service.store_scripts`), so
@@ -119,6 +123,8 @@ class Job:
     stage_timings: dict[str, float] = field(default_factory=dict)
     source_job: str | None = None
     resume_from: str | None = None
+    ttl: int = 0
+    callback_url: str | None = None
 
     @classmethod
     def from_hash(cls, h: dict[str, str]) -> Job:
@@ -146,6 +152,8 @@ class Job:
             stage_timings=json.loads(h.get("stage_timings") or "{}"),
             source_job=h.get("source_job") or None,
             resume_from=h.get("resume_from") or None,
+            ttl=int(h.get("ttl") or 0),
+            callback_url=h.get("callback_url") or None,
         )
 
 
@@ -193,6 +201,25 @@ class JobStore:
     @property
     def _running(self) -> str:
         return f"{self.p}:running"
+
+    @property
+    def _expiry(self) -> str:
+        return f"{self.p}:expiry"
+
+    @property
+    def _webhooks(self) -> str:
+        return f"{self.p}:webhooks"
+
+    def _ending_keys(self, job_id: str, owner: str) -> list[str]:
+        """KEYS of the scripts that may end a job: job, owner open, running, lease, expiry, webhooks."""
+        return [
+            self.key(job_id),
+            self._owner_open(owner),
+            self._running,
+            self.key(job_id, "lease"),
+            self._expiry,
+            self._webhooks,
+        ]
 
     def ping(self) -> bool:
         return bool(self.r.ping())
@@ -274,8 +301,8 @@ class JobStore:
             kv.setdefault("queued_at", now)
         flat = [x for pair in kv.items() for x in pair]
         ok, before = self._transition(
-            keys=[self.key(job.id), self._owner_open(job.owner), self._running, self.key(job.id, "lease")],
-            args=[job.id, "," + ",".join(allowed) + ",", new, run_id, *flat],
+            keys=self._ending_keys(job.id, job.owner),
+            args=[job.id, "," + ",".join(allowed) + ",", new, run_id, now, *flat],
         )
         return bool(ok), JobStatus(before) if before else None
 
@@ -285,10 +312,7 @@ class JobStore:
         Returns:
             The status after (None when the job is gone).
         """
-        after = self._cancel(
-            keys=[self.key(job.id), self._owner_open(job.owner), self._running, self.key(job.id, "lease")],
-            args=[job.id, repr(time.time())],
-        )
+        after = self._cancel(keys=self._ending_keys(job.id, job.owner), args=[job.id, repr(time.time())])
         return JobStatus(after) if after else None
 
     def delete(self, job: Job) -> None:
@@ -300,9 +324,11 @@ class JobStore:
         pipe.delete(
             *(
                 self.key(job.id, part)
-                for part in (None, "files", "partial", "uploads", "starting", "lease", "log")
+                for part in (None, "files", "partial", "uploads", "starting", "lease", "log", "webhook")
             )
         )
+        pipe.zrem(self._expiry, job.id)
+        pipe.zrem(self._webhooks, job.id)
         pipe.zrem(self._owner_jobs(job.owner), job.id)
         pipe.srem(self._owner_open(job.owner), job.id)
         pipe.srem(self._running, job.id)
@@ -435,7 +461,14 @@ class JobStore:
         """
         job = self.r.hget(self.key(job_id), "owner") or ""
         what, n = self._claim(
-            keys=[self.key(job_id), self._running, self.key(job_id, "lease"), self._owner_open(job)],
+            keys=[
+                self.key(job_id),
+                self._running,
+                self.key(job_id, "lease"),
+                self._owner_open(job),
+                self._expiry,
+                self._webhooks,
+            ],
             args=[job_id, run_id, repr(time.time()), int(lease_seconds * 1000), max_deliveries],
         )
         return Claim(what), int(n)
@@ -490,6 +523,51 @@ class JobStore:
                 args=[job_id, repr(time.time())],
             )
         )
+
+    # -- retention, webhooks, workers
+
+    def expired(self, *, now: float, limit: int = 100) -> list[str]:
+        """Finished jobs whose ttl ran out by ``now`` (oldest first)."""
+        return list(self.r.zrangebyscore(self._expiry, "-inf", now, start=0, num=limit))
+
+    def delete_expiry(self, job_id: str) -> None:
+        self.r.zrem(self._expiry, job_id)
+
+    def due_webhooks(self, *, now: float, limit: int = 20) -> list[str]:
+        """Jobs whose webhook event is due by ``now``."""
+        return list(self.r.zrangebyscore(self._webhooks, "-inf", now, start=0, num=limit))
+
+    def take_webhook(self, job_id: str) -> bool:
+        """Claim a due webhook event (one caller among all workers wins)."""
+        return bool(self.r.zrem(self._webhooks, job_id))
+
+    def retry_webhook(self, job_id: str, *, at: float) -> None:
+        self.r.zadd(self._webhooks, {job_id: at})
+
+    def record_delivery(self, job_id: str, attempt: dict[str, Any]) -> int:
+        """Append a delivery attempt to the job's webhook record; returns how many there are."""
+        return int(self.r.rpush(self.key(job_id, "webhook"), json.dumps(attempt)))
+
+    def deliveries(self, job_id: str) -> list[dict[str, Any]]:
+        return [json.loads(x) for x in self.r.lrange(self.key(job_id, "webhook"), 0, 99)]
+
+    def worker_seen(self, name: str, info: dict[str, Any], *, ttl: float) -> None:
+        """A worker's heartbeat: its self-description, kept ``ttl`` seconds."""
+        self.r.set(f"{self.p}:worker:{name}", json.dumps(info), px=int(ttl * 1000))
+
+    def workers(self) -> list[dict[str, Any]]:
+        """The live workers' self-descriptions."""
+        keys = list(self.r.scan_iter(match=f"{self.p}:worker:*", count=100))
+        values = self.r.mget(keys) if keys else []
+        return [json.loads(v) for v in values if v]
+
+    def queue_length(self, queue: str) -> int:
+        """Messages waiting in a Celery queue on this Redis (every priority list of kombu's transport)."""
+        names = [queue, *(f"{queue}\x06\x16{p}" for p in (3, 6, 9))]
+        pipe = self.r.pipeline(transaction=False)
+        for n in names:
+            pipe.llen(n)
+        return int(sum(pipe.execute()))
 
     # -- log
 

@@ -4,6 +4,20 @@ Each script runs atomically in Redis, so concurrent API processes and workers
 never interleave a check and a write. The status names are
 :class:`service.store.JobStatus` values; the gate answers ('ok', 'gone',
 'uploading', 'starting') are :class:`service.store.Gate` values.
+
+A job that ends (succeeded, failed, canceled) is, in the same script
+(:data:`_ENDED`), scheduled for deletion in the expiry zset when it has a
+``ttl``, and for a webhook delivery in the webhooks zset when it has a
+``callback_url``.
+"""
+
+_ENDED = """
+local function ended(job, id, now, expiry, webhooks)
+  local ttl = tonumber(redis.call('HGET', job, 'ttl') or '0') or 0
+  if ttl > 0 then redis.call('ZADD', expiry, tonumber(now) + ttl, id) end
+  local url = redis.call('HGET', job, 'callback_url')
+  if url and url ~= '' then redis.call('ZADD', webhooks, now, id) end
+end
 """
 
 CREATE = """
@@ -17,25 +31,26 @@ redis.call('SADD', KEYS[3], ARGV[1])
 return -2
 """
 
-TRANSITION = """
--- KEYS: job, owner open, running, lease
--- ARGV: id, allowed (',a,b,'), new status, run id required ('' for any), field/value pairs...
+TRANSITION = _ENDED + """
+-- KEYS: job, owner open, running, lease, expiry, webhooks
+-- ARGV: id, allowed (',a,b,'), new status, run id required ('' for any), now, field/value pairs...
 local st = redis.call('HGET', KEYS[1], 'status')
 if not st then return {0, ''} end
 if not string.find(ARGV[2], ',' .. st .. ',', 1, true) then return {0, st} end
 if ARGV[4] ~= '' and redis.call('HGET', KEYS[1], 'run_id') ~= ARGV[4] then return {0, st} end
-redis.call('HSET', KEYS[1], 'status', ARGV[3], unpack(ARGV, 5))
+redis.call('HSET', KEYS[1], 'status', ARGV[3], unpack(ARGV, 6))
 local new = ARGV[3]
 if new == 'succeeded' or new == 'failed' or new == 'canceled' then
   redis.call('SREM', KEYS[2], ARGV[1]); redis.call('SREM', KEYS[3], ARGV[1]); redis.call('DEL', KEYS[4])
+  ended(KEYS[1], ARGV[1], ARGV[5], KEYS[5], KEYS[6])
 elseif new == 'queued' then
   redis.call('SREM', KEYS[3], ARGV[1])
 end
 return {1, st}
 """
 
-CLAIM = """
--- KEYS: job, running, lease, owner open; ARGV: id, run id, now, lease ms, max deliveries
+CLAIM = _ENDED + """
+-- KEYS: job, running, lease, owner open, expiry, webhooks; ARGV: id, run id, now, lease ms, max deliveries
 local st = redis.call('HGET', KEYS[1], 'status')
 if not st then return {'gone', 0} end
 if st == 'succeeded' or st == 'failed' or st == 'canceled' then return {'done', 0} end
@@ -46,6 +61,7 @@ if n > tonumber(ARGV[5]) then
   redis.call('HSET', KEYS[1], 'status', 'failed', 'finished_at', ARGV[3], 'updated_at', ARGV[3],
     'error', 'the job was started ' .. (n - 1) .. ' times and its worker died each time; giving up')
   redis.call('SREM', KEYS[2], ARGV[1]); redis.call('SREM', KEYS[4], ARGV[1])
+  ended(KEYS[1], ARGV[1], ARGV[3], KEYS[5], KEYS[6])
   return {'exhausted', n}
 end
 redis.call('HSET', KEYS[1], 'status', 'running', 'run_id', ARGV[2], 'updated_at', ARGV[3])
@@ -115,14 +131,15 @@ if not redis.call('SET', KEYS[3], '1', 'NX', 'EX', ARGV[2]) then return 'startin
 return 'ok'
 """
 
-CANCEL = """
--- KEYS: job, owner open, running, lease; ARGV: id, now
+CANCEL = _ENDED + """
+-- KEYS: job, owner open, running, lease, expiry, webhooks; ARGV: id, now
 local st = redis.call('HGET', KEYS[1], 'status')
 if not st then return '' end
 if st == 'created' or st == 'queued' then
   redis.call('HSET', KEYS[1], 'status', 'canceled', 'cancel', '1',
     'finished_at', ARGV[2], 'updated_at', ARGV[2])
   redis.call('SREM', KEYS[2], ARGV[1]); redis.call('SREM', KEYS[3], ARGV[1]); redis.call('DEL', KEYS[4])
+  ended(KEYS[1], ARGV[1], ARGV[2], KEYS[5], KEYS[6])
   return 'canceled'
 end
 if st == 'running' then redis.call('HSET', KEYS[1], 'cancel', '1', 'updated_at', ARGV[2]) end
