@@ -21,7 +21,7 @@ from service import routes_files, routes_info, routes_jobs
 from service.queue import make_celery
 from service.deps import Services
 from service.errors import install_error_handlers
-from service.models import Health, JobCreate, Ready
+from service.models import Health, JobCreate, JobRerun, Ready
 from service.settings import Settings, get_settings
 from service.storage import JobFiles
 from service.store import JobStore
@@ -98,10 +98,11 @@ def openapi_document(app: FastAPI) -> dict[str, Any]:
         return app.openapi_schema
     doc = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
     schemas = doc.setdefault("components", {}).setdefault("schemas", {})
-    job_create = JobCreate.model_json_schema(ref_template="#/components/schemas/{model}")
-    for name, sub in job_create.pop("$defs", {}).items():
-        schemas.setdefault(name, sub)
-    schemas["JobCreate"] = job_create
+    for model in (JobCreate, JobRerun):  # bodies the routes read by hand
+        schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
+        for name, sub in schema.pop("$defs", {}).items():
+            schemas.setdefault(name, sub)
+        schemas[model.__name__] = schema
     doc["components"]["schemas"] = dict(sorted(schemas.items()))
     app.openapi_schema = doc
     return doc

@@ -252,24 +252,40 @@ def start_job(job_id: JobId, owner: Owner, svc: Svc) -> JobOut:
     "come from the source job's cache (which must have been made with the same options for them).",
     response_model=JobOut,
     status_code=201,
+    openapi_extra={
+        "requestBody": {
+            "required": False,
+            "content": {"application/json": {"schema": {"$ref": "#/components/schemas/JobRerun"}}},
+        }
+    },
     responses={
         **_JOB_ERRORS,
         201: {"description": "Created and queued."},
+        413: {**_E, "description": "The body is over 1 MiB."},
         409: {**_E, "description": "The source has not finished, or lacks a cached stage for these options."},
         429: {**_E, "description": "Too many unfinished jobs for this key."},
     },
 )
-def rerun_job(job_id: JobId, body: JobRerun, response: Response, owner: Owner, svc: Svc) -> JobOut:
-    job = jobs.rerun_job(
-        svc,
-        owner=owner,
-        source=owned_job(svc, job_id, owner),
-        changes=body.options,
-        from_stage=body.from_stage,
-        label=body.label,
+async def rerun_job(request: Request, job_id: JobId, response: Response, owner: Owner, svc: Svc) -> JobOut:
+    data = await _read_json_body(request)
+    try:
+        body = JobRerun.model_validate(data)
+    except ValidationError as exc:
+        raise invalid(exc, ("body",)) from exc
+    source = await run_in_threadpool(owned_job, svc, job_id, owner)
+    job = await run_in_threadpool(
+        partial(
+            jobs.rerun_job,
+            svc,
+            owner=owner,
+            source=source,
+            changes=body.options,
+            from_stage=body.from_stage,
+            label=body.label,
+        )
     )
     response.headers["Location"] = f"/v1/jobs/{job.id}"
-    return job_out(svc, job)
+    return await run_in_threadpool(job_out, svc, job)
 
 
 @router.post(
