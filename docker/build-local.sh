@@ -19,7 +19,7 @@ cd "$(dirname "$0")/.."
 
 MIRROR=${MIRROR:-http://deb.debian.org/debian}
 TORCH_INDEX=${TORCH_INDEX:-https://download.pytorch.org/whl/cpu}
-PMVIR=${PMVIR:-pmvir}
+PMVIR=${PMVIR:-pmvir}  # may be a command with arguments (word-split)
 BASE=pmvir-base:bookworm
 KEY=build-local-key
 PORT=${PORT:-18000}
@@ -74,11 +74,11 @@ curl -fsS "http://127.0.0.1:$PORT/readyz"; echo
 "${COMPOSE[@]}" ps
 
 step "a synthetic capture through the client"
-"$PMVIR" synth "$WORK/cap" --shape blob --views 16 --width 256 --height 216 --seed 3 >/dev/null
+$PMVIR synth --shape blob --out "$WORK/cap" --views 16 --size 256x216 --seed 3 --no-gt-views --quiet >/dev/null
 rm -rf "$WORK/cap/gt"
-"$PMVIR" submit "$WORK/cap" --server "http://127.0.0.1:$PORT" --api-key "$KEY" --stop-after geometry \
+$PMVIR submit "$WORK/cap" --server "http://127.0.0.1:$PORT" --api-key "$KEY" --stop-after geometry \
     --out "$WORK/result" --quiet
-"$PMVIR" info --server "http://127.0.0.1:$PORT" --api-key "$KEY"
+$PMVIR info --server "http://127.0.0.1:$PORT" --api-key "$KEY"
 python3 - "$WORK/result" <<'PY'
 import json, sys
 from pathlib import Path
