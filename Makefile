@@ -1,6 +1,6 @@
 # Two commands do everything on a fresh machine:
 #   make demo   set up, then run the main job on an embedded synthetic capture
-#   make test   set up, then run the whole test suite
+#   make test   set up, lint (ruff + mypy), then run the whole test suite
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
@@ -8,7 +8,7 @@ STAMP  := $(VENV)/.installed
 APT_PACKAGES := libusb-1.0-0 libgomp1 redis-server libllvm19
 DEMO_OUT ?= demo-out
 
-.PHONY: setup system-packages demo test bench clean
+.PHONY: setup system-packages demo lint test bench clean
 
 setup: system-packages $(STAMP)
 
@@ -32,11 +32,16 @@ $(STAMP): pyproject.toml
 demo: setup
 	$(PY) -m service.demo --out $(DEMO_OUT)
 
-test: setup
+# ruff (rules and complexity limit in pyproject.toml) and mypy on the library and the service.
+lint: setup
+	$(PY) -m ruff check pmvir service tests bench
+	$(PY) -m mypy
+
+test: setup lint
 	$(PY) -m pytest -q
 
 bench: setup
 	$(PY) bench/demosaic.py
 
 clean:
-	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache
+	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache .ruff_cache .mypy_cache

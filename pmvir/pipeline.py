@@ -159,7 +159,7 @@ def _refine_stage(
 ) -> tuple[RefineResult, list[int]]:
     """Polarimetric MVIR on the registered views (stage 3). Returns the result and those views' indices."""
     registered = [i for i, cam in enumerate(geometry.cameras) if cam is not None]
-    cameras = [geometry.cameras[i] for i in registered]
+    cameras = [cam for cam in geometry.cameras if cam is not None]  # in the order of registered
     observations = [
         observation_from_decoded(asdict(views[i].images), intensity=config.refine.intensity)
         for i in registered
@@ -231,7 +231,7 @@ def software_versions() -> dict[str, str]:
     for module in ("numpy", "scipy", "cv2", "open3d", "pycolmap", "torch"):
         try:
             versions[module] = __import__(module).__version__
-        except Exception:  # an optional library that is absent or broken is reported as such
+        except Exception:  # noqa: BLE001 - an absent or broken optional library is reported as such
             versions[module] = "unavailable"
     return versions
 

@@ -23,6 +23,10 @@ def sh9_basis(normals: Any) -> Any:
 
     Returns:
         (..., 9) basis values, same type and dtype as ``normals``.
+
+    Example:
+        >>> sh9_basis(np.array([0.0, 0.0, 1.0])).round(4)
+        array([1.    , 0.    , 1.    , 0.    , 0.    , 0.    , 0.6667, 0.    , 0.    ])
     """
     if normals.shape[-1] != 3:
         raise ValueError(f"expected (..., 3) normals, got {tuple(normals.shape)}")
@@ -37,7 +41,15 @@ def sh9_basis(normals: Any) -> Any:
 
 
 def sh9_shading(normals: Any, coeffs: Any) -> Any:
-    """Shading S(N) for normals (..., 3) and coefficients (..., 9) (broadcast), shape (...)."""
+    """Shading S(N) for normals (..., 3) and coefficients (..., 9) (broadcast), shape (...).
+
+    Example:
+        Constant plus a light from +z (L2 = 0.5): brightest facing up, darkest facing down.
+
+        >>> up_down = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]])
+        >>> sh9_shading(up_down, np.array([1.0, 0, 0.5, 0, 0, 0, 0, 0, 0]))
+        array([1.5, 0.5])
+    """
     return (sh9_basis(normals) * coeffs).sum(-1)
 
 

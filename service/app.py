@@ -18,10 +18,10 @@ from starlette.concurrency import run_in_threadpool
 
 import pmvir
 from service import routes_files, routes_jobs
-from service.queue import make_celery
 from service.deps import Services
 from service.errors import install_error_handlers
 from service.models import Health, JobCreate, Ready
+from service.queue import make_celery
 from service.settings import Settings, get_settings
 from service.storage import JobFiles
 from service.store import JobStore
@@ -77,7 +77,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         def probe() -> Ready:
             try:
                 redis_ok = svc.store.ping()
-            except Exception:
+            except Exception:  # noqa: BLE001 - any failure to answer means not ready
                 redis_ok = False
             storage_ok = svc.files.writable()
             return Ready(

@@ -51,7 +51,7 @@ def reject_unknown_query(request: Request) -> None:
         )
 
 
-def _all_query_params(dependant):  # noqa: ANN001, ANN202
+def _all_query_params(dependant):
     yield from dependant.query_params
     for sub in dependant.dependencies:
         yield from _all_query_params(sub)

@@ -104,7 +104,7 @@ class JobOut(BaseModel):
             deliveries=job.deliveries,
             files=[FileOut.of(f) for f in files],
             partial_uploads=partial,
-            results=results,  # type: ignore[arg-type]
+            results=results,
         )
 
 

@@ -128,7 +128,7 @@ def matching_image(rgb: np.ndarray, *, colour: bool = True) -> np.ndarray:
     Returns:
         (H, W, C) float32 ``rgb ** (1 / 2.2)``, or (H, W, 1) for grey.
     """
-    a = np.asarray(rgb, dtype=np.float32)
+    a: np.ndarray = np.asarray(rgb, dtype=np.float32)
     if a.ndim == 2:
         a = a[..., None]
     if a.ndim != 3:
@@ -206,9 +206,9 @@ def select_neighbours(
         ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
         m = None if masks is None else masks[j]
         if m is not None:
-            r = np.clip(uv[:, 1].astype(np.int64), 0, cam.height - 1)
-            c = np.clip(uv[:, 0].astype(np.int64), 0, cam.width - 1)
-            ok &= np.asarray(m, dtype=bool)[r, c]
+            rows = np.clip(uv[:, 1].astype(np.int64), 0, cam.height - 1)
+            cols = np.clip(uv[:, 0].astype(np.int64), 0, cam.width - 1)
+            ok &= np.asarray(m, dtype=bool)[rows, cols]
         seen[j] = ok
     centres = np.stack([c.center for c in cameras])
     rays = pts[None, :, :] - centres[:, None, :]  # (V, P, 3)

@@ -127,7 +127,7 @@ def sift_image(image: np.ndarray, mask: np.ndarray | None = None, *, equalize: b
     values = grey[mask] if mask is not None and mask.any() else grey.ravel()
     level = float(np.percentile(values, _EXPOSURE_PERCENTILE)) if values.size else 0.0
     scale = 1.0 / level if level > 1e-12 else 1.0
-    out = np.rint(srgb_encode(grey * np.float32(scale)) * 255.0).astype(np.uint8)
+    out: np.ndarray = np.rint(srgb_encode(grey * np.float32(scale)) * 255.0).astype(np.uint8)
     if equalize:
         out = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(out)
     return out
@@ -150,8 +150,9 @@ def _check_inputs(
         if im.ndim not in (2, 3) or min(im.shape[:2]) < 16:
             raise ValueError(f"view {names[i]}: expected an (H, W, C) image of at least 16 x 16, got {im.shape}")
         h, w = im.shape[:2]
-        if masks is not None and masks[i] is not None and masks[i].shape != (h, w):
-            raise ValueError(f"view {names[i]}: mask {masks[i].shape} does not match the image {(h, w)}")
+        mask = masks[i] if masks is not None else None
+        if mask is not None and mask.shape != (h, w):
+            raise ValueError(f"view {names[i]}: mask {mask.shape} does not match the image {(h, w)}")
         cam = cameras[i] if cameras is not None else None
         if cam is not None and (cam.width, cam.height) != (w, h):
             raise ValueError(f"view {names[i]}: camera is {cam.width} x {cam.height}, the image {w} x {h}")
@@ -188,9 +189,8 @@ def _view_intrinsics(
 ) -> np.ndarray | None:
     if intrinsics is not None and intrinsics[i] is not None:
         return np.asarray(intrinsics[i], dtype=np.float64)
-    if cameras is not None and cameras[i] is not None:
-        return cameras[i].K
-    return None
+    cam = cameras[i] if cameras is not None else None
+    return None if cam is None else cam.K
 
 
 def _sparse_points(
@@ -299,7 +299,8 @@ def estimate_poses(
             f"too few views: {n} given, poses need at least min_registered_views = {options.min_registered_views}"
         )
     report = progress or (lambda fraction, step: None)
-    known = cameras is not None and all(c is not None for c in cameras)
+    known_cameras = [c for c in cameras or () if c is not None]
+    known = cameras is not None and len(known_cameras) == n
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
@@ -312,12 +313,12 @@ def estimate_poses(
     with quiet_colmap():
         rec, features, partners = run_colmap(
             workdir, image_dir, mask_dir, files, [im.shape[:2] for im in images], Ks,
-            list(cameras) if known else None, options, timings, report,
+            known_cameras if known else None, options, timings, report,
         )
 
     index = {name: i for i, name in enumerate(files)}
     view_of_image = {} if rec is None else {im.image_id: index[im.name] for im in rec.images.values()}
-    result_cameras: list[Camera | None] = list(cameras) if known else [None] * n
+    result_cameras: list[Camera | None] = list(known_cameras) if known else [None] * n
     if not known and rec is not None:
         for image in rec.images.values():
             if image.has_pose:

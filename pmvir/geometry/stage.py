@@ -141,7 +141,7 @@ def run_geometry(
         )
     cameras = list(sparse.cameras)
     reg = [i for i in range(n) if cameras[i] is not None]
-    reg_cams = [cameras[i] for i in reg]
+    reg_cams = [cam for cam in cameras if cam is not None]  # in the order of reg
 
     with progress.step("dense", _STEP_WEIGHTS["dense"]) as p:
         dense = dense_stereo(

@@ -171,8 +171,8 @@ def _check_masks(masks: Sequence[np.ndarray | None] | None, cameras: Sequence[Ca
         return [None] * len(cameras)
     if len(masks) != len(cameras):
         raise ValueError(f"expected one mask entry per camera ({len(cameras)}), got {len(masks)}")
-    out = []
-    for j, (m, cam) in enumerate(zip(masks, cameras)):
+    out: list[np.ndarray | None] = []
+    for j, (m, cam) in enumerate(zip(masks, cameras, strict=True)):
         if m is None:
             out.append(None)
             continue

@@ -261,8 +261,8 @@ def read_images_text(path: str | Path) -> dict[int, ColmapImage]:
             ids = np.array([int(p) for p in pts[2::3]], dtype=np.int64)
             img = ColmapImage(
                 int(tok[0]),
-                [float(t) for t in tok[1:5]],
-                [float(t) for t in tok[5:8]],
+                np.array([float(t) for t in tok[1:5]]),
+                np.array([float(t) for t in tok[5:8]]),
                 int(tok[8]),
                 tok[9],
                 arr[:, :2],

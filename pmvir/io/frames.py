@@ -193,7 +193,7 @@ def _png_header(data: bytes, label: str) -> tuple[int, int, int, int]:
         raise FrameError(label, "corrupt PNG (no IHDR chunk)")
     if not seen_iend:
         raise FrameError(label, "truncated PNG (no IEND chunk)")
-    return ihdr  # type: ignore[return-value]
+    return ihdr
 
 
 def _check_png_kind(label: str, bit_depth: int, colour_type: int) -> None:
@@ -233,7 +233,7 @@ def _read_tiff(path: Path, label: str) -> np.ndarray:
             page = _tiff_page(tif, label)
             size = path.stat().st_size
             if any(
-                o + n > size for o, n in zip(page.dataoffsets, page.databytecounts)
+                o + n > size for o, n in zip(page.dataoffsets, page.databytecounts, strict=True)
             ):
                 raise FrameError(label, "truncated TIFF (image data runs past the end of the file)")
             img = page.asarray()
@@ -404,7 +404,7 @@ def _dng_tags(bit_depth: int) -> list[tuple]:
 def _encode(samples: np.ndarray, fmt: str, bit_depth: int, raw_dtype: str | None) -> bytes:
     h, w = samples.shape
     if fmt in ("png", "tiff"):
-        arr = samples.astype(np.uint8 if bit_depth <= 8 else np.uint16)
+        arr: np.ndarray = samples.astype(np.uint8 if bit_depth <= 8 else np.uint16)
         if fmt == "png":
             ok, buf = cv2.imencode(".png", arr)
             if not ok:

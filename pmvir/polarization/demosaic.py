@@ -142,6 +142,17 @@ def demosaic(
         single channel (C = 1). The array is a transposed view of planar
         (4, C, H, W) storage: per-plane work is fast; ``np.ascontiguousarray``
         gives an (H, W, 4, C)-ordered copy if one is needed.
+
+    Example:
+        A uniform field, mosaicked then demosaicked, comes back unchanged:
+
+        >>> from pmvir.polarization.layout import IMX250MYR, mosaic
+        >>> field = np.broadcast_to(np.array([1.0, 0.5, 0.0, 0.5], np.float32)[:, None], (8, 8, 4, 3))
+        >>> planes = demosaic(mosaic(field, IMX250MYR), IMX250MYR)
+        >>> planes.shape, planes.dtype
+        ((8, 8, 4, 3), dtype('float32'))
+        >>> bool(np.allclose(planes, field))
+        True
     """
     _check_method(method)
     if mosaic.ndim != 2:
@@ -262,11 +273,7 @@ def _bilinear_colour(columns: list[np.ndarray], layout: MosaicLayout, dy: int, d
         _upsample2(half, dy, dx, out[c])
     # green: two diagonal lattices; the two other positions get the mean of
     # their four edge neighbours (two from each green lattice).
-    filled = [[None, None], [None, None]]
-    for by in range(2):
-        for bx in range(2):
-            if colours[by, bx] == 1:
-                filled[by][bx] = quarter[by][bx]
+    filled = [row[:] for row in quarter]  # the green lattices as they are
     for by in range(2):
         for bx in range(2):
             if colours[by, bx] != 1:
@@ -285,7 +292,9 @@ def _edge_aware_colour(mosaic: np.ndarray, layout: MosaicLayout, planes: np.ndar
     span = hi - lo
     scale = 65535.0 / span if span > 0 else 1.0
     # lo -> 0, hi -> 65535, rounded (one threaded pass)
-    q16 = cv2.normalize(mosaic, None, 0, 65535, cv2.NORM_MINMAX, dtype=cv2.CV_16U)
+    q16 = cv2.normalize(  # type: ignore[call-overload]  # the stubs refuse dst=None, which OpenCV allows
+        mosaic, None, 0, 65535, cv2.NORM_MINMAX, dtype=cv2.CV_16U
+    )
     columns = _column_phases(q16, 2)
     code = getattr(cv2, f"COLOR_{_CV_BAYER[layout.bayer]}2RGB_EA")  # type: ignore[index]
     block = layout.angle_index_block()

@@ -147,7 +147,7 @@ def layout_from_sensor(
         block = tuple(tuple((-a) % 180 for a in row) for row in block)  # type: ignore[assignment]
     if bayer is not None and not base.is_colour:
         raise ConfigError(f"bayer override given for the monochrome layout {name}")
-    return MosaicLayout(polarizer_block=block, bayer=bayer if bayer is not None else base.bayer)  # type: ignore[arg-type]
+    return MosaicLayout(polarizer_block=block, bayer=bayer if bayer is not None else base.bayer)
 
 
 def mosaic(intensities: np.ndarray, layout: MosaicLayout) -> np.ndarray:

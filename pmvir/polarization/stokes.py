@@ -87,6 +87,12 @@ def stokes_from_intensities(i: np.ndarray) -> np.ndarray:
 
     Returns:
         (s0, s1, s2) stacked on the last axis, shape (..., 3), float32.
+
+    Example:
+        Light fully polarized along the 0 degree polarizer:
+
+        >>> stokes_from_intensities(np.array([1.0, 0.5, 0.0, 0.5]))
+        array([1., 1., 0.], dtype=float32)
     """
     if i.shape[-1] != 4:
         raise ValueError(f"expected (..., 4) intensities, got {i.shape}")
@@ -131,6 +137,10 @@ def aop_from_stokes(stokes: np.ndarray) -> np.ndarray:
     Returns:
         (...) float32 radians in [0, pi), in the sense of the polarizer angles
         (ccw from image +x toward image -y).
+
+    Example:
+        >>> np.degrees(aop_from_stokes(np.array([[1.0, 0.0, 1.0], [1.0, -1.0, 0.0]])))
+        array([45., 90.], dtype=float32)
     """
     if stokes.shape[-1] != 3:
         raise ValueError(f"expected (..., 3) Stokes vectors, got {stokes.shape}")
@@ -146,6 +156,10 @@ def dop_from_stokes(stokes: np.ndarray, *, eps: float = DOP_EPS) -> np.ndarray:
 
     Returns:
         (...) float32 in [0, 1]; meaningless (but finite) where s0 is at the noise floor.
+
+    Example:
+        >>> dop_from_stokes(np.array([[2.0, 1.0, 0.0], [1.0, 0.6, 0.8]]))
+        array([0.5, 1. ], dtype=float32)
     """
     if stokes.shape[-1] != 3:
         raise ValueError(f"expected (..., 3) Stokes vectors, got {stokes.shape}")
@@ -264,8 +278,8 @@ def _weighted_sum(planes: list[np.ndarray], weight: float) -> np.ndarray:
     w = np.float32(weight)
     if all(p.flags.c_contiguous and p.dtype == np.float32 for p in planes):
         if len(planes) == 1:
-            return cv2.multiply(planes[0], float(w))
-        out = cv2.addWeighted(planes[0], float(w), planes[1], float(w), 0.0)
+            return planes[0] * w
+        out: np.ndarray = cv2.addWeighted(planes[0], float(w), planes[1], float(w), 0.0)
         for p in planes[2:]:
             cv2.scaleAdd(p, float(w), out, dst=out)
         return out

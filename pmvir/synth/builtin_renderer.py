@@ -26,6 +26,7 @@ Angle of polarization reference (``aop_frame``):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from typing import Literal
 
 import numpy as np
@@ -187,12 +188,14 @@ def render_view(
         raise ValueError(f"supersample must be >= 1, got {supersample}")
     if aop_frame not in ("normal", "ray"):
         raise ValueError(f"aop_frame must be 'normal' or 'ray', got {aop_frame!r}")
-    opts = dict(material=material, ior=ior, extinction=extinction, specular=specular, aop_frame=aop_frame)
+    shade = partial(
+        _shade, material=material, ior=ior, extinction=extinction, specular=specular, aop_frame=aop_frame
+    )
     geom, hits, d_world, d_cam = render_geometry(scene, camera)
     h, w = camera.height, camera.width
     stokes = np.zeros((h * w, 3, 3), dtype=np.float32)
     if hits.hit.any():
-        stokes[hits.hit] = _shade(hits, d_world, d_cam, camera, light, **opts)
+        stokes[hits.hit] = shade(hits, d_world, d_cam, camera, light)
     if supersample > 1:
         edge = _edge_pixels(geom.mask, geom.depth).reshape(-1)
         idx = np.flatnonzero(edge)
@@ -206,6 +209,6 @@ def render_view(
             sub_hits = trace(scene, camera.center, dw)
             sub = np.zeros((len(dw), 3, 3), dtype=np.float32)
             if sub_hits.hit.any():
-                sub[sub_hits.hit] = _shade(sub_hits, dw, dc, camera, light, **opts)
+                sub[sub_hits.hit] = shade(sub_hits, dw, dc, camera, light)
             stokes[idx] = sub.reshape(len(idx), s * s, 3, 3).mean(axis=1)
     return ViewRender(stokes=stokes.reshape(h, w, 3, 3), geometry=geom)

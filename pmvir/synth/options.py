@@ -109,7 +109,7 @@ class SynthOptions(BaseModel):
         return v
 
     @model_validator(mode="after")
-    def _check_ior(self) -> "SynthOptions":
+    def _check_ior(self) -> SynthOptions:
         if self.material == "plastic" and self.ior <= 1.0:
             raise ValueError(f"plastic needs ior > 1, got {self.ior}")
         return self

@@ -58,7 +58,7 @@ class MeshScene:
         self._albedo32 = np.asarray(self.albedo, dtype=np.float32)
 
     @classmethod
-    def from_mesh(cls, mesh: Mesh) -> "MeshScene":
+    def from_mesh(cls, mesh: Mesh) -> MeshScene:
         """Build from a mesh that has normals and albedo."""
         if mesh.normals is None or mesh.albedo is None:
             raise ValueError("MeshScene needs a mesh with normals and albedo")
