@@ -34,7 +34,7 @@ demo: setup
 
 # ruff (rules and complexity limit in pyproject.toml) and mypy on the library and the service.
 lint: setup
-	$(PY) -m ruff check pmvir service tests bench
+	$(PY) -m ruff check pmvir service tests bench conftest.py
 	$(PY) -m mypy
 
 test: setup lint
