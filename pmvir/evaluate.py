@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from pmvir.errors import ConfigError, MeshError, PmvirError
+from pmvir.errors import ConfigError, MeshError, PmvirError, ShapeError
 from pmvir.geometry.align import (
     CameraAlignment,
     align_by_cameras,
@@ -221,7 +221,7 @@ def albedo_scale_rmse(est_albedo: np.ndarray, true_albedo: np.ndarray) -> tuple[
     est = np.asarray(est_albedo, dtype=np.float64)
     true = np.asarray(true_albedo, dtype=np.float64)
     if est.shape != true.shape or est.ndim != 2 or est.shape[1] != 3:
-        raise ValueError(f"expected two (N, 3) albedo arrays, got {est.shape} and {true.shape}")
+        raise ShapeError(f"expected two (N, 3) albedo arrays, got {est.shape} and {true.shape}")
     scale = (est * true).sum(0) / np.maximum((est * est).sum(0), _EPS)
     return scale, float(np.sqrt(np.mean((est * scale - true) ** 2)))
 

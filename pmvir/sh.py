@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from pmvir.errors import ConfigError, ShapeError
+
 SH_BASIS_NAME = "pmvir-sh9"
 
 
@@ -29,7 +31,7 @@ def sh9_basis(normals: Any) -> Any:
         array([1.    , 0.    , 1.    , 0.    , 0.    , 0.    , 0.6667, 0.    , 0.    ])
     """
     if normals.shape[-1] != 3:
-        raise ValueError(f"expected (..., 3) normals, got {tuple(normals.shape)}")
+        raise ShapeError(f"expected (..., 3) normals, got {tuple(normals.shape)}")
     x, y, z = normals[..., 0], normals[..., 1], normals[..., 2]
     one = x * 0 + 1
     terms = [one, y, z, x, x * y, y * z, z * z - 1.0 / 3.0, x * z, x * x - y * y]
@@ -56,7 +58,7 @@ def sh9_shading(normals: Any, coeffs: Any) -> Any:
 def fibonacci_sphere(n: int) -> np.ndarray:
     """``n`` unit directions spread evenly on the sphere (Fibonacci lattice), (n, 3) float64."""
     if n < 1:
-        raise ValueError(f"need at least one direction, got {n}")
+        raise ConfigError(f"need at least one direction, got {n}")
     i = np.arange(n, dtype=np.float64) + 0.5
     z = 1.0 - 2.0 * i / n
     r = np.sqrt(np.maximum(0.0, 1.0 - z * z))

@@ -28,7 +28,7 @@ import numpy as np
 
 from pmvir.camera import Camera
 from pmvir.config import GeometryOptions
-from pmvir.errors import ReconstructionError
+from pmvir.errors import ConfigError, ReconstructionError, ShapeError
 from pmvir.geometry.mvs import (
     DepthMap,
     StereoView,
@@ -119,7 +119,7 @@ def dense_stereo(
     progress = progress or Progress.none()
     n = len(images)
     if not (len(masks) == len(cameras) == len(names) == n):
-        raise ValueError(
+        raise ShapeError(
             f"images, masks, cameras and names must have one entry per view, got "
             f"{n}, {len(masks)}, {len(cameras)}, {len(names)}"
         )
@@ -243,7 +243,7 @@ def _dense_colmap(
     from pmvir.geometry.mvs_colmap import colmap_fusion, colmap_patch_match, write_workspace
 
     if workdir is None:
-        raise ValueError("the colmap-cuda backend needs a workdir")
+        raise ConfigError("the colmap-cuda backend needs a workdir")
     n = len(images)
     t0 = time.perf_counter()
     local = {i: k for k, i in enumerate(registered)}

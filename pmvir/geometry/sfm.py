@@ -51,7 +51,7 @@ import pycolmap
 
 from pmvir.camera import Camera
 from pmvir.config import GeometryOptions
-from pmvir.errors import ReconstructionError
+from pmvir.errors import InputError, ReconstructionError, ShapeError
 from pmvir.geometry.sfm_colmap import Progress, fundamental_matrix, quiet_colmap, run_colmap, sampson_error
 from pmvir.io.colmap_text import image_from_camera, pinhole_from_camera, write_colmap_text_model
 from pmvir.polarization.preview import srgb_encode
@@ -122,7 +122,7 @@ def sift_image(image: np.ndarray, mask: np.ndarray | None = None, *, equalize: b
     """
     grey = image.mean(axis=2) if image.ndim == 3 else image
     if grey.ndim != 2:
-        raise ValueError(f"expected an (H, W) or (H, W, C) image, got shape {image.shape}")
+        raise ShapeError(f"expected an (H, W) or (H, W, C) image, got shape {image.shape}")
     grey = np.nan_to_num(grey.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
     values = grey[mask] if mask is not None and mask.any() else grey.ravel()
     level = float(np.percentile(values, _EXPOSURE_PERCENTILE)) if values.size else 0.0
@@ -142,24 +142,24 @@ def _check_inputs(
 ) -> None:
     n = len(images)
     if len(names) != n or len(set(names)) != n:
-        raise ValueError(f"expected {n} distinct names, got {len(names)} ({len(set(names))} distinct)")
+        raise InputError(f"expected {n} distinct names, got {len(names)} ({len(set(names))} distinct)")
     for label, seq in (("cameras", cameras), ("intrinsics", intrinsics), ("masks", masks)):
         if seq is not None and len(seq) != n:
-            raise ValueError(f"{label} has {len(seq)} entries for {n} images")
+            raise ShapeError(f"{label} has {len(seq)} entries for {n} images")
     for i, im in enumerate(images):
         if im.ndim not in (2, 3) or min(im.shape[:2]) < 16:
-            raise ValueError(f"view {names[i]}: expected an (H, W, C) image of at least 16 x 16, got {im.shape}")
+            raise ShapeError(f"view {names[i]}: expected an (H, W, C) image of at least 16 x 16, got {im.shape}")
         h, w = im.shape[:2]
         mask = masks[i] if masks is not None else None
         if mask is not None and mask.shape != (h, w):
-            raise ValueError(f"view {names[i]}: mask {mask.shape} does not match the image {(h, w)}")
+            raise ShapeError(f"view {names[i]}: mask {mask.shape} does not match the image {(h, w)}")
         cam = cameras[i] if cameras is not None else None
         if cam is not None and (cam.width, cam.height) != (w, h):
-            raise ValueError(f"view {names[i]}: camera is {cam.width} x {cam.height}, the image {w} x {h}")
+            raise ShapeError(f"view {names[i]}: camera is {cam.width} x {cam.height}, the image {w} x {h}")
         k = intrinsics[i] if intrinsics is not None else None
         for K in (k, None if cam is None else cam.K):
             if K is not None and (np.shape(K) != (3, 3) or abs(float(np.asarray(K)[0, 1])) > 1e-12):
-                raise ValueError(f"view {names[i]}: intrinsics must be a 3 x 3 K without skew")
+                raise InputError(f"view {names[i]}: intrinsics must be a 3 x 3 K without skew")
 
 
 def _write_inputs(
@@ -287,7 +287,8 @@ def estimate_poses(
         The SparseModel; in known-pose mode its cameras are the given objects.
 
     Raises:
-        ValueError: inconsistent arguments (lengths, shapes, skewed K).
+        ShapeError: inconsistent lengths or shapes of the arguments.
+        InputError: repeated names, or a skewed K.
         ReconstructionError: fewer views than ``min_registered_views``; too few registered
             views; too few 3D points. The message names the views that failed.
     """

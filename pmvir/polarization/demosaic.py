@@ -58,6 +58,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from pmvir.errors import ConfigError, DTypeError, ShapeError
 from pmvir.polarization.layout import MosaicLayout
 
 DemosaicMethod = Literal["bilinear", "edge-aware"]
@@ -108,7 +109,7 @@ def saturation_footprint(
         r = :func:`support_radius`.
     """
     if saturated.ndim != 2:
-        raise ValueError(f"expected an (H, W) saturation mask, got shape {saturated.shape}")
+        raise ShapeError(f"expected an (H, W) saturation mask, got shape {saturated.shape}")
     r = support_radius(layout, method)
     kernel = np.ones((2 * r + 1, 2 * r + 1), dtype=np.uint8)
     grown = cv2.dilate(saturated.astype(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
@@ -156,9 +157,9 @@ def demosaic(
     """
     _check_method(method)
     if mosaic.ndim != 2:
-        raise ValueError(f"expected an (H, W) mosaic, got shape {mosaic.shape}")
+        raise ShapeError(f"expected an (H, W) mosaic, got shape {mosaic.shape}")
     if mosaic.dtype != np.float32:
-        raise TypeError(f"expected a float32 mosaic, got {mosaic.dtype}")
+        raise DTypeError(f"expected a float32 mosaic, got {mosaic.dtype}")
     h, w = mosaic.shape
     layout.check_size(h, w)
     mosaic = np.ascontiguousarray(mosaic)
@@ -185,7 +186,7 @@ def _planes_for(out: np.ndarray | None, shape: tuple[int, int, int, int]) -> np.
         return np.empty(shape, dtype=np.float32)
     planes = out.transpose(2, 3, 0, 1)
     if planes.shape != shape or planes.dtype != np.float32 or not planes.flags.c_contiguous:
-        raise ValueError(
+        raise ShapeError(
             f"out must be an (H, W, 4, C) = {shape[2:] + shape[:2]} float32 array with planar "
             f"storage (a previous demosaic result); got {out.shape} {out.dtype}"
         )
@@ -194,7 +195,7 @@ def _planes_for(out: np.ndarray | None, shape: tuple[int, int, int, int]) -> np.
 
 def _check_method(method: str) -> None:
     if method not in ("bilinear", "edge-aware"):
-        raise ValueError(f"method must be 'bilinear' or 'edge-aware', got {method!r}")
+        raise ConfigError(f"method must be 'bilinear' or 'edge-aware', got {method!r}")
 
 
 def _column_phases(image: np.ndarray, period: int) -> list[np.ndarray]:

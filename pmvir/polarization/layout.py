@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pmvir.errors import ConfigError
+from pmvir.errors import ConfigError, ShapeError
 
 #: Polarizer angles of the four intensity channels, degrees, in channel order.
 ANGLES_DEG: tuple[int, int, int, int] = (0, 45, 90, 135)
@@ -162,7 +162,7 @@ def mosaic(intensities: np.ndarray, layout: MosaicLayout) -> np.ndarray:
         value of its own polarizer angle and colour filter.
     """
     if intensities.ndim != 4 or intensities.shape[2] != 4 or intensities.shape[3] != layout.channels:
-        raise ValueError(
+        raise ShapeError(
             f"expected (H, W, 4, {layout.channels}) intensities, got {intensities.shape}"
         )
     h, w = intensities.shape[:2]

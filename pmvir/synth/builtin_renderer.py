@@ -32,6 +32,7 @@ from typing import Literal
 import numpy as np
 
 from pmvir.camera import Camera
+from pmvir.errors import ConfigError
 from pmvir.synth.lighting import ViewLight
 from pmvir.synth.materials import Material, material_stokes
 from pmvir.synth.raycast import Hits, MeshScene, pixel_directions, rotate_rows, trace
@@ -185,9 +186,9 @@ def render_view(
         The Stokes image (H, W, 3, 3) float32 and the geometry.
     """
     if supersample < 1:
-        raise ValueError(f"supersample must be >= 1, got {supersample}")
+        raise ConfigError(f"supersample must be >= 1, got {supersample}")
     if aop_frame not in ("normal", "ray"):
-        raise ValueError(f"aop_frame must be 'normal' or 'ray', got {aop_frame!r}")
+        raise ConfigError(f"aop_frame must be 'normal' or 'ray', got {aop_frame!r}")
     shade = partial(
         _shade, material=material, ior=ior, extinction=extinction, specular=specular, aop_frame=aop_frame
     )

@@ -84,7 +84,7 @@ def geodesic_sphere(frequency: int) -> tuple[np.ndarray, np.ndarray]:
         counter-clockwise seen from outside.
     """
     if frequency < 1:
-        raise ValueError(f"frequency must be >= 1, got {frequency}")
+        raise ConfigError(f"frequency must be >= 1, got {frequency}")
     iv, ifaces = _icosahedron()
     n = frequency
     ii, jj = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
