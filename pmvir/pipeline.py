@@ -70,8 +70,9 @@ def stages_for(config: PipelineConfig) -> list[Stage]:
     return list(STAGES[: Stage(config.stop_after).position + 1])
 
 
-def decode_views(cap: Capture, config: PipelineConfig, progress: Progress) -> list[DecodedView]:
+def decode_views(cap: Capture, config: PipelineConfig, progress: Progress | None = None) -> list[DecodedView]:
     """Decode every frame of an open capture (stage 1)."""
+    progress = progress or Progress.none()
     views = []
     n = len(cap.frames)
     for i, frame in enumerate(cap.frames):
