@@ -58,8 +58,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from pmvir.polarization.layout import MosaicLayout
 from pmvir.polarization.guided import GUIDED_REACH, guided_polarization
+from pmvir.polarization.layout import MosaicLayout
 
 DemosaicMethod = Literal["bilinear", "edge-aware", "guided"]
 _METHODS: tuple[str, ...] = ("bilinear", "edge-aware", "guided")

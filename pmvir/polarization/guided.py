@@ -61,7 +61,7 @@ import cv2
 import numpy as np
 
 #: Window half-width r at half resolution ((2r + 1)^2 half-resolution pixels).
-GUIDED_RADIUS = 2
+GUIDED_RADIUS = 1
 #: Ridge strength, relative to the window's mean intensity.
 GUIDED_TAU = 0.3
 #: Chebyshev reach, full-resolution pixels, of the whole method on a monochrome sensor (bilinear,
