@@ -50,8 +50,8 @@ ridge term's ``q``, which varies across windows only as the ratio of two
 affine fields does: a second-order effect, below 1e-5 in the tests).
 
 Reach: the bilinear step's, widened by the 2x2 mean, two (2r + 1)^2 box passes
-at half resolution and the bilinear upsampling: 12 px (mono) and 13 px (colour)
-for r = 2 (:data:`GUIDED_REACH`, checked against the measured impulse response).
+at half resolution and the bilinear upsampling: 8 px (mono) and 9 px (colour)
+for r = 1 (:data:`GUIDED_REACH`, checked against the measured impulse response).
 Saturated samples invalidate that neighbourhood (``saturation_footprint``).
 """
 
@@ -60,7 +60,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-#: Window half-width r at half resolution ((2r + 1)^2 half-resolution pixels).
+#: Window half-width r at half resolution ((2r + 1)^2 half-resolution pixels). r = 2 measured
+#: better on 1224x1024 Mitsuba frames, r = 1 on 612x512 ones (README, Decoding).
 GUIDED_RADIUS = 1
 #: Ridge strength, relative to the window's mean intensity.
 GUIDED_TAU = 0.3
@@ -101,7 +102,7 @@ def guided_polarization(planes: np.ndarray, *, radius: int = GUIDED_RADIUS, tau:
         return cv2.resize(x, (w, h), interpolation=cv2.INTER_LINEAR)
 
     # colour sums of each angle at half resolution (2x2 means), then g, s1, s2 there
-    quads = [cv2.resize(_colour_sum(planes[k]), half, interpolation=cv2.INTER_AREA) for k in range(4)]
+    quads = [_half_colour_sum(planes[k], half) for k in range(4)]
     gh = cv2.add(cv2.add(quads[0], quads[2]), cv2.add(quads[1], quads[3]))  # C * 2 s0
     mean_g = box(gh)
     var_g = cv2.subtract(box(cv2.multiply(gh, gh)), cv2.multiply(mean_g, mean_g))
@@ -135,11 +136,9 @@ def guided_polarization(planes: np.ndarray, *, radius: int = GUIDED_RADIUS, tau:
             cv2.subtract(total, plus, dst=minus)
 
 
-def _colour_sum(angle_planes: np.ndarray) -> np.ndarray:
-    """Sum over the colour axis of one angle's (C, H, W) planes, (H, W) float32."""
-    if len(angle_planes) == 1:
-        return angle_planes[0]
-    total = cv2.add(angle_planes[0], angle_planes[1])
-    for plane in angle_planes[2:]:
-        cv2.add(total, plane, dst=total)
+def _half_colour_sum(angle_planes: np.ndarray, half: tuple[int, int]) -> np.ndarray:
+    """2x2 means of one angle's (C, H, W) planes, summed over colours: (H/2, W/2) float32."""
+    total = cv2.resize(angle_planes[0], half, interpolation=cv2.INTER_AREA)
+    for plane in angle_planes[1:]:
+        cv2.add(total, cv2.resize(plane, half, interpolation=cv2.INTER_AREA), dst=total)
     return total

@@ -16,7 +16,7 @@ LAYOUTS = {
     "GBRG-rotated": MosaicLayout(polarizer_block=((0, 45), (135, 90)), bayer="GBRG"),
     "mono-rotated": MosaicLayout(polarizer_block=((45, 90), (0, 135)), bayer=None),
 }
-MARGIN = 24  # beyond the guided reach (3 + 11 px) from the border
+MARGIN = 24  # well beyond the guided reach (9 px) from the border
 INNER = (slice(MARGIN, -MARGIN), slice(MARGIN, -MARGIN))
 
 
