@@ -33,7 +33,7 @@ class DecodeOptions(_Options):
         description="Demosaicing method: 'bilinear' (per-angle Bayer then polarization interpolation, "
         "float32), 'edge-aware' (OpenCV's edge-aware Bayer step, 16-bit, then bilinear) or 'guided' "
         "(bilinear intensity; the colour-mean polarization from a guided filter with the intensity as "
-        "guide: much less false polarization from texture and noise, reach 9 px around saturated "
+        "guide: much less false polarization from texture and noise, reach 13 px around saturated "
         "samples; bench/demosaic.py). Monochrome sensors: no colour step.",
     )
 

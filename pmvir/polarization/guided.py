@@ -50,8 +50,8 @@ ridge term's ``q``, which varies across windows only as the ratio of two
 affine fields does: a second-order effect, below 1e-5 in the tests).
 
 Reach: the bilinear step's, widened by the 2x2 mean, two (2r + 1)^2 box passes
-at half resolution and the bilinear upsampling: 8 px (mono) and 9 px (colour)
-for r = 1 (:data:`GUIDED_REACH`, checked against the measured impulse response).
+at half resolution and the bilinear upsampling: 12 px (mono) and 13 px (colour)
+for r = 2 (:data:`GUIDED_REACH`, checked against the measured impulse response).
 Saturated samples invalidate that neighbourhood (``saturation_footprint``).
 """
 
@@ -60,11 +60,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-#: Window half-width r at half resolution ((2r + 1)^2 half-resolution pixels). r = 2 measured
-#: better on 1224x1024 Mitsuba frames, r = 1 on 612x512 ones (README, Decoding).
-GUIDED_RADIUS = 1
-#: Ridge strength, relative to the window's mean intensity.
-GUIDED_TAU = 0.3
+#: Window half-width r at half resolution ((2r + 1)^2 half-resolution pixels). On the Mitsuba
+#: frames of bench/demosaic.py r = 2 measured clearly better than r = 1 at 1224x1024 and about
+#: equal at 612x512; r = 3 blurs the polarization of small objects (README, Decoding).
+GUIDED_RADIUS = 2
+#: Ridge strength, relative to the window's mean intensity (0.1 measured best of 0.03 .. 3).
+GUIDED_TAU = 0.1
 #: Chebyshev reach, full-resolution pixels, of the whole method on a monochrome sensor (bilinear,
 #: 2x2 mean, two box passes of radius r at half resolution, bilinear upsampling); a colour sensor
 #: adds 1. Checked against the measured impulse response (tests/polarization/test_demosaic.py).
