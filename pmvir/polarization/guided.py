@@ -111,7 +111,9 @@ def guided_polarization(planes: np.ndarray, *, radius: int = GUIDED_RADIUS, tau:
     floor = 2.0 * n_col * _EPS
     _, lit = cv2.threshold(mean_g, floor, 1.0, cv2.THRESH_BINARY)  # 0 where dark
     inv_mean_g = cv2.divide(lit, cv2.max(mean_g, floor))
-    inv_den = cv2.divide(1.0, cv2.add(cv2.max(var_g, 0.0), cv2.max(eps, 1e-30)))
+    np.maximum(var_g, 0.0, out=var_g)  # rounding can make it slightly negative
+    den = cv2.add(var_g, eps)
+    inv_den = np.reciprocal(np.maximum(den, np.float32(1e-30), out=den))
     coeffs = []
     for plus, minus in ((0, 2), (1, 3)):
         sh = cv2.subtract(quads[plus], quads[minus])
