@@ -132,7 +132,9 @@ def guided_polarization(planes: np.ndarray, *, radius: int = GUIDED_RADIUS, tau:
         cv2.add(i0, i90, dst=pair_sum[0])  # the pair sums are kept
         cv2.add(i45, i135, dst=pair_sum[1])
         cv2.add(pair_sum[0], pair_sum[1], dst=g)  # 2 s0 of colour c
-        for (plus, minus), total, (a_full, b_full) in zip(((i0, i90), (i45, i135)), pair_sum, coeffs, strict=True):
+        for (plus, minus), total, (a_full, b_full) in zip(
+            ((i0, i90), (i45, i135)), pair_sum, coeffs, strict=True
+        ):
             cv2.multiply(a_full, g, dst=s_new)
             cv2.add(s_new, b_full, dst=s_new)
             cv2.addWeighted(total, 0.5, s_new, 0.5, 0.0, dst=plus)
