@@ -7,15 +7,30 @@ its range and its meaning. Unknown keys are errors (``extra="forbid"``).
 
 from __future__ import annotations
 
-from typing import Literal
+import math
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from pmvir.stages import Stage
+
+#: No numeric option accepts a magnitude above this (fields state narrower ranges of their own).
+OPTION_MAGNITUDE_LIMIT = 1e9
 
 
 class _Options(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _finite_and_bounded(cls, value: Any) -> Any:
+        """Every number (and every number in a list) is finite and within +-OPTION_MAGNITUDE_LIMIT."""
+        numbers = value if isinstance(value, list) else [value]
+        for x in numbers:
+            is_number = isinstance(x, (int, float)) and not isinstance(x, bool)
+            if is_number and (not math.isfinite(x) or abs(x) > OPTION_MAGNITUDE_LIMIT):
+                raise ValueError(f"{x!r} is out of range; no option accepts a magnitude above 1e9")
+        return value
 
 
 class DecodeOptions(_Options):
@@ -348,6 +363,7 @@ class RefineOptions(_Options):
     max_iterations: int = Field(
         default=80,
         ge=1,
+        le=100_000,
         description="Most L-BFGS iterations per stage. 80: on the Stanford models every stage still lowers "
         "the cost at 40 (accuracy gain 33% at 40, 39% at 80), and 300k vertices x 36 views x 3 stages of 80 "
         "take about 7 minutes on 2 CPU cores (bench/refine_speed.py).",

@@ -23,10 +23,11 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from pmvir import __version__
+from pmvir import __version__, stage_cache
 from pmvir.capture import Capture, open_capture
 from pmvir.config import PipelineConfig
 from pmvir.decode import decode_frame, write_decoded, write_previews
+from pmvir.errors import ConfigError, PmvirError
 from pmvir.geometry.stage import GeometryResult, geometry_report, run_geometry, write_geometry
 from pmvir.io.illumination import illumination_from_arrays
 from pmvir.io.ply import Mesh
@@ -91,6 +92,8 @@ def run(
     out: str | Path,
     *,
     progress: Progress | None = None,
+    cache: str | Path | None = None,
+    resume_from: Stage | str | None = None,
 ) -> PipelineResult:
     """Run the pipeline on a capture and write the result folder.
 
@@ -100,6 +103,10 @@ def run(
         out: the result folder (created; files of the same names are replaced).
         progress: reports ``(stage, overall fraction, message)`` (the fraction never
             decreases) and is asked to cancel at every stage, step and iteration boundary.
+        cache: a folder where the decode and geometry stages save their outputs
+            (:mod:`pmvir.stage_cache`), for a later run to resume from.
+        resume_from: the first stage to compute; the outputs of the stages before it are
+            loaded from ``cache`` (made with the same options for those stages).
 
     Returns:
         The stages run, their timings and the files written (relative to ``out``).
@@ -113,6 +120,11 @@ def run(
     result = ResultFolder(out)
     result.root.mkdir(parents=True, exist_ok=True)
     stages = stages_for(config)
+    resume = Stage(resume_from or Stage.DECODE)
+    if resume.position > 0 and cache is None:
+        raise PmvirError(f"resume_from={resume} needs the cache folder of an earlier run")
+    if resume not in stages:
+        raise ConfigError(f"resume_from={resume} is after stop_after={config.stop_after}")
     total = sum(STAGE_WEIGHTS[s] for s in stages)
     weight = {s: STAGE_WEIGHTS[s] / total for s in stages}
     t_run = time.perf_counter()
@@ -120,22 +132,33 @@ def run(
     with open_capture(capture) as cap, tempfile.TemporaryDirectory(prefix=".work-", dir=out) as work:
         counts = {"frames": len(cap.frames)}
         with progress.step(Stage.DECODE, weight[Stage.DECODE]) as p:
-            if config.stop_after == Stage.DECODE:  # the decoded frames are the result
+            if resume.position > Stage.DECODE.position:
+                views = stage_cache.load_stage(cache, Stage.DECODE, config)  # type: ignore[arg-type]
+                p.update(1.0, "decoded frames loaded from the cache")
+            elif config.stop_after == Stage.DECODE:  # the decoded frames are the result
                 with p.step("read", 0.5) as q:
                     views = decode_views(cap, config, q)
                 with p.step("write", 0.5) as q:
                     result.write_folder("decoded", lambda d: _write_decoded_views(d, views, q))
             else:
                 views = decode_views(cap, config, p)
+            if cache is not None and resume.position == Stage.DECODE.position:
+                stage_cache.save_stage(cache, Stage.DECODE, config, views)
         if Stage.GEOMETRY in stages:
             with progress.step(Stage.GEOMETRY, weight[Stage.GEOMETRY]) as p:
-                geometry = run_geometry(
-                    cap,
-                    [v.images for v in views],
-                    options=config.geometry,
-                    workdir=Path(work) / "geometry",
-                    progress=p,
-                )
+                if resume.position > Stage.GEOMETRY.position:
+                    geometry = stage_cache.load_stage(cache, Stage.GEOMETRY, config)  # type: ignore[arg-type]
+                    p.update(1.0, "cameras and initial surface loaded from the cache")
+                else:
+                    geometry = run_geometry(
+                        cap,
+                        [v.images for v in views],
+                        options=config.geometry,
+                        workdir=Path(work) / "geometry",
+                        progress=p,
+                    )
+                    if cache is not None:
+                        stage_cache.save_stage(cache, Stage.GEOMETRY, config, geometry)
                 write_geometry(result, geometry)
                 sections["geometry"] = geometry_report(geometry)
         if Stage.REFINE in stages:
@@ -145,6 +168,8 @@ def run(
                 sections["refine"] = refine_report(refined)
     timings = {str(k): v for k, v in progress.timings.items()}
     timings["total"] = time.perf_counter() - t_run
+    if resume.position > 0:
+        sections["resumed_from"] = str(resume)
     result.write_json("report.json", _report(config, stages, timings, counts, sections))
     return PipelineResult(
         out=result.root, stages_run=[str(s) for s in stages], timings=timings, files=list(result.written)
