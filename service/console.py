@@ -1,0 +1,223 @@
+"""The web console at ``/ui/``, offline API docs at ``/docs`` and ``/redoc``, and the result listing.
+
+Everything the browser loads is served here: the console's own files from
+``service/static/ui/`` and the JavaScript libraries (three.js, Swagger UI,
+ReDoc) from ``service/static/node_modules/``, which ``make setup`` fills with
+``npm ci`` from the committed ``package-lock.json``. Nothing comes from a CDN.
+
+The console is a static page: it signs in with an API key kept in the tab's
+session storage and talks to the public ``/v1`` API with a Bearer header, like
+any client. Two ``/v1`` endpoints defined here serve it (and any client):
+``GET /v1/jobs/{id}/results`` lists every file of a job's result, and
+``GET /v1/jobs/{id}/results/{path}`` serves one of them (previews and
+residual images live in folders, so they need a path).
+"""
+
+from __future__ import annotations
+
+import mimetypes
+from pathlib import Path
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Request
+from fastapi import Path as PathParam
+from fastapi.responses import FileResponse, HTMLResponse, Response
+from pydantic import BaseModel, Field
+
+from pmvir.result import RESULT_ZIP, ResultFolder, result_file
+from service.auth import require_owner
+from service.deps import Services, owned_job, reject_unknown_query, services
+from service.errors import ApiError
+from service.ranges import file_response
+from service.routes_jobs import _E, _JOB_ERRORS, JobId
+
+STATIC = Path(__file__).resolve().parent / "static"
+UI = STATIC / "ui"
+NODE_MODULES = STATIC / "node_modules"
+
+#: Files of npm packages the pages load: URL name -> path under node_modules.
+VENDOR_FILES = {
+    "swagger-ui-bundle.js": "swagger-ui-dist/swagger-ui-bundle.js",
+    "swagger-ui.css": "swagger-ui-dist/swagger-ui.css",
+    "redoc.standalone.js": "redoc/bundles/redoc.standalone.js",
+}
+#: three.js: the module build and the example modules (controls, loaders), served with their layout so that
+#: their relative imports resolve.
+THREE_DIRS = ("build/", "examples/jsm/")
+
+Owner = Annotated[str, Depends(require_owner)]
+Svc = Annotated[Services, Depends(services)]
+
+api = APIRouter(prefix="/v1/jobs", tags=["files"], dependencies=[Depends(reject_unknown_query)])
+pages = APIRouter(include_in_schema=False)
+
+
+class ResultEntry(BaseModel):
+    """One file of a job's result."""
+
+    path: str = Field(description="Path inside the result, e.g. mesh.glb or previews/000_int.png.")
+    size: int = Field(ge=0, description="Bytes.")
+    media_type: str
+    description: str = Field(description="What the file (or the folder it is in) holds.")
+    stage: str = Field(description="The pipeline stage that wrote it.")
+
+
+class ResultListing(BaseModel):
+    """GET /v1/jobs/{id}/results: every file of the job's result (empty before it finished)."""
+
+    files: list[ResultEntry]
+
+
+def _entry_for(path: str) -> tuple[str, str, str]:
+    """(media type, description, stage) of a result path (a file of a folder takes its folder's)."""
+    if path == RESULT_ZIP:
+        return "application/zip", "every file of the result in one zip", "report"
+    top = path.split("/")[0] + ("/" if "/" in path else "")
+    entry = result_file(top)
+    if entry.is_folder:
+        media = mimetypes.guess_type(path)[0] or "application/octet-stream"
+        return media, entry.description, entry.stage
+    return entry.media_type, entry.description, entry.stage
+
+
+def result_paths(svc: Services, job_id: str) -> list[str]:
+    """Every file of the job's published result (registered in RESULT_FILES), and result.zip."""
+    root = svc.files.result_dir(job_id)
+    if not root.is_dir():
+        return []
+    paths = ResultFolder(root).present()
+    if (root / RESULT_ZIP).is_file():
+        paths.append(RESULT_ZIP)
+    return paths
+
+
+@api.get(
+    "/{job_id}/results",
+    summary="List every file of a job's result",
+    description="Each file the finished run wrote (files inside previews/, residuals/, poses/ singly) with its "
+    "size and media type; GET /v1/jobs/{id}/results/{path} downloads one. Empty while the job has no result.",
+    response_model=ResultListing,
+    responses=_JOB_ERRORS,
+)
+def list_results(job_id: JobId, owner: Owner, svc: Svc) -> ResultListing:
+    job = owned_job(svc, job_id, owner)
+    root = svc.files.result_dir(job.id)
+    files = []
+    for path in result_paths(svc, job.id):
+        media, description, stage = _entry_for(path)
+        size = (root / path).stat().st_size
+        files.append(
+            ResultEntry(path=path, size=size, media_type=media, description=description, stage=stage)
+        )
+    return ResultListing(files=files)
+
+
+@api.get(
+    "/{job_id}/results/{path:path}",
+    summary="Download one file of a job's result by its path (HTTP Range supported)",
+    description="Any path GET /v1/jobs/{id}/results lists, e.g. mesh.glb, textured.obj, previews/000_aop.png.",
+    response_class=Response,
+    responses={
+        **_JOB_ERRORS,
+        200: {"description": "The whole file.", "content": {"application/octet-stream": {}}},
+        206: {"description": "The requested byte range.", "content": {"application/octet-stream": {}}},
+        416: {**_E, "description": "The range starts past the end of the file."},
+    },
+)
+def get_result_path(
+    job_id: JobId,
+    path: Annotated[str, PathParam(description="A path from the listing.", max_length=300)],
+    request: Request,
+    owner: Owner,
+    svc: Svc,
+) -> Response:
+    job = owned_job(svc, job_id, owner)
+    if path not in result_paths(svc, job.id):  # the listing is the allow-list: no traversal, no stray files
+        raise ApiError(404, "not_found", f"the result has no file {path!r} (job {job.status})")
+    media, _, _ = _entry_for(path)
+    return file_response(
+        request, svc.files.result_dir(job.id) / path, media_type=media, filename=path.split("/")[-1]
+    )
+
+
+def _missing_assets(what: str) -> HTMLResponse:
+    return HTMLResponse(
+        f"<!doctype html><title>pmvir</title><p>{what} is not installed on this server: run "
+        "<code>make setup</code> (it runs <code>npm ci</code> in service/static).</p>",
+        status_code=503,
+    )
+
+
+def _vendor(path: Path, media_type: str) -> Response:
+    if not path.is_file():
+        return Response(f"{path.name} is not installed: run make setup (npm ci in service/static)", 503)
+    return FileResponse(path, media_type=media_type, headers={"Cache-Control": "public, max-age=86400"})
+
+
+@pages.get("/ui", response_class=HTMLResponse)
+@pages.get("/ui/", response_class=HTMLResponse)
+@pages.get("/ui/jobs/{job_id}", response_class=HTMLResponse)
+def console_page(job_id: str | None = None) -> Response:
+    """The console's one page; the script reads the job id from the address."""
+    return FileResponse(UI / "index.html", media_type="text/html", headers={"Cache-Control": "no-cache"})
+
+
+@pages.get("/ui/static/{name}")
+def console_asset(name: str) -> Response:
+    path = UI / name
+    if "/" in name or name.startswith(".") or not path.is_file():
+        return Response("not found", 404)
+    media = mimetypes.guess_type(name)[0] or "application/octet-stream"
+    if name.endswith(".js"):
+        media = "text/javascript"
+    return FileResponse(path, media_type=media, headers={"Cache-Control": "no-cache"})
+
+
+@pages.get("/ui/vendor/three/{path:path}")
+def three_module(path: str) -> Response:
+    if ".." in path.split("/") or not path.endswith(".js") or not path.startswith(THREE_DIRS):
+        return Response("not found", 404)
+    return _vendor(NODE_MODULES / "three" / path, "text/javascript")
+
+
+@pages.get("/ui/vendor/{name}")
+def vendor_file(name: str) -> Response:
+    if name not in VENDOR_FILES:
+        return Response("not found", 404)
+    return _vendor(
+        NODE_MODULES / VENDOR_FILES[name], "text/css" if name.endswith(".css") else "text/javascript"
+    )
+
+
+_SWAGGER = """<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>{title} - Swagger UI</title>
+<link rel="stylesheet" href="/ui/vendor/swagger-ui.css"></head>
+<body><div id="swagger-ui"></div>
+<script src="/ui/vendor/swagger-ui-bundle.js"></script>
+<script src="/ui/static/docs.js"></script>
+</body></html>
+"""
+
+_REDOC = """<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>{title} - ReDoc</title>
+<meta name="viewport" content="width=device-width, initial-scale=1"></head>
+<body><redoc spec-url="/openapi.json" disable-search="false"></redoc>
+<script src="/ui/vendor/redoc.standalone.js"></script>
+</body></html>
+"""
+
+
+@pages.get("/docs", response_class=HTMLResponse)
+def swagger_ui(request: Request) -> Response:
+    """Swagger UI from the swagger-ui-dist npm package (no CDN)."""
+    if not (NODE_MODULES / VENDOR_FILES["swagger-ui-bundle.js"]).is_file():
+        return _missing_assets("Swagger UI")
+    return HTMLResponse(_SWAGGER.format(title=request.app.title))
+
+
+@pages.get("/redoc", response_class=HTMLResponse)
+def redoc(request: Request) -> Response:
+    """ReDoc from the redoc npm package (no CDN)."""
+    if not (NODE_MODULES / VENDOR_FILES["redoc.standalone.js"]).is_file():
+        return _missing_assets("ReDoc")
+    return HTMLResponse(_REDOC.format(title=request.app.title))
