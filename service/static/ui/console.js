@@ -355,9 +355,10 @@ async function viewerSection(job, base, paths, illumination, viewSelect) {
   const normals = geom.getAttribute("normal");
   const shaded = new THREE.BufferAttribute(new Float32Array(albedo.count * 3), 3);
   const materials = {
-    albedo: new THREE.MeshBasicMaterial({ vertexColors: true }),
-    shaded: new THREE.MeshBasicMaterial({ vertexColors: true }),
-    normals: new THREE.MeshNormalMaterial(),
+    // double-sided: a surface trimmed to the dense points may have holes, through which its inside shows
+    albedo: new THREE.MeshBasicMaterial({ vertexColors: true, side: THREE.DoubleSide }),
+    shaded: new THREE.MeshBasicMaterial({ vertexColors: true, side: THREE.DoubleSide }),
+    normals: new THREE.MeshNormalMaterial({ side: THREE.DoubleSide }),
   };
   const refined = new THREE.Mesh(geom, materials.albedo);
   refined.position.sub(centre);
@@ -400,7 +401,7 @@ async function viewerSection(job, base, paths, illumination, viewSelect) {
         g.deleteAttribute("color");
         g.applyMatrix4(new THREE.Matrix4().makeRotationX(-Math.PI / 2)); // capture +Z up -> +Y up, as mesh.glb
         g.computeVertexNormals();
-        initial = new THREE.Mesh(g, new THREE.MeshStandardMaterial({ color: 0xb8bcc6, roughness: 0.9 }));
+        initial = new THREE.Mesh(g, new THREE.MeshStandardMaterial({ color: 0xb8bcc6, roughness: 0.9, side: THREE.DoubleSide }));
         initial.position.copy(centre).negate();
         group.add(initial);
       }
