@@ -25,9 +25,12 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "tests" / "service")]  # before bench/, whose service.py shadows the package
+sys.path[:0] = [
+    str(ROOT),
+    str(ROOT / "tests" / "service"),
+]  # before bench/, whose service.py shadows the package
 
-from console_helpers import (  # noqa: E402
+from console_helpers import (
     CHROMIUM,
     CHROMIUM_ARGS,
     TINY_OPTIONS,
@@ -36,7 +39,7 @@ from console_helpers import (  # noqa: E402
     tiny_capture_zip,
 )
 
-from service.testing import ServiceStack  # noqa: E402
+from service.testing import ServiceStack
 
 KEY = "bench-key"
 #: The demo's schedule (service/demo.py), as job options.

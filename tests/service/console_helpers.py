@@ -31,7 +31,13 @@ CHROMIUM_ARGS = [
 #: small textured export.
 TINY_OPTIONS = {
     "geometry": {"subdivision_max_area_px": 16.0},
-    "refine": {"max_iterations": 4, "tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]},
+    "refine": {
+        "max_iterations": 4,
+        "tau_pol": [60.0],
+        "tau_gsm": [0.1],
+        "tau_psm": [2.0],
+        "gsm_exponent": [2.2],
+    },
     "export": {"face_budget": 3000, "texture_size": 256},
 }
 
@@ -47,11 +53,15 @@ def chromium_missing() -> str | None:
     return None
 
 
-def tiny_capture_zip(root: Path, *, views: int = 16, size: tuple[int, int] = (200, 168), seed: int = 3) -> bytes:
+def tiny_capture_zip(
+    root: Path, *, views: int = 16, size: tuple[int, int] = (200, 168), seed: int = 3
+) -> bytes:
     """A synthetic plastic capture (built-in blob, with its ground-truth mesh and lighting) zipped in memory."""
     from pmvir.synth import synthesize
 
-    capture = synthesize(root / "capture", shape="blob", views=views, size=size, material="plastic", seed=seed)
+    capture = synthesize(
+        root / "capture", shape="blob", views=views, size=size, material="plastic", seed=seed
+    )
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as zf:
         for p in sorted(capture.rglob("*")):
@@ -62,7 +72,9 @@ def tiny_capture_zip(root: Path, *, views: int = 16, size: tuple[int, int] = (20
     return buf.getvalue()
 
 
-def finished_job(url: str, key: str, zipped: bytes, *, options: dict, label: str, timeout: float = 300.0) -> dict:
+def finished_job(
+    url: str, key: str, zipped: bytes, *, options: dict, label: str, timeout: float = 300.0
+) -> dict:
     """Create a job from a zipped capture over HTTP, start it and wait until it succeeded; returns the job."""
     headers = {"Authorization": f"Bearer {key}"}
     with httpx.Client(base_url=url, headers=headers, timeout=60) as c:

@@ -14,7 +14,14 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from console_helpers import CHROMIUM, CHROMIUM_ARGS, TINY_OPTIONS, chromium_missing, finished_job, tiny_capture_zip
+from console_helpers import (
+    CHROMIUM,
+    CHROMIUM_ARGS,
+    TINY_OPTIONS,
+    chromium_missing,
+    finished_job,
+    tiny_capture_zip,
+)
 from svc_helpers import KEY, require_redis
 
 from service.testing import ServiceStack
@@ -173,7 +180,14 @@ def test_signed_in_the_job_list_and_job_page_show_the_finished_job(
     # a download link for every result file
     links = {a.get_attribute("data-path") for a in page.locator("#downloads a").all()}
     assert links == {f["path"] for f in listing}
-    for name in ("mesh.glb", "textured.glb", "textured.obj", "textured.mtl", "textured_albedo.png", "initial.ply"):
+    for name in (
+        "mesh.glb",
+        "textured.glb",
+        "textured.obj",
+        "textured.mtl",
+        "textured_albedo.png",
+        "initial.ply",
+    ):
         assert name in links
     with page.expect_download() as dl:
         page.locator("#downloads a[data-path='mesh.glb']").click()
