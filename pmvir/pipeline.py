@@ -155,7 +155,7 @@ def run(
                         result,
                         mesh,
                         [(views[i].name, views[i].images) for i in registered],
-                        [geometry.cameras[i] for i in registered],
+                        [cam for i in registered if (cam := geometry.cameras[i]) is not None],
                         refined.sh,
                         refined.rgb_scale,
                         config=config,

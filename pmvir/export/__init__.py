@@ -125,6 +125,9 @@ def write_refined_outputs(
     """
     import time
 
+    if mesh.albedo is None:
+        raise ValueError("the refined mesh has no albedo")
+    albedo = mesh.albedo
     options = config.export
     section: dict[str, Any] = {"seconds": {}}
     with progress.step("residuals", 0.3):
@@ -139,7 +142,7 @@ def write_refined_outputs(
                     cameras,
                     mesh.vertices,
                     mesh.faces,
-                    mesh.albedo,
+                    albedo,
                     sh,
                     rgb_scale,
                     options=config.refine,

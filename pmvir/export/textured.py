@@ -140,15 +140,19 @@ def sample_albedo(mesh: Mesh, points: np.ndarray) -> np.ndarray:
         raise ValueError("the mesh has no albedo")
     origin = mesh.vertices.mean(axis=0)
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles((mesh.vertices - origin).astype(np.float32), mesh.faces.astype(np.uint32))
+    scene.add_triangles(
+        o3d.core.Tensor.from_numpy((mesh.vertices - origin).astype(np.float32)),
+        o3d.core.Tensor.from_numpy(mesh.faces.astype(np.uint32)),
+    )
+    albedo = mesh.albedo
     out = np.empty((len(points), 3), np.float32)
     for s in range(0, len(points), 1 << 20):
         q = (points[s : s + (1 << 20)] - origin).astype(np.float32)
-        ans = scene.compute_closest_points(o3d.core.Tensor(q))
+        ans = scene.compute_closest_points(o3d.core.Tensor.from_numpy(q))
         prim = ans["primitive_ids"].numpy().astype(np.int64)
         uv = ans["primitive_uvs"].numpy().astype(np.float64)
         bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
-        out[s : s + len(q)] = np.einsum("pk,pkj->pj", bary, mesh.albedo[mesh.faces[prim]])
+        out[s : s + len(q)] = np.einsum("pk,pkj->pj", bary, albedo[mesh.faces[prim]])
     return out
 
 

@@ -52,7 +52,7 @@ def test_console_pages_and_docs_load_nothing_from_elsewhere(stack) -> None:
         refs = re.findall(r'(?:src|href)="([^"]+)"', r.text)
         assert refs, page
         for ref in refs:
-            assert ref.startswith("/") or ref.startswith("data:"), f"{page} loads {ref}"
+            assert ref.startswith(("/", "data:")), f"{page} loads {ref}"
             if ref.startswith("/ui/"):
                 assert httpx.get(stack.url + ref).status_code == 200, ref
     js = httpx.get(stack.url + "/ui/static/console.js")

@@ -73,7 +73,7 @@ class PageWatch:
 
     def _route(self, route: object) -> None:
         request_url = route.request.url  # type: ignore[attr-defined]
-        if request_url.startswith(self.url) or request_url.startswith("data:"):
+        if request_url.startswith((self.url, "data:")):
             route.continue_()  # type: ignore[attr-defined]
         else:
             self.external.append(request_url)
