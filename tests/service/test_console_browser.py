@@ -8,6 +8,8 @@ the API docs must work offline), and so does any console error or uncaught excep
 from __future__ import annotations
 
 import io
+import json
+import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -27,6 +29,7 @@ from svc_helpers import KEY, require_redis
 from service.testing import ServiceStack
 
 pytestmark = pytest.mark.slow
+VALIDATOR = Path(__file__).resolve().parents[2] / "service" / "static" / "validate-gltf.cjs"
 
 
 @pytest.fixture(scope="module")
@@ -194,6 +197,12 @@ def test_signed_in_the_job_list_and_job_page_show_the_finished_job(
     saved = tmp_path / "mesh.glb"
     dl.value.save_as(saved)
     assert saved.read_bytes()[:4] == b"glTF"
+    checked = subprocess.run(
+        ["node", str(VALIDATOR), str(saved)], capture_output=True, text=True, timeout=120, check=False
+    )
+    verdict = json.loads(checked.stdout.splitlines()[0])
+    assert verdict["errors"] == 0, verdict["messages"]
+    assert verdict["info"]["totalVertexCount"] == report["refine"]["vertices"]  # every vertex of mesh.ply
     page.screenshot(path=str(tmp_path / "job.png"), full_page=True)
 
 
