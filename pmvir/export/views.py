@@ -38,6 +38,9 @@ from pmvir.config import RefineOptions
 from pmvir.polarization.preview import aop_preview, dop_preview, exposure_scale, intensity_preview, write_png
 from pmvir.polarization.stokes import PolarizationImages
 
+#: Views rendered with one ray-casting scene (bounds the memory of the rendered frames).
+_RENDER_BATCH = 8
+
 
 def reduction_factor(width: int, max_size: int) -> int:
     """Smallest integer s with ceil(width / s) <= max_size.
@@ -170,18 +173,28 @@ def write_residuals(
     from pmvir.refine.forward import render_decoded
 
     key = "i_min" if options.intensity == "min" else "i_int"
+    factors = [reduction_factor(cam.width, max_size) for cam in cameras]
+    small = [reduced_camera(cam, s) for cam, s in zip(cameras, factors, strict=True)]
     per_view = []
-    for c, ((stem, images), cam) in enumerate(zip(views, cameras, strict=True)):
-        s = reduction_factor(cam.width, max_size)
-        obs = reduce_polarization(images, s)
-        model = render_decoded(
-            mesh_vertices, mesh_faces, albedo, [reduced_camera(cam, s)], sh[c], rgb_scale[c], dop_scale=0.0
-        )[0]
-        h, w = model["mask"].shape
-        compared = model["mask"] & obs["valid"][:h, :w]
-        residual = (obs[key][:h, :w] - model["i_min"]).mean(axis=2)
-        epol = pixel_epol(model["aop"], obs["aop"][:h, :w], obs["dop"][:h, :w], options)
-        per_view.append((stem, residual, epol, compared))
+    for start in range(0, len(small), _RENDER_BATCH):  # one ray-casting scene per batch of views
+        batch = range(start, min(start + _RENDER_BATCH, len(small)))
+        models = render_decoded(
+            mesh_vertices,
+            mesh_faces,
+            albedo,
+            [small[c] for c in batch],
+            sh[batch.start : batch.stop],
+            rgb_scale[batch.start : batch.stop],
+            dop_scale=0.0,
+        )
+        for c, model in zip(batch, models, strict=True):
+            stem, images = views[c]
+            obs = reduce_polarization(images, factors[c])
+            h, w = model["mask"].shape
+            compared = model["mask"] & obs["valid"][:h, :w]
+            residual = (obs[key][:h, :w] - model["i_min"]).mean(axis=2)
+            epol = pixel_epol(model["aop"], obs["aop"][:h, :w], obs["dop"][:h, :w], options)
+            per_view.append((stem, residual, epol, compared))
     magnitudes = np.concatenate([np.abs(r[m]) for _, r, _, m in per_view]) if per_view else np.zeros(0)
     scale = float(np.percentile(magnitudes, 99.0)) if magnitudes.size else 1.0
     scale = scale if scale > 1e-9 else 1.0
