@@ -35,15 +35,19 @@ STATIC = Path(__file__).resolve().parent / "static"
 UI = STATIC / "ui"
 NODE_MODULES = STATIC / "node_modules"
 
-#: Files of npm packages the pages load: URL name -> path under node_modules.
-VENDOR_FILES = {
-    "swagger-ui-bundle.js": "swagger-ui-dist/swagger-ui-bundle.js",
-    "swagger-ui.css": "swagger-ui-dist/swagger-ui.css",
-    "redoc.standalone.js": "redoc/bundles/redoc.standalone.js",
-}
-#: three.js: the module build and the example modules (controls, loaders), served with their layout so that
-#: their relative imports resolve.
-THREE_DIRS = ("build/", "examples/jsm/")
+#: The files of npm packages the pages load, by their path under node_modules (also their URL under
+#: /ui/vendor/); three.js modules keep their layout so that their relative imports resolve.
+VENDOR_FILES = (
+    "three/build/three.module.js",
+    "three/examples/jsm/controls/OrbitControls.js",
+    "three/examples/jsm/loaders/GLTFLoader.js",
+    "three/examples/jsm/loaders/PLYLoader.js",
+    "three/examples/jsm/utils/BufferGeometryUtils.js",
+    "swagger-ui-dist/swagger-ui-bundle.js",
+    "swagger-ui-dist/swagger-ui.css",
+    "redoc/bundles/redoc.standalone.js",
+)
+SWAGGER_JS, REDOC_JS = VENDOR_FILES[5], VENDOR_FILES[7]
 
 Owner = Annotated[str, Depends(require_owner)]
 Svc = Annotated[Services, Depends(services)]
@@ -173,27 +177,18 @@ def console_asset(name: str) -> Response:
     return FileResponse(path, media_type=media, headers={"Cache-Control": "no-cache"})
 
 
-@pages.get("/ui/vendor/three/{path:path}")
-def three_module(path: str) -> Response:
-    if ".." in path.split("/") or not path.endswith(".js") or not path.startswith(THREE_DIRS):
+@pages.get("/ui/vendor/{path:path}")
+def vendor_file(path: str) -> Response:
+    if path not in VENDOR_FILES:
         return Response("not found", 404)
-    return _vendor(NODE_MODULES / "three" / path, "text/javascript")
-
-
-@pages.get("/ui/vendor/{name}")
-def vendor_file(name: str) -> Response:
-    if name not in VENDOR_FILES:
-        return Response("not found", 404)
-    return _vendor(
-        NODE_MODULES / VENDOR_FILES[name], "text/css" if name.endswith(".css") else "text/javascript"
-    )
+    return _vendor(NODE_MODULES / path, "text/css" if path.endswith(".css") else "text/javascript")
 
 
 _SWAGGER = """<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>{title} - Swagger UI</title>
-<link rel="stylesheet" href="/ui/vendor/swagger-ui.css"></head>
+<link rel="stylesheet" href="/ui/vendor/swagger-ui-dist/swagger-ui.css"></head>
 <body><div id="swagger-ui"></div>
-<script src="/ui/vendor/swagger-ui-bundle.js"></script>
+<script src="/ui/vendor/swagger-ui-dist/swagger-ui-bundle.js"></script>
 <script src="/ui/static/docs.js"></script>
 </body></html>
 """
@@ -202,7 +197,7 @@ _REDOC = """<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>{title} - ReDoc</title>
 <meta name="viewport" content="width=device-width, initial-scale=1"></head>
 <body><redoc spec-url="/openapi.json" disable-search="false"></redoc>
-<script src="/ui/vendor/redoc.standalone.js"></script>
+<script src="/ui/vendor/redoc/bundles/redoc.standalone.js"></script>
 </body></html>
 """
 
@@ -210,7 +205,7 @@ _REDOC = """<!doctype html>
 @pages.get("/docs", response_class=HTMLResponse)
 def swagger_ui(request: Request) -> Response:
     """Swagger UI from the swagger-ui-dist npm package (no CDN)."""
-    if not (NODE_MODULES / VENDOR_FILES["swagger-ui-bundle.js"]).is_file():
+    if not (NODE_MODULES / SWAGGER_JS).is_file():
         return _missing_assets("Swagger UI")
     return HTMLResponse(_SWAGGER.format(title=request.app.title))
 
@@ -218,6 +213,6 @@ def swagger_ui(request: Request) -> Response:
 @pages.get("/redoc", response_class=HTMLResponse)
 def redoc(request: Request) -> Response:
     """ReDoc from the redoc npm package (no CDN)."""
-    if not (NODE_MODULES / VENDOR_FILES["redoc.standalone.js"]).is_file():
+    if not (NODE_MODULES / REDOC_JS).is_file():
         return _missing_assets("ReDoc")
     return HTMLResponse(_REDOC.format(title=request.app.title))
