@@ -13,6 +13,7 @@ through :class:`pmvir.result.ResultFolder` (temporary name, then rename).
 
 from __future__ import annotations
 
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -22,7 +23,7 @@ import numpy as np
 from pmvir.camera import Camera
 from pmvir.config import PipelineConfig
 from pmvir.export.glb import conversion_extras, to_gltf_frame, write_glb
-from pmvir.export.textured import bake_textured, encode_png, mtl_text, obj_text
+from pmvir.export.textured import bake_textured_in_child, encode_png, mtl_text, obj_text
 from pmvir.export.views import write_residuals, write_view_previews
 from pmvir.io.ply import Mesh, vertex_normals
 from pmvir.polarization.stokes import PolarizationImages
@@ -68,10 +69,22 @@ def write_mesh_glb(result: ResultFolder, mesh: Mesh) -> None:
 
 
 def write_textured(
-    result: ResultFolder, mesh: Mesh, *, face_budget: int, texture_size: int
+    result: ResultFolder, mesh: Mesh, *, face_budget: int, texture_size: int, progress: Progress | None = None
 ) -> dict[str, Any]:
-    """``textured.glb``, ``textured.obj``, ``textured.mtl`` and ``textured_albedo.png``; returns counts."""
-    textured = bake_textured(mesh, face_budget=face_budget, texture_size=texture_size)
+    """``textured.glb``, ``textured.obj``, ``textured.mtl`` and ``textured_albedo.png``; returns counts.
+
+    The bake runs in a child process (:func:`~pmvir.export.textured.bake_textured_in_child`): it
+    holds the GIL for long, and ``progress`` may cancel it.
+    """
+    result.root.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=".bake-", dir=result.root) as work:
+        textured = bake_textured_in_child(
+            mesh,
+            face_budget=face_budget,
+            texture_size=texture_size,
+            workdir=Path(work),
+            should_stop=None if progress is None else progress.check_cancel,
+        )
     png = encode_png(textured.texture)
     result.write_file("textured_albedo.png", lambda tmp: tmp.write_bytes(png))
     result.write_file("textured.mtl", lambda tmp: tmp.write_text(mtl_text("textured_albedo.png")))
@@ -158,10 +171,10 @@ def write_refined_outputs(
         write_mesh_glb(result, mesh)
         section["seconds"]["mesh.glb"] = time.perf_counter() - t
     if options.textured:
-        with progress.step("textured", 0.6):
+        with progress.step("textured", 0.6) as p:
             t = time.perf_counter()
             section["textured"] = write_textured(
-                result, mesh, face_budget=options.face_budget, texture_size=options.texture_size
+                result, mesh, face_budget=options.face_budget, texture_size=options.texture_size, progress=p
             )
             section["seconds"]["textured"] = time.perf_counter() - t
     return section

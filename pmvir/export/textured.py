@@ -19,7 +19,9 @@ and glTF's ``baseColorTexture`` expect.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -260,3 +262,94 @@ def encode_png(image: np.ndarray) -> bytes:
     if not ok:  # pragma: no cover - OpenCV failure
         raise OSError("could not encode the texture as PNG")
     return buf.tobytes()
+
+
+def bake_textured_in_child(
+    mesh: Mesh,
+    *,
+    face_budget: int,
+    texture_size: int,
+    workdir: Path,
+    should_stop: Callable[[], None] | None = None,
+    poll_seconds: float = 0.5,
+) -> TexturedMesh:
+    """:func:`bake_textured` in a child Python process.
+
+    xatlas and Open3D's decimation hold the GIL for tens of seconds on large
+    meshes; in a child process they leave the caller's threads (a worker's
+    heartbeat) running, and the bake can be stopped: ``should_stop()`` is called
+    every ``poll_seconds`` and may raise (e.g. ``CanceledError``), which kills the child.
+
+    Args:
+        mesh: a mesh with per-vertex albedo.
+        face_budget, texture_size: as :func:`bake_textured`.
+        workdir: a folder for the two .npz files that carry the mesh and the answer.
+        should_stop: called while waiting; raising stops the bake.
+        poll_seconds: how often it is called.
+
+    Raises:
+        ReconstructionError: the child failed (its last output lines are in the message).
+    """
+    import subprocess
+    import sys
+
+    from pmvir.errors import ReconstructionError
+
+    if mesh.albedo is None:
+        raise ValueError("the mesh has no albedo to bake")
+    src, dst = workdir / "bake-in.npz", workdir / "bake-out.npz"
+    np.savez(src, vertices=mesh.vertices, faces=mesh.faces, albedo=mesh.albedo)
+    argv = [
+        sys.executable,
+        "-m",
+        "pmvir.export.textured",
+        str(src),
+        str(dst),
+        str(face_budget),
+        str(texture_size),
+    ]
+    with subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True) as child:
+        try:
+            while True:
+                try:
+                    _, err = child.communicate(timeout=poll_seconds)
+                    break
+                except subprocess.TimeoutExpired:
+                    if should_stop is not None:
+                        should_stop()
+        except BaseException:
+            child.kill()
+            raise
+    if child.returncode != 0 or not dst.is_file():
+        tail = "\n".join(err.strip().splitlines()[-5:])
+        raise ReconstructionError(f"baking the textured export failed (exit {child.returncode}): {tail}")
+    with np.load(dst) as d:
+        return TexturedMesh(
+            d["vertices"], d["faces"], d["normals"], d["uvs"], d["texture"], d["coverage"].astype(bool)
+        )
+
+
+def _child_main(argv: list[str]) -> int:
+    """``python -m pmvir.export.textured IN.npz OUT.npz FACE_BUDGET TEXTURE_SIZE`` (see :func:`bake_textured_in_child`)."""
+    src, dst, budget, size = argv
+    with np.load(src) as d:
+        mesh = Mesh(d["vertices"], d["faces"], albedo=d["albedo"])
+    t = bake_textured(mesh, face_budget=int(budget), texture_size=int(size))
+    tmp = Path(dst).with_name(Path(dst).name + ".part.npz")
+    np.savez(
+        tmp,
+        vertices=t.vertices,
+        faces=t.faces,
+        normals=t.normals,
+        uvs=t.uvs,
+        texture=t.texture,
+        coverage=t.coverage,
+    )
+    tmp.replace(dst)
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(_child_main(sys.argv[1:]))

@@ -159,3 +159,20 @@ def test_folders_are_zipped_for_download(name: str) -> None:
     from pmvir.result import result_file
 
     assert result_file(name).download_name == name.rstrip("/") + ".zip"
+
+
+def test_the_bake_runs_in_a_child_that_a_cancel_stops(sphere_mesh: Mesh, tmp_path: Path) -> None:
+    from pmvir.errors import CanceledError
+    from pmvir.export.textured import bake_textured_in_child
+
+    calls = []
+
+    def stop() -> None:
+        calls.append(1)
+        raise CanceledError("canceled during the bake")
+
+    with pytest.raises(CanceledError):
+        bake_textured_in_child(
+            sphere_mesh, face_budget=4000, texture_size=512, workdir=tmp_path, should_stop=stop, poll_seconds=0.05
+        )
+    assert calls == [1] and not (tmp_path / "bake-out.npz").exists()

@@ -215,3 +215,41 @@ def test_api_docs_work_offline(watch: PageWatch) -> None:
     page.goto(watch.url + "/redoc")
     page.locator("h1").filter(has_text="pmvir").wait_for(timeout=30_000)
     assert page.locator("[data-section-id]").count() > 3
+
+
+def test_a_zipped_capture_chosen_on_the_page_becomes_a_job_and_a_bad_one_names_its_files(
+    watch: PageWatch, live: tuple[ServiceStack, dict], tmp_path: Path
+) -> None:
+    import zipfile
+
+    from service.testing import write_noise_capture
+
+    capture = write_noise_capture(tmp_path / "cap", frames=3, masks=True, seed=5)
+    good, bad = tmp_path / "good.zip", tmp_path / "bad.zip"
+    for target, drop in ((good, None), (bad, "frames/001.png")):
+        with zipfile.ZipFile(target, "w") as zf:
+            for p in sorted(capture.rglob("*")):
+                rel = p.relative_to(capture).as_posix()
+                if p.is_file() and rel != drop:
+                    zf.write(p, rel)
+    page = watch.page
+    _sign_in(watch, KEY)
+    page.locator("#jobs").wait_for()
+    page.fill("#job-options", '{"stop_after": "decode"}')
+    page.fill("#job-label", "noise")
+    page.set_input_files("#capture-file", str(good))
+    started = page.locator("#upload-status a")
+    started.wait_for(timeout=30_000)
+    job_id = started.inner_text()
+    page.locator(f"#jobs tr[data-job='{job_id}']").wait_for(timeout=10_000)
+    with httpx.Client(base_url=live[0].url, headers={"Authorization": f"Bearer {KEY}"}) as c:
+        job = c.get(f"/v1/jobs/{job_id}").json()
+    assert job["label"] == "noise" and job["options"]["stop_after"] == "decode" and len(job["files"]) == 7
+
+    page.set_input_files("#capture-file", str(bad))
+    problem = page.locator("#upload-status .error")
+    problem.wait_for(timeout=30_000)
+    assert "frames/001.png" in problem.inner_text()
+    # the refused start is a 422 answer, which Chromium logs as a failed resource: expected, nothing else
+    assert all("422" in e for e in watch.errors), watch.errors
+    watch.errors.clear()
