@@ -15,6 +15,7 @@ residual images live in folders, so they need a path).
 
 from __future__ import annotations
 
+import functools
 import mimetypes
 from pathlib import Path
 from typing import Annotated
@@ -177,10 +178,26 @@ def console_asset(name: str) -> Response:
     return FileResponse(path, media_type=media, headers={"Cache-Control": "no-cache"})
 
 
+#: ReDoc's sidebar shows a logo loaded from Redocly's CDN; it is served pointing at an empty image instead.
+_REDOC_CDN_LOGO = b"https://cdn.redoc.ly/redoc/logo-mini.svg"
+_EMPTY_SVG = b"data:image/svg+xml,%3Csvg xmlns='http://www.w3.org/2000/svg'/%3E"
+
+
+@functools.lru_cache(maxsize=1)
+def _redoc_bundle(mtime_ns: int) -> bytes:
+    """The ReDoc bundle with its one CDN address replaced (cached per file version)."""
+    return (NODE_MODULES / REDOC_JS).read_bytes().replace(_REDOC_CDN_LOGO, _EMPTY_SVG)
+
+
 @pages.get("/ui/vendor/{path:path}")
 def vendor_file(path: str) -> Response:
     if path not in VENDOR_FILES:
         return Response("not found", 404)
+    if path == REDOC_JS and (NODE_MODULES / path).is_file():
+        body = _redoc_bundle((NODE_MODULES / path).stat().st_mtime_ns)
+        return Response(
+            body, media_type="text/javascript", headers={"Cache-Control": "public, max-age=86400"}
+        )
     return _vendor(NODE_MODULES / path, "text/css" if path.endswith(".css") else "text/javascript")
 
 

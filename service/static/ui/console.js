@@ -417,7 +417,7 @@ async function viewerSection(job, base, paths, illumination, viewSelect) {
 
   function frame(widen) {
     const radius = 0.5 * size.length() * widen;
-    camera.position.set(0, radius * 0.6, radius * 2.4);
+    camera.position.set(0, radius * 0.45, radius * 1.75);
     camera.near = radius / 100;
     camera.far = radius * 100;
     camera.updateProjectionMatrix();
