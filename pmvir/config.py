@@ -459,10 +459,33 @@ class RefineOptions(_Options):
         return len(self.tau_pol)
 
 
+class ExportOptions(_Options):
+    """Files written beside the result for people and other tools (previews, residuals, glTF, OBJ)."""
+
+    textured: bool = Field(
+        default=True,
+        description="Write textured.glb and textured.obj/.mtl/_albedo.png: the refined mesh decimated to "
+        "face_budget faces, UV-mapped with xatlas and its albedo baked into a texture.",
+    )
+    face_budget: int = Field(
+        default=100_000, ge=100, le=5_000_000, description="Most faces of the textured meshes."
+    )
+    texture_size: int = Field(
+        default=2048, ge=64, le=8192, description="Texels per side the UV atlas is packed into (about)."
+    )
+    preview_max_size: int = Field(
+        default=512,
+        ge=32,
+        le=4096,
+        description="Widest per-view preview and residual image (frames are reduced by an integer factor).",
+    )
+
+
 class PipelineConfig(_Options):
     """Everything a reconstruction run is told."""
 
     decode: DecodeOptions = Field(default_factory=DecodeOptions)
     geometry: GeometryOptions = Field(default_factory=GeometryOptions)
     refine: RefineOptions = Field(default_factory=RefineOptions)
+    export: ExportOptions = Field(default_factory=ExportOptions)
     stop_after: Stage = Field(default=Stage.REFINE, description="Last stage to run.")

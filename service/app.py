@@ -17,7 +17,7 @@ from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
 import pmvir
-from service import routes_files, routes_info, routes_jobs
+from service import console, routes_files, routes_info, routes_jobs
 from service.deps import Services
 from service.errors import install_error_handlers
 from service.models import Health, JobCreate, JobRerun, Ready
@@ -46,6 +46,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=pmvir.__version__,
         description=DESCRIPTION,
         openapi_url="/openapi.json",
+        docs_url=None,  # /docs and /redoc come from service.console, with their scripts served locally
+        redoc_url=None,
     )
     app.state.settings = settings
     app.state.services = Services(
@@ -60,6 +62,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(routes_jobs.router)
     app.include_router(routes_files.router)
     app.include_router(routes_info.router)
+    app.include_router(console.api)
+    app.include_router(console.pages)
 
     @app.get("/healthz", tags=["health"], summary="The process is up", response_model=Health)
     def healthz() -> Health:
