@@ -173,7 +173,7 @@ class Capture:
         if self._cleanup is not None:
             self._cleanup()
 
-    def __enter__(self) -> "Capture":
+    def __enter__(self) -> Capture:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -27,9 +27,9 @@ class _Options(BaseModel):
         """Every number (and every number in a list) is finite and within +-OPTION_MAGNITUDE_LIMIT."""
         numbers = value if isinstance(value, list) else [value]
         for x in numbers:
-            if isinstance(x, (int, float)) and not isinstance(x, bool):
-                if not math.isfinite(x) or abs(x) > OPTION_MAGNITUDE_LIMIT:
-                    raise ValueError(f"{x!r} is out of range; no option accepts a magnitude above 1e9")
+            is_number = isinstance(x, (int, float)) and not isinstance(x, bool)
+            if is_number and (not math.isfinite(x) or abs(x) > OPTION_MAGNITUDE_LIMIT):
+                raise ValueError(f"{x!r} is out of range; no option accepts a magnitude above 1e9")
         return value
 
 
@@ -43,12 +43,13 @@ class DecodeOptions(_Options):
         description="Pixels whose mean intensity (I_int averaged over colours, = s0 / 2, normalized "
         "units) is at or below this are invalid: AoP/DoP are undefined there.",
     )
-    demosaic: Literal["bilinear", "edge-aware"] = Field(
-        default="bilinear",
-        description="Colour (Bayer) interpolation of each polarizer angle's half-resolution image: "
-        "'bilinear' (float32) or 'edge-aware' (OpenCV's edge-aware demosaicing, 16-bit); the "
-        "polarization interpolation back to full resolution is bilinear in both. Bilinear measured as "
-        "accurate or better for AoP/DoP (bench/demosaic.py). Monochrome sensors: no colour step.",
+    demosaic: Literal["bilinear", "edge-aware", "guided"] = Field(
+        default="guided",
+        description="Demosaicing method: 'bilinear' (per-angle Bayer then polarization interpolation, "
+        "float32), 'edge-aware' (OpenCV's edge-aware Bayer step, 16-bit, then bilinear) or 'guided' "
+        "(bilinear intensity; the colour-mean polarization from a guided filter with the intensity as "
+        "guide: much less false polarization from texture and noise, reach 13 px around saturated "
+        "samples; bench/demosaic.py). Monochrome sensors: no colour step.",
     )
 
 
@@ -458,10 +459,33 @@ class RefineOptions(_Options):
         return len(self.tau_pol)
 
 
+class ExportOptions(_Options):
+    """Files written beside the result for people and other tools (previews, residuals, glTF, OBJ)."""
+
+    textured: bool = Field(
+        default=True,
+        description="Write textured.glb and textured.obj/.mtl/_albedo.png: the refined mesh decimated to "
+        "face_budget faces, UV-mapped with xatlas and its albedo baked into a texture.",
+    )
+    face_budget: int = Field(
+        default=100_000, ge=100, le=5_000_000, description="Most faces of the textured meshes."
+    )
+    texture_size: int = Field(
+        default=2048, ge=64, le=8192, description="Texels per side the UV atlas is packed into (about)."
+    )
+    preview_max_size: int = Field(
+        default=512,
+        ge=32,
+        le=4096,
+        description="Widest per-view preview and residual image (frames are reduced by an integer factor).",
+    )
+
+
 class PipelineConfig(_Options):
     """Everything a reconstruction run is told."""
 
     decode: DecodeOptions = Field(default_factory=DecodeOptions)
     geometry: GeometryOptions = Field(default_factory=GeometryOptions)
     refine: RefineOptions = Field(default_factory=RefineOptions)
+    export: ExportOptions = Field(default_factory=ExportOptions)
     stop_after: Stage = Field(default=Stage.REFINE, description="Last stage to run.")

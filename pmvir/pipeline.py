@@ -28,6 +28,8 @@ from pmvir.capture import Capture, open_capture
 from pmvir.config import PipelineConfig
 from pmvir.decode import decode_frame, write_decoded, write_previews
 from pmvir.errors import ConfigError, PmvirError
+from pmvir.export import write_previews as write_view_previews
+from pmvir.export import write_refined_outputs
 from pmvir.geometry.stage import GeometryResult, geometry_report, run_geometry, write_geometry
 from pmvir.io.illumination import illumination_from_arrays
 from pmvir.io.ply import Mesh
@@ -71,8 +73,9 @@ def stages_for(config: PipelineConfig) -> list[Stage]:
     return list(STAGES[: Stage(config.stop_after).position + 1])
 
 
-def decode_views(cap: Capture, config: PipelineConfig, progress: Progress) -> list[DecodedView]:
+def decode_views(cap: Capture, config: PipelineConfig, progress: Progress | None = None) -> list[DecodedView]:
     """Decode every frame of an open capture (stage 1)."""
+    progress = progress or Progress.none()
     views = []
     n = len(cap.frames)
     for i, frame in enumerate(cap.frames):
@@ -133,16 +136,21 @@ def run(
         with progress.step(Stage.DECODE, weight[Stage.DECODE]) as p:
             if resume.position > Stage.DECODE.position:
                 views = stage_cache.load_stage(cache, Stage.DECODE, config)  # type: ignore[arg-type]
-                p.update(1.0, "decoded frames loaded from the cache")
+                p.update(0.9, "decoded frames loaded from the cache")
             elif config.stop_after == Stage.DECODE:  # the decoded frames are the result
                 with p.step("read", 0.5) as q:
                     views = decode_views(cap, config, q)
                 with p.step("write", 0.5) as q:
                     result.write_folder("decoded", lambda d: _write_decoded_views(d, views, q))
             else:
-                views = decode_views(cap, config, p)
+                with p.step("read", 0.9) as q:
+                    views = decode_views(cap, config, q)
             if cache is not None and resume.position == Stage.DECODE.position:
                 stage_cache.save_stage(cache, Stage.DECODE, config, views)
+            with p.step("previews", 0.1) as q:
+                write_view_previews(
+                    result, [(v.name, v.images) for v in views], max_size=config.export.preview_max_size, progress=q
+                )
         if Stage.GEOMETRY in stages:
             with progress.step(Stage.GEOMETRY, weight[Stage.GEOMETRY]) as p:
                 if resume.position > Stage.GEOMETRY.position:
@@ -162,9 +170,21 @@ def run(
                 sections["geometry"] = geometry_report(geometry)
         if Stage.REFINE in stages:
             with progress.step(Stage.REFINE, weight[Stage.REFINE]) as p:
-                refined, registered = _refine_stage(cap, views, geometry, config, p)
-                _write_refined(result, geometry, refined, [views[i].file for i in registered])
+                with p.step("optimize", 0.85) as q:
+                    refined, registered = _refine_stage(cap, views, geometry, config, q)
+                mesh = _write_refined(result, geometry, refined, [views[i].file for i in registered])
                 sections["refine"] = refine_report(refined)
+                with p.step("exports", 0.15) as q:
+                    sections["exports"] = write_refined_outputs(
+                        result,
+                        mesh,
+                        [(views[i].name, views[i].images) for i in registered],
+                        [cam for i in registered if (cam := geometry.cameras[i]) is not None],
+                        refined.sh,
+                        refined.rgb_scale,
+                        config=config,
+                        progress=q,
+                    )
     timings = {str(k): v for k, v in progress.timings.items()}
     timings["total"] = time.perf_counter() - t_run
     if resume.position > 0:
@@ -184,7 +204,7 @@ def _refine_stage(
 ) -> tuple[RefineResult, list[int]]:
     """Polarimetric MVIR on the registered views (stage 3). Returns the result and those views' indices."""
     registered = [i for i, cam in enumerate(geometry.cameras) if cam is not None]
-    cameras = [geometry.cameras[i] for i in registered]
+    cameras = [cam for cam in geometry.cameras if cam is not None]  # in the order of registered
     observations = [
         observation_from_decoded(asdict(views[i].images), intensity=config.refine.intensity)
         for i in registered
@@ -208,10 +228,11 @@ def _refine_stage(
 
 def _write_refined(
     result: ResultFolder, geometry: GeometryResult, refined: RefineResult, files: list[str]
-) -> None:
+) -> Mesh:
     mesh = Mesh(refined.vertices, geometry.faces, albedo=refined.albedo, normals=refined.normals)
     result.write_mesh("mesh.ply", mesh)
     result.write_illumination(illumination_from_arrays(files, refined.sh, refined.rgb_scale))
+    return mesh
 
 
 def _stage_report(st: StageLog) -> dict:
@@ -256,7 +277,7 @@ def software_versions() -> dict[str, str]:
     for module in ("numpy", "scipy", "cv2", "open3d", "pycolmap", "torch"):
         try:
             versions[module] = __import__(module).__version__
-        except Exception:  # an optional library that is absent or broken is reported as such
+        except Exception:  # noqa: BLE001 - an absent or broken optional library is reported as such
             versions[module] = "unavailable"
     return versions
 

@@ -134,7 +134,7 @@ class JobOut(BaseModel):
     deliveries: int = Field(ge=0, description="How many times a worker started the job.")
     files: list[FileOut] = Field(default_factory=list, description="Complete capture files.")
     partial_uploads: list[PartialOut] = Field(default_factory=list)
-    results: list[ResultName] = Field(  # type: ignore[valid-type]
+    results: list[ResultName] = Field(
         default_factory=list, description="Result files ready to download."
     )
     source_job: str | None = Field(default=None, description="For a rerun: the job whose capture it uses.")
@@ -179,12 +179,12 @@ class JobOut(BaseModel):
             deliveries=job.deliveries,
             files=[FileOut.of(f) for f in files],
             partial_uploads=partial,
-            results=results,  # type: ignore[arg-type]
+            results=results,
             source_job=job.source_job,
             result_ttl=job.ttl,
             expires_at=_dt(expires),
             webhook=webhook,
-            resume_from=job.resume_from,  # type: ignore[arg-type]
+            resume_from=job.resume_from,
         )
 
 

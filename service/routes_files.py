@@ -102,7 +102,7 @@ async def upload_file(
 )
 def get_result(
     job_id: JobId,
-    name: Annotated[ResultName, Path(description="Which result file.")],  # type: ignore[valid-type]
+    name: Annotated[ResultName, Path(description="Which result file.")],
     request: Request,
     owner: Owner,
     svc: Svc,

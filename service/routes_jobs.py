@@ -11,6 +11,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 from starlette.requests import ClientDisconnect
 from starlette.requests import Request as StarletteRequest
+from starlette.types import Message
 
 from pmvir.io import json_limits
 from service import jobs
@@ -111,7 +112,7 @@ async def _create_from_zip(
     await run_in_threadpool(check_free_disk, svc, int(length) if length and length.isdigit() else 0)
     received = 0
 
-    async def limited_receive() -> dict:
+    async def limited_receive() -> Message:
         nonlocal received
         message = await request.receive()
         if message["type"] == "http.request":

@@ -72,7 +72,7 @@ class _Run:
                 ):
                     self._stop_cached = True
                     return
-            except Exception as exc:  # Redis away: keep trying; the lease may lapse meanwhile
+            except Exception as exc:  # noqa: BLE001 - Redis away: keep trying; the lease may lapse meanwhile
                 log.warning("job %s: heartbeat failed: %s", self.job.id, exc)
 
     def __enter__(self) -> _Run:
@@ -116,7 +116,7 @@ class _Run:
                 self._stop_cached = True
             if message:
                 self.store.log(self.job.id, f"{stage}: {message}", max_lines=self.settings.max_log_lines)
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - progress is best effort; the job goes on
             log.warning("job %s: progress not recorded: %s", self.job.id, exc)
 
     def should_cancel(self) -> bool:
@@ -128,7 +128,7 @@ class _Run:
             self._last_check = now
             try:
                 self._stop_cached = self.store.should_stop(self.job.id, self.run_id)
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001 - keep the last known flag
                 log.warning("job %s: cancel flag not readable: %s", self.job.id, exc)
         return self._stop_cached
 
@@ -261,7 +261,7 @@ def _reaper_loop(settings: Settings, stop: threading.Event) -> None:
         try:
             for job_id in reap_once(store, send):
                 log.warning("job %s: worker lost, requeued", job_id)
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - the reaper thread must outlive any one failure
             log.warning("reaper: %s", exc)
         if stop.wait(interval):
             return
@@ -269,7 +269,7 @@ def _reaper_loop(settings: Settings, stop: threading.Event) -> None:
 
 def start_reaper(settings: Settings) -> None:
     """Start the reaper thread of this worker process (idempotent)."""
-    global _reaper
+    global _reaper  # noqa: PLW0603 - one reaper per worker process
     if _reaper is not None:
         return
     stop = threading.Event()
@@ -279,7 +279,7 @@ def start_reaper(settings: Settings) -> None:
 
 
 def stop_reaper() -> None:
-    global _reaper
+    global _reaper  # noqa: PLW0603 - one reaper per worker process
     if _reaper is not None:
         _reaper[1].set()
         _reaper = None

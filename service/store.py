@@ -166,7 +166,8 @@ class JobStore:
     """
 
     def __init__(self, client: redis.Redis, *, prefix: str = "pmvir"):
-        self.r = client
+        # decode_responses=True: every reply is str, which redis-py's `bytes | str` types cannot say.
+        self.r: Any = client
         self.p = prefix
         self._create = client.register_script(scripts.CREATE)
         self._transition = client.register_script(scripts.TRANSITION)

@@ -97,7 +97,7 @@ class _Sink:
 
     def __init__(self, path: Path, mode: str, *, hash_it: bool):
         self.path = path
-        self.f = open(path, mode)
+        self.f = open(path, mode)  # noqa: SIM115 - the sink owns the file until close()
         self.h = hashlib.sha256() if hash_it else None
         self.buf = bytearray()
         self.n = 0

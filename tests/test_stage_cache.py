@@ -5,13 +5,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from test_pipeline import _write_capture
 
 from pmvir import stage_cache
 from pmvir.config import PipelineConfig
 from pmvir.errors import ConfigError, PmvirError
 from pmvir.pipeline import run
 from pmvir.stages import Stage
-from test_pipeline import _write_capture
 
 
 def _config(**groups: dict) -> PipelineConfig:

@@ -54,7 +54,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _bar(total: float, desc: str, unit: str, quiet: bool, **kw: Any):  # noqa: ANN202
+def _bar(total: float | None, desc: str, unit: str, quiet: bool, **kw: Any):
     from tqdm import tqdm
 
     return tqdm(total=total, desc=desc, unit=unit, disable=quiet, file=sys.stderr, dynamic_ncols=True, **kw)

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pmvir.errors import ConfigError
+from pmvir.errors import ConfigError, ShapeError
 
 #: Polarizer angles of the four intensity channels, degrees, in channel order.
 ANGLES_DEG: tuple[int, int, int, int] = (0, 45, 90, 135)
@@ -147,7 +147,7 @@ def layout_from_sensor(
         block = tuple(tuple((-a) % 180 for a in row) for row in block)  # type: ignore[assignment]
     if bayer is not None and not base.is_colour:
         raise ConfigError(f"bayer override given for the monochrome layout {name}")
-    return MosaicLayout(polarizer_block=block, bayer=bayer if bayer is not None else base.bayer)  # type: ignore[arg-type]
+    return MosaicLayout(polarizer_block=block, bayer=bayer if bayer is not None else base.bayer)
 
 
 def mosaic(intensities: np.ndarray, layout: MosaicLayout) -> np.ndarray:
@@ -162,7 +162,7 @@ def mosaic(intensities: np.ndarray, layout: MosaicLayout) -> np.ndarray:
         value of its own polarizer angle and colour filter.
     """
     if intensities.ndim != 4 or intensities.shape[2] != 4 or intensities.shape[3] != layout.channels:
-        raise ValueError(
+        raise ShapeError(
             f"expected (H, W, 4, {layout.channels}) intensities, got {intensities.shape}"
         )
     h, w = intensities.shape[:2]

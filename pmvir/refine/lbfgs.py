@@ -216,12 +216,12 @@ def minimize_lbfgs(
     for it in range(1, max_iterations + 1):
         q = -g.clone()
         alphas = []
-        for s, y, rho in zip(reversed(s_hist), reversed(y_hist), reversed(rho_hist)):
+        for s, y, rho in zip(reversed(s_hist), reversed(y_hist), reversed(rho_hist), strict=True):
             a = rho * float(s @ q)
             q.add_(y, alpha=-a)
             alphas.append(a)
         q = apply_p(q).mul_(gamma)
-        for (s, y, rho), a in zip(zip(s_hist, y_hist, rho_hist), reversed(alphas)):
+        for (s, y, rho), a in zip(zip(s_hist, y_hist, rho_hist, strict=True), reversed(alphas), strict=True):
             b = rho * float(y @ q)
             q.add_(s, alpha=a - b)
         d = q

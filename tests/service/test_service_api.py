@@ -12,9 +12,10 @@ import httpx
 import numpy as np
 import pytest
 
-from svc_helpers import DECODE_ONLY, KEY, OTHER_KEY, client_for, finished, new_job, upload, wait_for
 from pmvir.io.frames import write_frame
 from service.testing import ServiceStack
+
+from svc_helpers import DECODE_ONLY, KEY, OTHER_KEY, client_for, finished, new_job, upload, wait_for
 
 
 def sha(data: bytes) -> str:

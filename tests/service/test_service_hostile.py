@@ -22,9 +22,10 @@ import httpx
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from svc_helpers import KEY, new_job
 
 from service.testing import ServiceStack
+
+from svc_helpers import KEY, new_job
 
 HUGE_INT = "1" * 5000
 DEEP = "[" * 50_000 + "]" * 50_000

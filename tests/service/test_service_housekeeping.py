@@ -12,11 +12,12 @@ from typing import ClassVar
 
 import httpx
 import pytest
-from svc_helpers import KEY, LIMITS, client_for, finished, require_redis, wait_for
 
 from pmvir import __version__
 from pmvir.client import verify_webhook
 from service.testing import ServiceStack
+
+from svc_helpers import KEY, LIMITS, client_for, finished, require_redis, wait_for
 
 SECRET = "webhook-secret-for-tests"
 

@@ -12,6 +12,7 @@ import pytest
 from pmvir.cli import main
 from pmvir.synth import synthesize
 from service.testing import ServiceStack
+
 from svc_helpers import KEY, finished, new_job, wait_for
 
 ONE_STAGE = {

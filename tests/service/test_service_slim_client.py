@@ -19,9 +19,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from svc_helpers import KEY
 
 from service.testing import ServiceStack
+
+from svc_helpers import KEY
 
 ROOT = Path(__file__).resolve().parents[2]
 #: The environment of the venv's processes: without PYTHONPATH, which would show them this checkout.
