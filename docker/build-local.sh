@@ -14,6 +14,8 @@
 #   WHEELS       a local folder of wheels served to the build (find-links), e.g. /opt/wheels, for
 #                machines that reach PyPI but not the torch index
 #   PMVIR        the pmvir command of the client (default: pmvir)
+#   HOST_CA      a CA bundle the images must trust (and pip use), e.g. /etc/ssl/certs/ca-certificates.crt
+#                behind an intercepting proxy
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -45,6 +47,15 @@ if ! docker image inspect "$BASE" >/dev/null 2>&1; then
     tar -C "$WORK/rootfs" -c . | docker import \
         -c 'ENV PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin' \
         -c 'ENV LANG=C.UTF-8' - "$BASE"
+fi
+
+if [ -n "${HOST_CA:-}" ]; then
+    step "trusting $HOST_CA in ${BASE}-ca"
+    mkdir -p "$WORK/ca" && cp "$HOST_CA" "$WORK/ca/ca-certificates.crt"
+    printf 'FROM %s\nCOPY ca-certificates.crt /etc/ssl/certs/ca-certificates.crt\nENV PIP_CERT=/etc/ssl/certs/ca-certificates.crt\n' \
+        "$BASE" >"$WORK/ca/Dockerfile"
+    docker build -q -t "${BASE}-ca" "$WORK/ca"
+    BASE=${BASE}-ca
 fi
 
 FIND_LINKS=""
