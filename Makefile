@@ -70,7 +70,7 @@ test-floors: system-packages
 	$(FLOORS_VENV)/bin/python ci/requirements.py floors full service dev > $(FLOORS_VENV)/floors.txt
 	$(FLOORS_VENV)/bin/python -m pip install -q $(TORCH_PIP) -r $(FLOORS_VENV)/floors.txt
 	$(FLOORS_VENV)/bin/python -m pip install -q --no-deps -e .
-	$(FLOORS_VENV)/bin/python -m pytest -q -m "not slow" tests/io tests/polarization tests/service/test_service_units.py tests/service/test_service_api.py tests/test_stage_cache.py
+	$(FLOORS_VENV)/bin/python -m pytest -q -m "not slow" tests/io tests/test_stage_cache.py tests/service/test_service_units.py tests/service/test_service_api.py tests/service/test_service_hostile.py tests/service/test_service_security.py
 
 # docker/requirements.lock from the tested venv (make setup first).
 lock: setup
