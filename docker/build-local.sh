@@ -30,6 +30,11 @@ COMPOSE=(docker-compose -p pmvir-local -f docker/compose.yaml -f docker/compose.
 SERVER_PID=""
 
 cleanup() {
+    local code=$?
+    if [ "$code" != 0 ]; then
+        echo "== failed ($code): the stack's logs"
+        PMVIR_API_KEYS=$KEY PMVIR_PORT=$PORT "${COMPOSE[@]}" logs --no-color --tail 30 || true
+    fi
     echo "== teardown"
     PMVIR_API_KEYS=$KEY PMVIR_PORT=$PORT "${COMPOSE[@]}" down -v --remove-orphans || true
     [ -n "$SERVER_PID" ] && kill "$SERVER_PID" 2>/dev/null || true
@@ -71,8 +76,14 @@ docker build --network host -f docker/Dockerfile \
     -t pmvir:latest .
 
 step "docker build pmvir-redis:local"
-printf 'FROM %s\nRUN apt-get update && apt-get install -y --no-install-recommends redis-server redis-tools && rm -rf /var/lib/apt/lists/*\n' \
-    "$BASE" | docker build --network host -t pmvir-redis:local -
+# Like the official image: data in /data, protected mode off (the compose network is private), and
+# the compose file's "redis-server ..." command taken as arguments.
+mkdir -p "$WORK/redis"
+printf '#!/bin/sh\n[ "$1" = redis-server ] && shift\nexec redis-server --protected-mode no "$@"\n' \
+    >"$WORK/redis/entrypoint.sh"
+printf 'FROM %s\nRUN apt-get update && apt-get install -y --no-install-recommends redis-server redis-tools && rm -rf /var/lib/apt/lists/*\nCOPY entrypoint.sh /entrypoint.sh\nRUN chmod +x /entrypoint.sh && mkdir -p /data\nWORKDIR /data\nENTRYPOINT ["/entrypoint.sh"]\n' \
+    "$BASE" >"$WORK/redis/Dockerfile"
+docker build --network host -q -t pmvir-redis:local "$WORK/redis"
 
 step "compose up: redis (AOF), api, 2 workers"
 export PMVIR_API_KEYS=$KEY PMVIR_PORT=$PORT
