@@ -43,9 +43,12 @@ def test_fraction_never_goes_backwards() -> None:
 def test_cancellation_names_where_it_stopped() -> None:
     asked = iter([False] * 4 + [True])  # each step's start and its first report poll once
     progress = Progress(should_cancel=lambda: next(asked))
-    with pytest.raises(CanceledError, match="during geometry / poses$"), progress.step("geometry", 0.5) as p:
-        with p.step("poses", 0.5) as q:
-            q.update(0.5)
+    with (
+        pytest.raises(CanceledError, match=r"during geometry / poses$"),
+        progress.step("geometry", 0.5) as p,
+        p.step("poses", 0.5) as q,
+    ):
+        q.update(0.5)
 
 
 def test_timings_only_for_steps_that_finished() -> None:

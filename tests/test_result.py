@@ -62,5 +62,5 @@ def test_a_folder_is_replaced_whole(tmp_path: Path) -> None:
 
 
 def test_reading_a_missing_file_names_it(tmp_path: Path) -> None:
-    with pytest.raises(PmvirError, match="has no mesh.ply"):
+    with pytest.raises(PmvirError, match=r"has no mesh\.ply"):
         ResultFolder(tmp_path).read_mesh()
