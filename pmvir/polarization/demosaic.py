@@ -289,6 +289,8 @@ def _bilinear_colour(columns: list[np.ndarray], layout: MosaicLayout, dy: int, d
 
 def _edge_aware_colour(mosaic: np.ndarray, layout: MosaicLayout, planes: np.ndarray) -> None:
     """OpenCV edge-aware Bayer demosaicing of each angle's image, then bilinear upsampling."""
+    if layout.bayer is None:
+        raise ConfigError("edge-aware demosaicing needs a colour (Bayer) layout")
     lo, hi, _, _ = cv2.minMaxLoc(mosaic)
     span = hi - lo
     scale = 65535.0 / span if span > 0 else 1.0
@@ -297,7 +299,7 @@ def _edge_aware_colour(mosaic: np.ndarray, layout: MosaicLayout, planes: np.ndar
         mosaic, None, 0, 65535, cv2.NORM_MINMAX, dtype=cv2.CV_16U
     )
     columns = _column_phases(q16, 2)
-    code = getattr(cv2, f"COLOR_{_CV_BAYER[layout.bayer]}2RGB_EA")  # type: ignore[index]
+    code = getattr(cv2, f"COLOR_{_CV_BAYER[layout.bayer]}2RGB_EA")
     block = layout.angle_index_block()
     for dy in range(2):
         for dx in range(2):
