@@ -29,13 +29,17 @@ def run_job(self, job_id: str) -> None:
 
 @signals.worker_ready.connect
 def _start_reaper(sender=None, **_: object) -> None:
+    from service import housekeeping
     from service.runner import start_reaper
 
     start_reaper(settings)
+    housekeeping.start(settings, name=getattr(sender, "hostname", None))
 
 
 @signals.worker_shutdown.connect
 def _stop_reaper(sender=None, **_: object) -> None:
+    from service import housekeeping
     from service.runner import stop_reaper
 
     stop_reaper()
+    housekeeping.stop()

@@ -34,7 +34,7 @@ from service.deps import Services, path_error
 from service.errors import ApiError, ErrorItem, conflict, not_found, too_large
 from service.models import UploadOut
 from service.storage import capture_path_problem, is_frame, sha256_file
-from service.store import FileInfo, Job
+from service.store import FileInfo, Gate, Job
 
 _CONTENT_RANGE = re.compile(r"^bytes (\d+)-(\d+)/(\d+)$")
 _FLUSH = 1 << 20
@@ -168,11 +168,11 @@ def _job_room(svc: Services, job_id: str, path: str) -> int:
 
 def _begin(svc: Services, job: Job, token: str) -> None:
     why = svc.store.upload_begin(job.id, token)
-    if why == "ok":
+    if why is Gate.OK:
         return
-    if why == "gone":
+    if why is Gate.GONE:
         raise not_found("job")
-    if why == "starting":
+    if why is Gate.STARTING:
         raise conflict("the job is being started; it takes no more uploads")
     raise conflict(f"the job is {why}; files can only be uploaded while it is created")
 
@@ -191,16 +191,11 @@ def _check_manifest(path: Path) -> None:
 
 def _commit(svc: Services, job: Job, token: str, tmp: Path, info: FileInfo) -> None:
     """Record the file and rename it into the capture, one upload of a path at a time."""
-    lock = svc.store.r.lock(
-        svc.store.key(job.id, f"lock:{hashlib.sha256(info.path.encode()).hexdigest()}"),
-        timeout=60,
-        blocking_timeout=60,
-    )
-    with lock:
+    with svc.store.path_lock(job.id, info.path):
         why = svc.store.upload_commit(job.id, token, info)
-        if why != "ok":
+        if why is not Gate.OK:
             tmp.unlink(missing_ok=True)
-            if why == "gone":
+            if why is Gate.GONE:
                 raise not_found("job")
             raise conflict(f"the job is {why}; the upload was discarded")
         try:

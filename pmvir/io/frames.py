@@ -71,6 +71,9 @@ RAW_DTYPES: tuple[str, ...] = ("uint8", "uint16le", "uint16be", "mono12p")
 RawDtype = Literal["uint8", "uint16le", "uint16be", "mono12p"]
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: Most pixels a frame may have (about 4x a 24 MP polarization sensor); checked from the header,
+#: before anything is decoded, so a small file declaring a huge image is refused cheaply.
+MAX_FRAME_PIXELS = 100_000_000
 _DNG_MIN_SIZE = 22  # LibRaw rejects raw images smaller than this in either direction
 
 
@@ -196,6 +199,17 @@ def _png_header(data: bytes, label: str) -> tuple[int, int, int, int]:
     return ihdr
 
 
+def _check_pixels(label: str, width: int, height: int) -> None:
+    if width < 1 or height < 1:
+        raise FrameError(label, f"the header declares an empty {width}x{height} image")
+    if width * height > MAX_FRAME_PIXELS:
+        raise FrameError(
+            label,
+            f"the header declares {width}x{height} = {width * height} pixels, more than the limit of "
+            f"{MAX_FRAME_PIXELS}",
+        )
+
+
 def _check_png_kind(label: str, bit_depth: int, colour_type: int) -> None:
     if colour_type != 0:
         kinds = {2: "RGB", 3: "palette", 4: "grey+alpha", 6: "RGBA"}
@@ -208,9 +222,13 @@ def _check_png_kind(label: str, bit_depth: int, colour_type: int) -> None:
 
 def _read_png(path: Path, label: str) -> np.ndarray:
     data = path.read_bytes()
-    _, _, bit_depth, colour_type = _png_header(data, label)
+    w, h, bit_depth, colour_type = _png_header(data, label)
     _check_png_kind(label, bit_depth, colour_type)
-    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    _check_pixels(label, w, h)
+    try:
+        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise FrameError(label, f"PNG could not be decoded: {exc.err or exc}") from None
     if img is None:
         raise FrameError(label, "PNG could not be decoded")
     return img
@@ -224,6 +242,7 @@ def _tiff_page(tif: tifffile.TiffFile, label: str) -> tifffile.TiffPage:
         raise FrameError(label, f"expected a single-channel TIFF, got shape {page.shape}")
     if page.dtype not in (np.dtype(np.uint8), np.dtype(np.uint16)):
         raise FrameError(label, f"expected an 8- or 16-bit unsigned TIFF, got {page.dtype}")
+    _check_pixels(label, int(page.shape[1]), int(page.shape[0]))
     return page
 
 
@@ -360,6 +379,7 @@ def read_frame_size(
     if fmt == "png":
         w, h, bit_depth, colour_type = _png_header(path.read_bytes(), label)
         _check_png_kind(label, bit_depth, colour_type)
+        _check_pixels(label, w, h)
         return h, w
     if fmt == "tiff":
         try:

@@ -35,6 +35,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from pmvir.camera import Camera
 from pmvir.errors import ConfigError, ManifestError
+from pmvir.io import json_limits
 from pmvir.io.frames import FRAME_SUFFIXES, RawFormat
 from pmvir.polarization.layout import MosaicLayout, layout_from_sensor
 
@@ -247,9 +248,9 @@ def _format_errors(exc: ValidationError) -> str:
 def parse_manifest(data: bytes | str, *, label: str = MANIFEST_NAME) -> CaptureManifest:
     """Parse and validate ``capture.json`` content; ManifestError naming ``label`` and each bad field."""
     try:
-        doc = json.loads(data)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ManifestError(label, f"not valid JSON: {exc}") from exc
+        doc = json_limits.loads(data, source=label)
+    except json_limits.JsonError as exc:
+        raise ManifestError(label, exc.problem) from None
     if isinstance(doc, dict) and "format" not in doc:
         raise ManifestError(label, f"format: missing; expected {FORMAT!r}")
     try:

@@ -59,9 +59,11 @@ import cv2
 import numpy as np
 
 from pmvir.errors import ConfigError, DTypeError, ShapeError
+from pmvir.polarization.guided import GUIDED_REACH, guided_polarization
 from pmvir.polarization.layout import MosaicLayout
 
-DemosaicMethod = Literal["bilinear", "edge-aware"]
+DemosaicMethod = Literal["bilinear", "edge-aware", "guided"]
+_METHODS: tuple[str, ...] = ("bilinear", "edge-aware", "guided")
 
 #: OpenCV Bayer conversion name for each pattern (pattern letters are the
 #: colours at (0,0), (0,1), (1,0), (1,1)).
@@ -78,6 +80,8 @@ _SUPPORT_RADIUS = {
     (False, "edge-aware"): 1,
     (True, "bilinear"): 3,
     (True, "edge-aware"): 4,
+    (False, "guided"): GUIDED_REACH,
+    (True, "guided"): GUIDED_REACH + 1,
 }
 
 
@@ -170,13 +174,15 @@ def demosaic(
         for dy in range(2):
             for dx in range(2):
                 _upsample2(columns[dx][dy::2], dy, dx, planes[block[dy, dx], 0])
-    elif method == "bilinear" or min(h, w) < _EA_MIN_SIZE:
+    elif method != "edge-aware" or min(h, w) < _EA_MIN_SIZE:
         columns = _column_phases(mosaic, 4)
         for dy in range(2):
             for dx in range(2):
                 _bilinear_colour(columns, layout, dy, dx, planes[block[dy, dx]])
     else:
         _edge_aware_colour(mosaic, layout, planes)
+    if method == "guided":
+        guided_polarization(planes)
     return planes.transpose(2, 3, 0, 1)
 
 
@@ -194,8 +200,8 @@ def _planes_for(out: np.ndarray | None, shape: tuple[int, int, int, int]) -> np.
 
 
 def _check_method(method: str) -> None:
-    if method not in ("bilinear", "edge-aware"):
-        raise ConfigError(f"method must be 'bilinear' or 'edge-aware', got {method!r}")
+    if method not in _METHODS:
+        raise ConfigError(f"method must be one of {', '.join(map(repr, _METHODS))}, got {method!r}")
 
 
 def _column_phases(image: np.ndarray, period: int) -> list[np.ndarray]:

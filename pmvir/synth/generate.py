@@ -14,7 +14,10 @@ Output layout::
 background), ``normal_cam`` (H, W, 3) float32 unit shading normals in camera
 axes, ``aop`` and ``dop`` (H, W) float32 and ``i_int`` (H, W, 3) float32 (the
 noise-free rendered values in decoded units, before the mosaic, noise,
-quantization and clipping), ``mask`` (H, W) bool.
+quantization and clipping), ``mask`` (H, W) bool; with ``save_stokes`` also
+``stokes`` (H, W, 3, 3) float32: per colour (R, G, B) the noise-free linear
+Stokes vector (s0, s1, s2) in full-scale units (gain times radiance), i.e. the
+sensor's input: its polarizer intensities are ``(s0 + s1 cos 2t + s2 sin 2t) / 2``.
 
 Units: the decoded ``I_int`` of a Lambertian pixel is ``K * S(N) * rgb_scale``
 exactly (before noise) with the ``sh`` and ``rgb_scale`` of
@@ -300,6 +303,7 @@ def synthesize(
                     "normal_cam": geom.normal_cam,
                     **polarization_truth(stokes, gain),
                     "mask": geom.mask,
+                    **({"stokes": (stokes * gain).astype(np.float32)} if opts.save_stokes else {}),
                 },
             )
         entries.append(

@@ -87,6 +87,11 @@ class SynthOptions(BaseModel):
     gt_views: bool = Field(
         default=True, description="Write gt/views/<stem>.npz (depth, normals, noise-free AoP/DoP/I_int)."
     )
+    save_stokes: bool = Field(
+        default=False,
+        description="Also write the noise-free per-pixel Stokes image (s0, s1, s2 per colour, full-scale "
+        "units) as 'stokes' (H, W, 3, 3) in gt/views/<stem>.npz (needs gt_views).",
+    )
 
     @field_validator("size", mode="before")
     @classmethod
