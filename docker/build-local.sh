@@ -14,12 +14,14 @@
 #   WHEELS       a local folder of wheels served to the build (find-links), e.g. /opt/wheels, for
 #                machines that reach PyPI but not the torch index
 #   PMVIR        the pmvir command of the client (default: pmvir)
+#   HOST_CA      a CA bundle the images must trust (and pip use), e.g. /etc/ssl/certs/ca-certificates.crt
+#                behind an intercepting proxy
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 MIRROR=${MIRROR:-http://deb.debian.org/debian}
 TORCH_INDEX=${TORCH_INDEX:-https://download.pytorch.org/whl/cpu}
-PMVIR=${PMVIR:-pmvir}
+PMVIR=${PMVIR:-pmvir}  # may be a command with arguments (word-split)
 BASE=pmvir-base:bookworm
 KEY=build-local-key
 PORT=${PORT:-18000}
@@ -45,6 +47,15 @@ if ! docker image inspect "$BASE" >/dev/null 2>&1; then
     tar -C "$WORK/rootfs" -c . | docker import \
         -c 'ENV PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin' \
         -c 'ENV LANG=C.UTF-8' - "$BASE"
+fi
+
+if [ -n "${HOST_CA:-}" ]; then
+    step "trusting $HOST_CA in ${BASE}-ca"
+    mkdir -p "$WORK/ca" && cp "$HOST_CA" "$WORK/ca/ca-certificates.crt"
+    printf 'FROM %s\nCOPY ca-certificates.crt /etc/ssl/certs/ca-certificates.crt\nENV PIP_CERT=/etc/ssl/certs/ca-certificates.crt\n' \
+        "$BASE" >"$WORK/ca/Dockerfile"
+    docker build -q -t "${BASE}-ca" "$WORK/ca"
+    BASE=${BASE}-ca
 fi
 
 FIND_LINKS=""
@@ -74,11 +85,11 @@ curl -fsS "http://127.0.0.1:$PORT/readyz"; echo
 "${COMPOSE[@]}" ps
 
 step "a synthetic capture through the client"
-"$PMVIR" synth "$WORK/cap" --shape blob --views 16 --width 256 --height 216 --seed 3 >/dev/null
+$PMVIR synth --shape blob --out "$WORK/cap" --views 16 --size 256x216 --seed 3 --no-gt-views --quiet >/dev/null
 rm -rf "$WORK/cap/gt"
-"$PMVIR" submit "$WORK/cap" --server "http://127.0.0.1:$PORT" --api-key "$KEY" --stop-after geometry \
+$PMVIR submit "$WORK/cap" --server "http://127.0.0.1:$PORT" --api-key "$KEY" --stop-after geometry \
     --out "$WORK/result" --quiet
-"$PMVIR" info --server "http://127.0.0.1:$PORT" --api-key "$KEY"
+$PMVIR info --server "http://127.0.0.1:$PORT" --api-key "$KEY"
 python3 - "$WORK/result" <<'PY'
 import json, sys
 from pathlib import Path

@@ -17,7 +17,6 @@ pmvir.io.json_limits.JsonError: options: JSON nested deeper than 64 levels
 from __future__ import annotations
 
 import json
-import math
 from typing import Any
 
 from pmvir.errors import PmvirError
@@ -46,10 +45,7 @@ def _number(kind: type) -> Any:
     def parse(text: str) -> Any:
         if len(text) > MAX_NUMBER_CHARS:
             raise _NumberTooLong(text)
-        value = kind(text)
-        if kind is float and not math.isfinite(value):
-            raise ValueError(f"{text} is out of the range of a 64-bit float")
-        return value
+        return kind(text)
 
     return parse
 
@@ -83,8 +79,9 @@ def loads(data: str | bytes, *, source: str, max_depth: int = MAX_DEPTH) -> Any:
         The parsed document (dicts, lists, str, int, float, bool, None).
 
     Raises:
-        JsonError: not UTF-8, not JSON, NaN/Infinity, a number literal of more than
-            :data:`MAX_NUMBER_CHARS` characters, or nesting deeper than ``max_depth``.
+        JsonError: not UTF-8, not JSON, a number literal of more than :data:`MAX_NUMBER_CHARS`
+            characters, or nesting deeper than ``max_depth``. (NaN, Infinity and 1e999 parse as
+            floats: the models they are validated by name the field that must be finite.)
     """
     try:
         text = data.decode("utf-8") if isinstance(data, bytes) else data
@@ -95,7 +92,6 @@ def loads(data: str | bytes, *, source: str, max_depth: int = MAX_DEPTH) -> Any:
             text,
             parse_int=_number(int),
             parse_float=_number(float),
-            parse_constant=_reject_constant,
         )
     except _NumberTooLong as exc:
         raise JsonError(
@@ -105,12 +101,6 @@ def loads(data: str | bytes, *, source: str, max_depth: int = MAX_DEPTH) -> Any:
         raise JsonError(source, f"JSON nested deeper than {max_depth} levels") from None
     except json.JSONDecodeError as exc:
         raise JsonError(source, f"not valid JSON: {exc}") from None
-    except ValueError as exc:  # NaN/Infinity and float overflow, refused by the parse hooks
-        raise JsonError(source, str(exc)) from None
     if _depth(doc) > max_depth:
         raise JsonError(source, f"JSON nested deeper than {max_depth} levels")
     return doc
-
-
-def _reject_constant(name: str) -> Any:
-    raise ValueError(f"{name} is not a JSON number")
