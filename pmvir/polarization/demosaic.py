@@ -31,8 +31,12 @@ Methods:
   frame's range, 16 times finer than 12-bit data), then the same bilinear
   polarization interpolation in float32. Frames under 8 pixels high or wide
   (a 2x2 Bayer image per angle, which OpenCV mishandles) use bilinear.
-* A monochrome layout has no colour step: both methods are the bilinear
-  polarization interpolation.
+* ``"guided"``: ``"bilinear"``, then the polarization (not the intensity)
+  replaced by a guided-filter estimate with the intensity as guide
+  (:mod:`pmvir.polarization.guided`): far less false polarization from
+  texture and noise, one colour-mean polarization shared by the colours.
+* A monochrome layout has no colour step: ``"bilinear"`` and ``"edge-aware"``
+  are the bilinear polarization interpolation.
 
 OpenCV names a Bayer code after the second row's second and third pixels, so
 its code for a pattern is "off by one" from the pattern's usual name: an
