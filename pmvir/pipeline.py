@@ -134,8 +134,8 @@ def run(
     with open_capture(capture) as cap, tempfile.TemporaryDirectory(prefix=".work-", dir=out) as work:
         counts = {"frames": len(cap.frames)}
         with progress.step(Stage.DECODE, weight[Stage.DECODE]) as p:
-            if resume.position > Stage.DECODE.position:
-                views = stage_cache.load_stage(cache, Stage.DECODE, config)  # type: ignore[arg-type]
+            if cache is not None and resume.position > Stage.DECODE.position:  # resuming needs a cache
+                views = stage_cache.load_stage(cache, Stage.DECODE, config)
                 p.update(0.9, "decoded frames loaded from the cache")
             elif config.stop_after == Stage.DECODE:  # the decoded frames are the result
                 with p.step("read", 0.5) as q:
@@ -153,8 +153,8 @@ def run(
                 )
         if Stage.GEOMETRY in stages:
             with progress.step(Stage.GEOMETRY, weight[Stage.GEOMETRY]) as p:
-                if resume.position > Stage.GEOMETRY.position:
-                    geometry = stage_cache.load_stage(cache, Stage.GEOMETRY, config)  # type: ignore[arg-type]
+                if cache is not None and resume.position > Stage.GEOMETRY.position:
+                    geometry = stage_cache.load_stage(cache, Stage.GEOMETRY, config)
                     p.update(1.0, "cameras and initial surface loaded from the cache")
                 else:
                     geometry = run_geometry(

@@ -92,7 +92,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         ready = await run_in_threadpool(probe)
         return JSONResponse(status_code=200 if ready.status == "ok" else 503, content=ready.model_dump())
 
-    app.openapi = lambda: openapi_document(app)  # type: ignore[method-assign]
+    app.openapi = lambda: openapi_document(app)  # type: ignore[method-assign]  # FastAPI's override
     return app
 
 

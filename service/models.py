@@ -14,7 +14,7 @@ from pmvir.stages import Stage
 from service.store import FileInfo, Job, JobStatus
 
 #: The result files served by name (pmvir.result's table: single files, folders as .zip, result.zip).
-ResultName = StrEnum("ResultName", {n: n for n in downloadable_names()})  # type: ignore[misc]
+ResultName = StrEnum("ResultName", {n: n for n in downloadable_names()})  # type: ignore[misc]  # not literal
 
 
 class JobCreate(BaseModel):

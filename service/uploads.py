@@ -102,6 +102,12 @@ class _Sink:
         self.buf = bytearray()
         self.n = 0
 
+    def hexdigest(self) -> str:
+        """SHA-256 of what was written (hex); only for a sink opened with ``hash_it``."""
+        if self.h is None:
+            raise RuntimeError(f"{self.path}: this sink was opened without hashing")
+        return self.h.hexdigest()
+
     def _write(self, data: bytes) -> None:
         self.f.write(data)
         if self.h is not None:
@@ -251,7 +257,7 @@ async def _whole(request: Request, svc: Services, job: Job, path: str, limit: in
         await sink.close(sync=True)
         if path == "capture.json":
             await run_in_threadpool(_check_manifest, tmp)
-        info = FileInfo(path=path, size=sink.n, sha256=sink.h.hexdigest())  # type: ignore[union-attr]
+        info = FileInfo(path=path, size=sink.n, sha256=sink.hexdigest())
         await run_in_threadpool(_commit, svc, job, token, tmp, info)
         await run_in_threadpool(svc.store.clear_partial, job.id, path)
     except BaseException:

@@ -170,6 +170,11 @@ class SensorSpec(_Closed):
         self.layout_value()  # raises on inconsistent overrides
         return self
 
+    @property
+    def white(self) -> float:
+        """``white_level``, or its default 2^bit_depth - 1 where the manifest left it out."""
+        return float((1 << self.bit_depth) - 1) if self.white_level is None else float(self.white_level)
+
     def layout_value(self) -> MosaicLayout:
         """The MosaicLayout (angles converted to the ccw sense)."""
         try:

@@ -31,8 +31,12 @@ Methods:
   frame's range, 16 times finer than 12-bit data), then the same bilinear
   polarization interpolation in float32. Frames under 8 pixels high or wide
   (a 2x2 Bayer image per angle, which OpenCV mishandles) use bilinear.
-* A monochrome layout has no colour step: both methods are the bilinear
-  polarization interpolation.
+* ``"guided"``: ``"bilinear"``, then the polarization (not the intensity)
+  replaced by a guided-filter estimate with the intensity as guide
+  (:mod:`pmvir.polarization.guided`): far less false polarization from
+  texture and noise, one colour-mean polarization shared by the colours.
+* A monochrome layout has no colour step: ``"bilinear"`` and ``"edge-aware"``
+  are the bilinear polarization interpolation.
 
 OpenCV names a Bayer code after the second row's second and third pixels, so
 its code for a pattern is "off by one" from the pattern's usual name: an
@@ -295,6 +299,8 @@ def _bilinear_colour(columns: list[np.ndarray], layout: MosaicLayout, dy: int, d
 
 def _edge_aware_colour(mosaic: np.ndarray, layout: MosaicLayout, planes: np.ndarray) -> None:
     """OpenCV edge-aware Bayer demosaicing of each angle's image, then bilinear upsampling."""
+    if layout.bayer is None:
+        raise ConfigError("edge-aware demosaicing needs a colour (Bayer) layout")
     lo, hi, _, _ = cv2.minMaxLoc(mosaic)
     span = hi - lo
     scale = 65535.0 / span if span > 0 else 1.0
@@ -303,7 +309,7 @@ def _edge_aware_colour(mosaic: np.ndarray, layout: MosaicLayout, planes: np.ndar
         mosaic, None, 0, 65535, cv2.NORM_MINMAX, dtype=cv2.CV_16U
     )
     columns = _column_phases(q16, 2)
-    code = getattr(cv2, f"COLOR_{_CV_BAYER[layout.bayer]}2RGB_EA")  # type: ignore[index]
+    code = getattr(cv2, f"COLOR_{_CV_BAYER[layout.bayer]}2RGB_EA")
     block = layout.angle_index_block()
     for dy in range(2):
         for dx in range(2):

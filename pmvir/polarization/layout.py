@@ -138,13 +138,15 @@ def layout_from_sensor(
     base = _KNOWN[name]
     block = base.polarizer_block
     if polarizer_block is not None:
-        block = tuple(tuple(int(a) for a in row) for row in polarizer_block)  # type: ignore[assignment]
-        if len(block) != 2 or any(len(row) != 2 for row in block):
+        rows = [[int(a) for a in row] for row in polarizer_block]
+        if len(rows) != 2 or any(len(row) != 2 for row in rows):
             raise ConfigError(f"polarizer_block must be 2x2, got {polarizer_block}")
+        block = ((rows[0][0], rows[0][1]), (rows[1][0], rows[1][1]))
     if aop_reference not in ("ccw", "cw"):
         raise ConfigError(f"aop_reference must be 'ccw' or 'cw', got {aop_reference!r}")
     if aop_reference == "cw":
-        block = tuple(tuple((-a) % 180 for a in row) for row in block)  # type: ignore[assignment]
+        (a, b), (c, d) = block
+        block = (((-a) % 180, (-b) % 180), ((-c) % 180, (-d) % 180))
     if bayer is not None and not base.is_colour:
         raise ConfigError(f"bayer override given for the monochrome layout {name}")
     return MosaicLayout(polarizer_block=block, bayer=bayer if bayer is not None else base.bayer)
