@@ -182,7 +182,7 @@ def test_signed_in_the_job_list_and_job_page_show_the_finished_job(
     )
 
     # a download link for every result file
-    links = {a.get_attribute("data-path") for a in page.locator("#downloads a").all()}
+    links = {a.get_attribute("data-path") for a in page.locator("#downloads a[data-path]").all()}
     assert links == {f["path"] for f in listing}
     for name in (
         "mesh.glb",
@@ -193,6 +193,8 @@ def test_signed_in_the_job_list_and_job_page_show_the_finished_job(
         "initial.ply",
     ):
         assert name in links
+    zips = {a.get_attribute("data-zip") for a in page.locator("#downloads a[data-zip]").all()}
+    assert zips == {"poses.zip", "previews.zip", "residuals.zip"}  # each folder also as one zip
     with page.expect_download() as dl:
         page.locator("#downloads a[data-path='mesh.glb']").click()
     saved = tmp_path / "mesh.glb"
