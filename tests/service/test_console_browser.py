@@ -104,6 +104,14 @@ def _sign_in(w: PageWatch, key: str) -> None:
     w.page.click("#signin button[type=submit]")
 
 
+def _validate(path: Path) -> dict:
+    """The Khronos glTF validator's report of a file (npm gltf-validator, installed by make setup)."""
+    out = subprocess.run(
+        ["node", str(VALIDATOR), str(path)], capture_output=True, text=True, timeout=120, check=False
+    )
+    return json.loads(out.stdout.splitlines()[0])
+
+
 def _non_background_fraction(png: bytes, background: tuple[int, int, int] = (0x20, 0x25, 0x2F)) -> float:
     from PIL import Image
 
@@ -200,12 +208,14 @@ def test_signed_in_the_job_list_and_job_page_show_the_finished_job(
     saved = tmp_path / "mesh.glb"
     dl.value.save_as(saved)
     assert saved.read_bytes()[:4] == b"glTF"
-    checked = subprocess.run(
-        ["node", str(VALIDATOR), str(saved)], capture_output=True, text=True, timeout=120, check=False
-    )
-    verdict = json.loads(checked.stdout.splitlines()[0])
+    verdict = _validate(saved)
     assert verdict["errors"] == 0, verdict["messages"]
     assert verdict["info"]["totalVertexCount"] == report["refine"]["vertices"]  # every vertex of mesh.ply
+    textured = tmp_path / "textured.glb"
+    with httpx.Client(base_url=stack.url, headers={"Authorization": f"Bearer {KEY}"}) as c:
+        textured.write_bytes(c.get(f"/v1/jobs/{job['id']}/results/textured.glb").content)
+    verdict = _validate(textured)
+    assert verdict["errors"] == 0 and verdict["info"]["hasTextures"], verdict["messages"]
     page.screenshot(path=str(tmp_path / "job.png"), full_page=True)
 
 
