@@ -90,9 +90,10 @@ def main(argv: list[str] | None = None) -> int:
                 page.wait_for_timeout(1000)
                 stats["page_ready_s"] = time.perf_counter() - t0
                 page.screenshot(path=str(args.out / "console-job.png"), full_page=True)
-                if args.readme is not None:
-                    shot = page.screenshot(full_page=True)
-                    _reduced(shot, args.readme)
+                if args.readme is not None:  # the page down to the per-view images (not the long lists)
+                    bottom = page.locator("#view-images").bounding_box()
+                    clip = {"x": 0, "y": 0, "width": 1280, "height": bottom["y"] + bottom["height"] + 40}
+                    _reduced(page.screenshot(full_page=True, clip=clip), args.readme)
                 canvas = page.locator("#viewer canvas")
                 for mode in ("albedo", "shaded", "normals"):
                     page.check(f"input[name=mode][value={mode}]")

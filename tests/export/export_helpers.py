@@ -19,7 +19,9 @@ def validate(path: Path) -> dict:
     """The validator's report of one file: errors, warnings, infos, messages, info."""
     if shutil.which("node") is None or not PACKAGE.is_dir():
         pytest.skip("node or the gltf-validator npm package is missing: run make setup")
-    out = subprocess.run(["node", str(SCRIPT), str(path)], capture_output=True, text=True, timeout=120, check=False)
+    out = subprocess.run(
+        ["node", str(SCRIPT), str(path)], capture_output=True, text=True, timeout=120, check=False
+    )
     if out.returncode not in (0, 1):
         raise RuntimeError(f"the validator failed: {out.stderr}")
     return json.loads(out.stdout.splitlines()[0])

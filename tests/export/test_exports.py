@@ -173,6 +173,11 @@ def test_the_bake_runs_in_a_child_that_a_cancel_stops(sphere_mesh: Mesh, tmp_pat
 
     with pytest.raises(CanceledError):
         bake_textured_in_child(
-            sphere_mesh, face_budget=4000, texture_size=512, workdir=tmp_path, should_stop=stop, poll_seconds=0.05
+            sphere_mesh,
+            face_budget=4000,
+            texture_size=512,
+            workdir=tmp_path,
+            should_stop=stop,
+            poll_seconds=0.05,
         )
     assert calls == [1] and not (tmp_path / "bake-out.npz").exists()

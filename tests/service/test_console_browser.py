@@ -104,6 +104,14 @@ def _sign_in(w: PageWatch, key: str) -> None:
     w.page.click("#signin button[type=submit]")
 
 
+def _validate(path: Path) -> dict:
+    """The Khronos glTF validator's report of a file (npm gltf-validator, installed by make setup)."""
+    out = subprocess.run(
+        ["node", str(VALIDATOR), str(path)], capture_output=True, text=True, timeout=120, check=False
+    )
+    return json.loads(out.stdout.splitlines()[0])
+
+
 def _non_background_fraction(png: bytes, background: tuple[int, int, int] = (0x20, 0x25, 0x2F)) -> float:
     from PIL import Image
 
@@ -182,7 +190,7 @@ def test_signed_in_the_job_list_and_job_page_show_the_finished_job(
     )
 
     # a download link for every result file
-    links = {a.get_attribute("data-path") for a in page.locator("#downloads a").all()}
+    links = {a.get_attribute("data-path") for a in page.locator("#downloads a[data-path]").all()}
     assert links == {f["path"] for f in listing}
     for name in (
         "mesh.glb",
@@ -193,17 +201,21 @@ def test_signed_in_the_job_list_and_job_page_show_the_finished_job(
         "initial.ply",
     ):
         assert name in links
+    zips = {a.get_attribute("data-zip") for a in page.locator("#downloads a[data-zip]").all()}
+    assert zips == {"poses.zip", "previews.zip", "residuals.zip"}  # each folder also as one zip
     with page.expect_download() as dl:
         page.locator("#downloads a[data-path='mesh.glb']").click()
     saved = tmp_path / "mesh.glb"
     dl.value.save_as(saved)
     assert saved.read_bytes()[:4] == b"glTF"
-    checked = subprocess.run(
-        ["node", str(VALIDATOR), str(saved)], capture_output=True, text=True, timeout=120, check=False
-    )
-    verdict = json.loads(checked.stdout.splitlines()[0])
+    verdict = _validate(saved)
     assert verdict["errors"] == 0, verdict["messages"]
     assert verdict["info"]["totalVertexCount"] == report["refine"]["vertices"]  # every vertex of mesh.ply
+    textured = tmp_path / "textured.glb"
+    with httpx.Client(base_url=stack.url, headers={"Authorization": f"Bearer {KEY}"}) as c:
+        textured.write_bytes(c.get(f"/v1/jobs/{job['id']}/results/textured.glb").content)
+    verdict = _validate(textured)
+    assert verdict["errors"] == 0 and verdict["info"]["hasTextures"], verdict["messages"]
     page.screenshot(path=str(tmp_path / "job.png"), full_page=True)
 
 

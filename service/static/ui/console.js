@@ -304,11 +304,32 @@ async function renderResults(job, box) {
   if (paths.has("mesh.glb")) sections.push(await viewerSection(job, base, paths, illumination, viewSelect));
   if (report && report.refine) sections.push(plotSection(report.refine.stages));
   if (views.length) sections.push(imagesSection(base, paths, views, viewSelect));
-  sections.push(h("section", { class: "card" }, h("h2", {}, "Downloads"),
-    h("ul", { class: "downloads", id: "downloads" }, listing.files.map((f) =>
-      h("li", {}, h("a", { "data-path": f.path, title: f.description, onclick: () => download(base + f.path, f.path.replace(/\//g, "_")) }, f.path),
-        " ", h("span", { class: "muted" }, fmtBytes(f.size)))))));
+  sections.push(downloadsSection(job, listing, base));
   box.replaceChildren(...sections);
+}
+
+function downloadsSection(job, listing, base) {
+  // single files first; the files of a folder (previews/, residuals/, poses/) under one fold each,
+  // with the folder as one zip (GET /v1/jobs/{id}/result/{folder}.zip) beside it
+  const link = (f) => h("li", {}, h("a", { "data-path": f.path, title: f.description,
+    onclick: () => download(base + f.path, f.path.replace(/\//g, "_")) }, f.path), " ", h("span", { class: "muted" }, fmtBytes(f.size)));
+  const folders = new Map();
+  const singles = [];
+  for (const f of listing.files) {
+    const slash = f.path.indexOf("/");
+    if (slash < 0) { singles.push(f); continue; }
+    const name = f.path.slice(0, slash);
+    if (!folders.has(name)) folders.set(name, []);
+    folders.get(name).push(f);
+  }
+  const zips = new Set(job.results || []);
+  const blocks = [...folders].map(([name, files]) => h("details", { "data-folder": name },
+    h("summary", {}, `${name}/ — ${files.length} files, ${fmtBytes(files.reduce((a, f) => a + f.size, 0))}`,
+      zips.has(`${name}.zip`) ? h("span", {}, " · ", h("a", { "data-zip": `${name}.zip`,
+        onclick: (ev) => { ev.preventDefault(); download(`/v1/jobs/${job.id}/result/${name}.zip`, `${name}.zip`); } }, `${name}.zip`)) : ""),
+    h("ul", { class: "downloads" }, files.map(link))));
+  return h("section", { class: "card", id: "downloads" }, h("h2", {}, "Downloads"),
+    h("ul", { class: "downloads" }, singles.map(link)), blocks);
 }
 
 // ---------------------------------------------------------------- 3D view
@@ -351,8 +372,15 @@ async function viewerSection(job, base, paths, illumination, viewSelect) {
   geom.computeBoundingBox();
   const box = geom.boundingBox, size = new THREE.Vector3(), centre = new THREE.Vector3();
   box.getSize(size); box.getCenter(centre);
-  const albedo = geom.getAttribute("color");
+  const linearAlbedo = geom.getAttribute("color");
   const normals = geom.getAttribute("normal");
+  // The albedo shares a per-channel scale with rgb_scale (only their product is known), so it is
+  // shown exposed: its 99th percentile (brightest channel) maps to white, as the previews do.
+  const peaks = [];
+  for (let i = 0; i < linearAlbedo.count; i += 7) peaks.push(Math.max(linearAlbedo.getX(i), linearAlbedo.getY(i), linearAlbedo.getZ(i)));
+  peaks.sort((a, b) => a - b);
+  const exposure = 1 / Math.max(peaks[Math.floor(peaks.length * 0.99)] || 1, 1e-6);
+  const albedo = new THREE.BufferAttribute(linearAlbedo.array.map((v) => Math.min(v * exposure, 1)), 3);
   const shaded = new THREE.BufferAttribute(new Float32Array(albedo.count * 3), 3);
   const materials = {
     // double-sided: a surface trimmed to the dense points may have holes, through which its inside shows
@@ -375,7 +403,7 @@ async function viewerSection(job, base, paths, illumination, viewSelect) {
     let peak = [];
     for (let i = 0; i < albedo.count; i++) {
       const s = Math.max(0, shFromGltfNormal(normals.getX(i), normals.getY(i), normals.getZ(i), frame.sh));
-      for (let c = 0; c < 3; c++) values[3 * i + c] = albedo.array[3 * i + c] * s * frame.rgb_scale[c];
+      for (let c = 0; c < 3; c++) values[3 * i + c] = linearAlbedo.array[3 * i + c] * s * frame.rgb_scale[c];
       if (i % 7 === 0) peak.push(Math.max(values[3 * i], values[3 * i + 1], values[3 * i + 2]));
     }
     peak.sort((a, b) => a - b);
@@ -389,7 +417,8 @@ async function viewerSection(job, base, paths, illumination, viewSelect) {
   function apply() {
     const m = section.querySelector("input[name=mode]:checked").value;
     if (m === "shaded") { shade(); geom.setAttribute("color", shaded); } else geom.setAttribute("color", albedo);
-    if (m !== "shaded") note.textContent = "";
+    if (m === "albedo") note.textContent = `linear albedo × ${exposure.toFixed(2)} (99th percentile to white)`;
+    else if (m !== "shaded") note.textContent = "";
     refined.material = materials[m];
     holder.dataset.mode = m;
   }
@@ -433,6 +462,7 @@ async function viewerSection(job, base, paths, illumination, viewSelect) {
   new ResizeObserver(resize).observe(holder);
   resize();
   frame(1.0);
+  apply();
   renderer.setAnimationLoop(() => {
     if (!document.body.contains(holder)) { renderer.setAnimationLoop(null); renderer.dispose(); return; }
     controls.update();
