@@ -64,7 +64,7 @@ def _run(capture: Path, known: bool, workdir: Path) -> dict:
     t0 = time.perf_counter()
     cpu0 = time.process_time()
     model = estimate_poses(
-        images, names, cameras=true if known else None, masks=masks, options=GeometryOptions(), workdir=workdir
+        images, names, cameras=true if known else None, masks=masks, options=GeometryOptions().sfm, workdir=workdir
     )
     row: dict = {
         "mode": "known" if known else "sfm",
