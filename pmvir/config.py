@@ -116,6 +116,21 @@ class SfmOptions(_Options):
         "(one focal length: far better constrained than one per view).",
     )
     seed: int = Field(default=0, ge=0, description="Random seed of RANSAC and view selection in SfM.")
+    mapper: Literal["incremental", "global"] = Field(
+        default="incremental",
+        description="SfM mapper: COLMAP's incremental mapping, or its global mapper (GLOMAP: rotation "
+        "averaging and global positioning), both followed by the robust bundle adjustment.",
+    )
+    guided_matching: bool = Field(
+        default=True,
+        description="SfM matching: after RANSAC, match again along the verified epipolar geometry (COLMAP "
+        "guided matching): more matches between views 30-45 degrees apart.",
+    )
+    grey: Literal["int", "min"] = Field(
+        default="int",
+        description="The image SIFT sees: 'int' = I_int, 'min' = I_min = (1 - DoP) I_int, the unpolarized "
+        "part, in which specular highlights (strongly polarized on dielectrics) are dimmed.",
+    )
 
 
 class MvsOptions(_Options):

@@ -105,9 +105,14 @@ def run_colmap(
             rec.update_point_3d_errors()
         timings["triangulation"] = time.perf_counter() - t0
         return rec, features, partners
-    report(0.6, "incremental SfM")
+    report(0.6, f"{options.mapper} SfM")
     constant = _known_camera_ids(database, files, Ks)
-    models = pycolmap.incremental_mapping(database, image_dir, sparse_dir, options=_pipeline_options(options, constant))
+    if options.mapper == "global":
+        models = pycolmap.global_mapping(database, image_dir, sparse_dir, options=_global_options(options, constant))
+    else:
+        models = pycolmap.incremental_mapping(
+            database, image_dir, sparse_dir, options=_pipeline_options(options, constant)
+        )
     rec = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
     timings["mapping"] = time.perf_counter() - t0
     if rec is not None:
@@ -162,6 +167,7 @@ def _match(database: Path, n: int, options: SfmOptions) -> None:
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = options.seed
     matching = pycolmap.FeatureMatchingOptions()
+    matching.guided_matching = options.guided_matching
     if n <= options.exhaustive_matching_max_views:
         pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verification)
     else:
@@ -281,6 +287,20 @@ def _pipeline_options(
     po.constant_cameras = constant_cameras
     po.mapper.init_min_num_inliers = options.init_min_inliers
     po.mapper.abs_pose_min_num_inliers = options.register_min_inliers
+    return po
+
+
+def _global_options(options: SfmOptions, constant_cameras: set[int]) -> pycolmap.GlobalPipelineOptions:
+    """GLOMAP options: seeded, CPU, given intrinsics held fixed (focal lengths refined only when estimated)."""
+    po = pycolmap.GlobalPipelineOptions()
+    po.random_seed = options.seed
+    po.min_model_size = options.min_registered_views
+    po.mapper.random_seed = options.seed
+    po.mapper.global_positioning.use_gpu = False
+    po.mapper.global_positioning.random_seed = options.seed
+    po.mapper.bundle_adjustment.refine_principal_point = False
+    po.mapper.bundle_adjustment.refine_extra_params = False
+    po.mapper.bundle_adjustment.refine_focal_length = not constant_cameras
     return po
 
 

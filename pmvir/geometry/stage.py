@@ -140,7 +140,7 @@ def run_geometry(
         known = capture.has_all_poses
         intrinsics = [None if f.intrinsics is None else _k_matrix(f.intrinsics) for f in capture.frames]
         sparse = estimate_poses(
-            images,
+            images if options.sfm.grey == "int" else [np.asarray(v.i_min, np.float32) for v in views],
             names,
             cameras=[f.camera for f in capture.frames] if known else None,
             intrinsics=intrinsics if any(k is not None for k in intrinsics) else None,

