@@ -44,13 +44,14 @@ def test_old_flat_keys_warn_and_land_in_their_group():
     assert g.mvs.planes == 40 and g.mvs.window == 5 and g.surface.poisson_depth == 9
 
 
-def test_old_flat_keys_through_the_pipeline_config_and_the_cli():
+def test_old_flat_keys_through_the_pipeline_config_and_the_cli(capsys: pytest.CaptureFixture[str]):
     with pytest.warns(DeprecationWarning, match="sfm_seed -> sfm.seed"):
         c = PipelineConfig.model_validate({"geometry": {"sfm_seed": 7}})
     assert c.geometry.sfm.seed == 7
     with pytest.warns(DeprecationWarning, match="subdivision_max_area_px"):
         c = _cli("geometry.subdivision_max_area_px=8", "geometry.mvs.planes=48")
     assert c.geometry.subdivision.max_area_px == 8.0 and c.geometry.mvs.planes == 48
+    assert "subdivision_max_area_px -> subdivision.max_area_px" in capsys.readouterr().err  # shown on the terminal
 
 
 def test_new_keys_do_not_warn():
