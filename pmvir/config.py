@@ -122,9 +122,10 @@ class SfmOptions(_Options):
         "averaging and global positioning), both followed by the robust bundle adjustment.",
     )
     guided_matching: bool = Field(
-        default=True,
+        default=False,
         description="SfM matching: after RANSAC, match again along the verified epipolar geometry (COLMAP "
-        "guided matching): more matches between views 30-45 degrees apart.",
+        "guided matching). Off: on the 36-view 432x360 test blob it moved the estimated focal length from "
+        "within 1% to 1.1% off.",
     )
     grey: Literal["int", "min"] = Field(
         default="int",
