@@ -215,12 +215,12 @@ def _mug(n_u: int = 160, n_v: int = 120, n_t: int = 160, n_s: int = 24) -> tuple
     body = np.stack([r * np.cos(cu), r * np.sin(cu), z], -1).reshape(-1, 3)
     body = np.concatenate([body, [[0.0, 0.0, b], [0.0, 0.0, -b]]])
     m = n_v - 2
-    faces = []
+    faces: list[tuple[int, int, int]] = []
     for i in range(n_u):
         i2 = (i + 1) % n_u
         for j in range(m - 1):
-            p, q, rr, ss = i * m + j, i2 * m + j, i2 * m + j + 1, i * m + j + 1
-            faces += [(p, q, rr), (p, rr, ss)]
+            a0, b0, c0, d0 = i * m + j, i2 * m + j, i2 * m + j + 1, i * m + j + 1
+            faces += [(a0, b0, c0), (a0, c0, d0)]
         faces += [(len(body) - 2, i2 * m, i * m), (len(body) - 1, i * m + m - 1, i2 * m + m - 1)]
     body_faces = _orient_outward(body, np.asarray(faces, np.int64))
     # handle: a tube of radius tau along an arc of radius rho centred on the body's wall (x = a)
@@ -234,9 +234,9 @@ def _mug(n_u: int = 160, n_v: int = 120, n_t: int = 160, n_s: int = 24) -> tuple
     w = np.linspace(0.0, 2.0 * np.pi, n_s, endpoint=False)
     ring = np.cos(w)[None, :, None] * normal[:, None] + np.sin(w)[None, :, None] * binormal[:, None]
     tube = (centre[:, None] + tau * ring).reshape(-1, 3)
-    i, j = np.meshgrid(np.arange(n_t - 1), np.arange(n_s), indexing="ij")
-    p, q = i * n_s + j, (i + 1) * n_s + j
-    rr, ss = (i + 1) * n_s + (j + 1) % n_s, i * n_s + (j + 1) % n_s
+    ti, tj = np.meshgrid(np.arange(n_t - 1), np.arange(n_s), indexing="ij")
+    p, q = ti * n_s + tj, (ti + 1) * n_s + tj
+    rr, ss = (ti + 1) * n_s + (tj + 1) % n_s, ti * n_s + (tj + 1) % n_s
     tube_faces = np.concatenate(
         [np.stack([p, q, rr], -1).reshape(-1, 3), np.stack([p, rr, ss], -1).reshape(-1, 3)]
     )
