@@ -53,7 +53,7 @@ def main() -> None:
                 "est_vertices": len(est.vertices),
                 "cpu_count": os.cpu_count(),
                 "machine": platform.processor() or platform.machine(),
-                "seconds": {k: v for k, v in rows},
+                "seconds": dict(rows),
                 "accuracy": res.accuracy,
                 "completeness": res.completeness,
             },

@@ -146,7 +146,7 @@ def main() -> None:
         for material, (wall, cpu) in scalar.items():
             rate = WIDTH * HEIGHT * args.scalar_spp / cpu
             print(f"  {material:<10} {wall:8.2f} {cpu:8.2f}  ({rate:,.0f} paths/CPU s, 4 wavelengths each)")
-    out = {"variant": VARIANT, "width": WIDTH, "height": HEIGHT, "faces": int(len(faces)),
+    out = {"variant": VARIANT, "width": WIDTH, "height": HEIGHT, "faces": len(faces),
            "cpus": os.cpu_count(), "load_before": load_before, "load_after": load_after,
            "peak_rss_mib": round(peak_mib), "python": platform.python_version(), "rows": rows,
            "scalar_spectral_polarized": scalar, "scalar_spp": args.scalar_spp if scalar else None}

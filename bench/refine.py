@@ -138,7 +138,7 @@ class Case:
     def views(self) -> list:
         if self._views is None:
             with open_capture(self.capture) as cap:
-                self._views = decode_views(cap, PipelineConfig(), lambda f, m="": None)
+                self._views = decode_views(cap, PipelineConfig())
                 self.masks = [cap.read_mask(i) for i in range(len(cap.frames))]
         return self._views
 

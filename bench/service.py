@@ -35,7 +35,7 @@ import httpx
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from service.testing import ServiceStack, write_noise_capture  # noqa: E402
+from service.testing import ServiceStack, write_noise_capture
 
 RESULTS = Path(__file__).resolve().parent / "results" / "service.json"
 
@@ -46,7 +46,7 @@ def percentiles(values: list[float]) -> dict[str, float]:
         return {}
 
     def q(p: float) -> float:
-        k = min(int(round(p / 100 * (len(values) - 1))), len(values) - 1)
+        k = min(round(p / 100 * (len(values) - 1)), len(values) - 1)
         return values[k]
 
     return {

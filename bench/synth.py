@@ -24,7 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pmvir.synth.generate import ViewDone, synthesize  # noqa: E402
+from pmvir.synth.generate import ViewDone, synthesize
 
 
 def main() -> int:

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 
 @dataclass(frozen=True)
@@ -38,7 +39,7 @@ class Camera:
     @classmethod
     def from_intrinsics(
         cls, fx: float, fy: float, cx: float, cy: float, width: int, height: int, R: np.ndarray, t: np.ndarray
-    ) -> "Camera":
+    ) -> Camera:
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         return cls(K=K, R=R, t=t, width=width, height=height)
 
@@ -81,7 +82,9 @@ class Camera:
         return origins, d_world
 
 
-def look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> tuple[np.ndarray, np.ndarray]:
+def look_at(
+    center: np.ndarray, target: np.ndarray, up: ArrayLike = (0.0, 0.0, 1.0)
+) -> tuple[np.ndarray, np.ndarray]:
     """cam_from_world (R, t) of a camera at ``center`` looking at ``target``, world ``up`` shown up.
 
     Returns:

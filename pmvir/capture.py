@@ -50,6 +50,7 @@ import tempfile
 import weakref
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -173,7 +174,7 @@ class Capture:
         if self._cleanup is not None:
             self._cleanup()
 
-    def __enter__(self) -> "Capture":
+    def __enter__(self) -> Capture:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -250,7 +251,7 @@ class Capture:
         """Frame i normalized: see :class:`RawFrame`. FrameError if the frame fails a check."""
         samples = self.read_samples(i)
         black = float(self.sensor.black_level)
-        white = float(self.sensor.white_level)  # type: ignore[arg-type]
+        white = self.sensor.white
         exposure = self.frames[i].exposure
         scale = np.float32(1.0 / ((white - black) * exposure))
         mosaic = (samples.astype(np.float32) - np.float32(black)) * scale
@@ -382,7 +383,7 @@ def _open_folder(root: Path) -> Capture:
     return Capture(root, _load_manifest(root))
 
 
-def validate_capture(path: str | Path, *, decode_frames: bool = True, **open_options: object) -> list[CaptureError]:
+def validate_capture(path: str | Path, *, decode_frames: bool = True, **open_options: Any) -> list[CaptureError]:
     """Open and validate a capture; every problem is returned, none raised.
 
     Args:
@@ -395,7 +396,7 @@ def validate_capture(path: str | Path, *, decode_frames: bool = True, **open_opt
         opened, else one FrameError per bad frame or mask. Empty when valid.
     """
     try:
-        cap = open_capture(path, **open_options)  # type: ignore[arg-type]
+        cap = open_capture(path, **open_options)
     except CaptureError as exc:
         return [exc]
     with cap:

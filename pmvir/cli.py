@@ -15,7 +15,36 @@ from pmvir import __version__
 from pmvir.errors import PmvirError
 
 #: Sub-command modules under pmvir.commands, in the order ``--help`` lists them.
-COMMANDS: tuple[str, ...] = ("decode", "evaluate", "reconstruct", "synth", "serve", "worker", "submit")
+COMMANDS: tuple[str, ...] = ("decode", "evaluate", "reconstruct", "synth", "serve", "worker", "submit", "remote")
+#: The extra each module's commands need (``pip install 'pmvir[<extra>]'``).
+EXTRAS: dict[str, str] = {
+    "decode": "full",
+    "evaluate": "full",
+    "reconstruct": "full",
+    "synth": "full",
+    "serve": "service",
+    "worker": "service",
+    "submit": "client",
+    "remote": "client",
+}
+
+
+def _missing_extra(module: str, exc: ModuleNotFoundError) -> str:
+    extra = EXTRAS.get(module, "full")
+    return f"needs the Python package {exc.name!r}: install the extra with pip install 'pmvir[{extra}]'"
+
+
+def _add_unavailable(sub: argparse._SubParsersAction, module: str, exc: ModuleNotFoundError) -> None:
+    """A command whose module cannot be imported here: it says which extra to install."""
+    why = _missing_extra(module, exc)
+    p = sub.add_parser(module, help=f"(unavailable: {why})", add_help=False)
+    p.add_argument("rest", nargs=argparse.REMAINDER)
+
+    def run(args: argparse.Namespace) -> int:
+        print(f"pmvir {module}: {why}", file=sys.stderr)
+        return 2
+
+    p.set_defaults(func=run)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -27,7 +56,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"pmvir {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
-        importlib.import_module(f"pmvir.commands.{name}").add_parser(sub)
+        try:
+            module = importlib.import_module(f"pmvir.commands.{name}")
+        except ModuleNotFoundError as exc:  # an extra is not installed
+            _add_unavailable(sub, name, exc)
+            continue
+        module.add_parser(sub)
     return parser
 
 
@@ -41,6 +75,10 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except PmvirError as exc:
         print(f"pmvir {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as exc:  # a command that imports its heavy dependencies when run
+        module = next((m for m in COMMANDS if args.func.__module__.endswith(f".{m}")), args.command)
+        print(f"pmvir {args.command}: {_missing_extra(module, exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"pmvir {args.command}: interrupted", file=sys.stderr)

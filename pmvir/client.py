@@ -20,7 +20,7 @@ resume with ``Range`` into ``<dest>.part``. Uploaded files are checked
 against the sha256 the server returns.
 
 Errors from the server raise :class:`ServiceError` (a :class:`pmvir.errors.PmvirError`)
-with the HTTP status and the JSON error body. Needs ``httpx`` (``pip install pmvir[service]``).
+with the HTTP status and the JSON error body. Needs only ``httpx`` (``pip install 'pmvir[client]'``).
 """
 
 from __future__ import annotations
@@ -61,6 +61,28 @@ class ServiceError(PmvirError):
         ]
         detail = f" ({'; '.join(items)})" if items else ""
         super().__init__(f"{method} {url}: HTTP {status} {message}{detail}".strip())
+
+
+def verify_webhook(
+    secret: str, body: bytes, signature: str, *, tolerance: float = 300.0, now: float | None = None
+) -> bool:
+    """Whether a webhook event is authentic: ``signature`` is its ``X-Pmvir-Signature`` header.
+
+    The header is ``t=<unix seconds>,v1=<hex>`` with ``<hex>`` the HMAC-SHA256, keyed with the
+    service's PMVIR_WEBHOOK_SECRET, of ``b"<t>." + body``; events older or newer than ``tolerance``
+    seconds are refused (replays).
+    """
+    import hmac
+
+    fields = dict(part.split("=", 1) for part in signature.split(",") if "=" in part)
+    try:
+        t = int(fields["t"])
+    except (KeyError, ValueError):
+        return False
+    if abs((time.time() if now is None else now) - t) > tolerance:
+        return False
+    expected = hmac.new(secret.encode(), f"{t}.".encode() + body, hashlib.sha256).hexdigest()
+    return hmac.compare_digest(expected, fields.get("v1", ""))
 
 
 def sha256_of(path: Path) -> str:
@@ -253,6 +275,25 @@ class PmvirClient:
                 if job["status"] != "created":
                     return job
             raise
+
+    def rerun(
+        self,
+        job_id: str,
+        options: dict[str, Any] | None = None,
+        *,
+        from_stage: str = "refine",
+        label: str | None = None,
+    ) -> dict[str, Any]:
+        """A new, queued job on ``job_id``'s capture with ``options`` merged into its options,
+        computing the stages from ``from_stage`` on (earlier ones come from the source's cache)."""
+        payload: dict[str, Any] = {"options": options or {}, "from_stage": from_stage}
+        if label:
+            payload["label"] = label
+        return self.request("POST", f"/v1/jobs/{job_id}/rerun", ok=(201,), json=payload).json()
+
+    def info(self) -> dict[str, Any]:
+        """The service's version, limits, queue length, workers and disk use (GET /v1/info)."""
+        return self.request("GET", "/v1/info").json()
 
     def cancel(self, job_id: str) -> dict[str, Any]:
         return self.request("POST", f"/v1/jobs/{job_id}/cancel", ok=(200, 202)).json()

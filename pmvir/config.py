@@ -7,16 +7,31 @@ its range and its meaning. Unknown keys are errors (``extra="forbid"``).
 
 from __future__ import annotations
 
+import math
 import warnings
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from pmvir.stages import Stage
+
+#: No numeric option accepts a magnitude above this (fields state narrower ranges of their own).
+OPTION_MAGNITUDE_LIMIT = 1e9
 
 
 class _Options(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _finite_and_bounded(cls, value: Any) -> Any:
+        """Every number (and every number in a list) is finite and within +-OPTION_MAGNITUDE_LIMIT."""
+        numbers = value if isinstance(value, list) else [value]
+        for x in numbers:
+            is_number = isinstance(x, (int, float)) and not isinstance(x, bool)
+            if is_number and (not math.isfinite(x) or abs(x) > OPTION_MAGNITUDE_LIMIT):
+                raise ValueError(f"{x!r} is out of range; no option accepts a magnitude above 1e9")
+        return value
 
 
 class DecodeOptions(_Options):
@@ -29,12 +44,13 @@ class DecodeOptions(_Options):
         description="Pixels whose mean intensity (I_int averaged over colours, = s0 / 2, normalized "
         "units) is at or below this are invalid: AoP/DoP are undefined there.",
     )
-    demosaic: Literal["bilinear", "edge-aware"] = Field(
-        default="bilinear",
-        description="Colour (Bayer) interpolation of each polarizer angle's half-resolution image: "
-        "'bilinear' (float32) or 'edge-aware' (OpenCV's edge-aware demosaicing, 16-bit); the "
-        "polarization interpolation back to full resolution is bilinear in both. Bilinear measured as "
-        "accurate or better for AoP/DoP (bench/demosaic.py). Monochrome sensors: no colour step.",
+    demosaic: Literal["bilinear", "edge-aware", "guided"] = Field(
+        default="guided",
+        description="Demosaicing method: 'bilinear' (per-angle Bayer then polarization interpolation, "
+        "float32), 'edge-aware' (OpenCV's edge-aware Bayer step, 16-bit, then bilinear) or 'guided' "
+        "(bilinear intensity; the colour-mean polarization from a guided filter with the intensity as "
+        "guide: much less false polarization from texture and noise, reach 13 px around saturated "
+        "samples; bench/demosaic.py). Monochrome sensors: no colour step.",
     )
 
 
@@ -502,6 +518,7 @@ class RefineOptions(_Options):
     max_iterations: int = Field(
         default=80,
         ge=1,
+        le=100_000,
         description="Most L-BFGS iterations per stage. 80: on the Stanford models every stage still lowers "
         "the cost at 40 (accuracy gain 33% at 40, 39% at 80), and 300k vertices x 36 views x 3 stages of 80 "
         "take about 7 minutes on 2 CPU cores (bench/refine_speed.py).",
@@ -597,10 +614,33 @@ class RefineOptions(_Options):
         return len(self.tau_pol)
 
 
+class ExportOptions(_Options):
+    """Files written beside the result for people and other tools (previews, residuals, glTF, OBJ)."""
+
+    textured: bool = Field(
+        default=True,
+        description="Write textured.glb and textured.obj/.mtl/_albedo.png: the refined mesh decimated to "
+        "face_budget faces, UV-mapped with xatlas and its albedo baked into a texture.",
+    )
+    face_budget: int = Field(
+        default=100_000, ge=100, le=5_000_000, description="Most faces of the textured meshes."
+    )
+    texture_size: int = Field(
+        default=2048, ge=64, le=8192, description="Texels per side the UV atlas is packed into (about)."
+    )
+    preview_max_size: int = Field(
+        default=512,
+        ge=32,
+        le=4096,
+        description="Widest per-view preview and residual image (frames are reduced by an integer factor).",
+    )
+
+
 class PipelineConfig(_Options):
     """Everything a reconstruction run is told."""
 
     decode: DecodeOptions = Field(default_factory=DecodeOptions)
     geometry: GeometryOptions = Field(default_factory=GeometryOptions)
     refine: RefineOptions = Field(default_factory=RefineOptions)
+    export: ExportOptions = Field(default_factory=ExportOptions)
     stop_after: Stage = Field(default=Stage.REFINE, description="Last stage to run.")

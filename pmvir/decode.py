@@ -33,7 +33,7 @@ import numpy as np
 
 from pmvir.capture import Capture, open_capture
 from pmvir.config import DecodeOptions
-from pmvir.errors import CaptureError, ConfigError
+from pmvir.errors import CaptureError, ConfigError, ShapeError
 from pmvir.polarization.demosaic import demosaic, saturation_footprint
 from pmvir.polarization.layout import MosaicLayout
 from pmvir.polarization.preview import (
@@ -82,10 +82,10 @@ def decode_frame(
     """
     options = options or DecodeOptions()
     if mosaic.ndim != 2:
-        raise ValueError(f"expected an (H, W) mosaic, got shape {mosaic.shape}")
+        raise ShapeError(f"expected an (H, W) mosaic, got shape {mosaic.shape}")
     for name, m in (("saturated", saturated), ("mask", mask)):
         if m is not None and m.shape != mosaic.shape:
-            raise ValueError(f"{name} has shape {m.shape}, the mosaic {mosaic.shape}")
+            raise ShapeError(f"{name} has shape {m.shape}, the mosaic {mosaic.shape}")
     intensities = demosaic(mosaic, layout, method=options.demosaic)
     invalid = None
     if saturated is not None and saturated.any():
@@ -117,7 +117,7 @@ def write_decoded(path: str | Path, images: PolarizationImages, *, compress: boo
     for k, (dtype, ndim) in NPZ_KEYS.items():
         arrays[k] = np.ascontiguousarray(arrays[k], dtype=dtype)
         if arrays[k].ndim != ndim:
-            raise ValueError(f"{k} must have {ndim} dimensions, got shape {arrays[k].shape}")
+            raise ShapeError(f"{k} must have {ndim} dimensions, got shape {arrays[k].shape}")
     tmp = path.with_name(f".{path.name}.tmp")
     with open(tmp, "wb") as f:
         (np.savez_compressed if compress else np.savez)(f, **arrays)

@@ -17,6 +17,22 @@ class ConfigError(PmvirError, ValueError):
     """An option or parameter is out of range or inconsistent."""
 
 
+class InputError(PmvirError, ValueError):
+    """An array or value handed to a function is malformed (non-finite, out of its range)."""
+
+
+class ShapeError(InputError):
+    """An array has the wrong shape, or arrays that must agree do not (kornia's ``ShapeError``).
+
+    The message names the argument, the shape expected and the shape that came, e.g.
+    ``"expected (..., 3) normals, got (5, 2)"``.
+    """
+
+
+class DTypeError(InputError, TypeError):
+    """An array has the wrong dtype (a TypeError too, as numpy's AxisError is also an IndexError)."""
+
+
 class CaptureError(PmvirError):
     """A capture (manifest, frame, mask) is missing, malformed or inconsistent.
 

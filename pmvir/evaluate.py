@@ -19,10 +19,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
-from pmvir.errors import ConfigError, MeshError, PmvirError
+from pmvir.errors import ConfigError, MeshError, PmvirError, ShapeError
 from pmvir.geometry.align import (
     CameraAlignment,
     align_by_cameras,
@@ -82,7 +84,7 @@ class EvaluationResult:
 
     def to_dict(self) -> dict:
         """The JSON object ``pmvir evaluate`` prints: flat metrics plus a ``details`` object."""
-        out = {
+        out: dict[str, Any] = {
             "accuracy": self.accuracy,
             "completeness": self.completeness,
             "albedo_rmse": self.albedo_rmse,
@@ -117,7 +119,12 @@ def _check_mesh(mesh: Mesh, what: str) -> None:
 
 
 def bbox_diagonal(vertices: np.ndarray) -> float:
-    """Length of the axis-aligned bounding-box diagonal of (N, 3) points."""
+    """Length of the axis-aligned bounding-box diagonal of (N, 3) points.
+
+    Example:
+        >>> bbox_diagonal(np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 2.0]]))
+        3.0
+    """
     v = np.asarray(vertices, dtype=np.float64)
     return float(np.linalg.norm(v.max(0) - v.min(0)))
 
@@ -202,23 +209,31 @@ def albedo_scale_rmse(est_albedo: np.ndarray, true_albedo: np.ndarray) -> tuple[
     Returns:
         scale (3,) float64 minimising ``|scale_c * est_c - true_c|^2`` per channel
         (0 where the estimate's channel is all zero), and the RMSE over all N x 3 values.
+
+    Example:
+        An estimate that is the truth up to a per-channel scale has zero error:
+
+        >>> true = np.array([[0.2, 0.4, 0.6], [0.1, 0.3, 0.5]])
+        >>> scale, rmse = albedo_scale_rmse(true / np.array([2.0, 4.0, 1.0]), true)
+        >>> scale, round(rmse, 12)
+        (array([2., 4., 1.]), 0.0)
     """
     est = np.asarray(est_albedo, dtype=np.float64)
     true = np.asarray(true_albedo, dtype=np.float64)
     if est.shape != true.shape or est.ndim != 2 or est.shape[1] != 3:
-        raise ValueError(f"expected two (N, 3) albedo arrays, got {est.shape} and {true.shape}")
+        raise ShapeError(f"expected two (N, 3) albedo arrays, got {est.shape} and {true.shape}")
     scale = (est * true).sum(0) / np.maximum((est * est).sum(0), _EPS)
     return scale, float(np.sqrt(np.mean((est * scale - true) ** 2)))
 
 
 def shading_error(
-    est_sh: np.ndarray,
-    est_rgb: np.ndarray,
-    true_sh: np.ndarray,
-    true_rgb: np.ndarray,
-    albedo_scale: np.ndarray,
+    est_sh: ArrayLike,
+    est_rgb: ArrayLike,
+    true_sh: ArrayLike,
+    true_rgb: ArrayLike,
+    albedo_scale: ArrayLike,
     *,
-    est_from_true: np.ndarray | None = None,
+    est_from_true: ArrayLike | None = None,
     n_directions: int = N_LIGHT_DIRECTIONS,
 ) -> float:
     """Relative RMSE between estimated and true shading ``S(N) * rgb_scale`` on the sphere.
@@ -233,6 +248,13 @@ def shading_error(
 
     Returns:
         RMSE over directions and channels divided by the RMS of the true shading.
+
+    Example:
+        Twice the light on an albedo estimated at half the truth is the same shading:
+
+        >>> sh = np.array([1.0, 0.2, 0.5, 0.1, 0, 0, 0, 0, 0])
+        >>> round(shading_error(2 * sh, [1, 1, 1], sh, [1, 1, 1], [2, 2, 2]), 12)
+        0.0
     """
     dirs = fibonacci_sphere(n_directions)
     est_dirs = dirs if est_from_true is None else dirs @ np.asarray(est_from_true, dtype=np.float64).T
@@ -311,7 +333,7 @@ def evaluate(
         n_vertices=len(est_v),
         n_gt_samples=int(n_samples),
         gt_diagonal=diag,
-        albedo_scale=None if scale is None else tuple(float(s) for s in scale),
+        albedo_scale=None if scale is None else (float(scale[0]), float(scale[1]), float(scale[2])),
         illumination_per_frame=per_frame,
         aligned=alignment is not None,
         alignment_rmse=None if alignment is None else alignment.rmse / diag,

@@ -23,10 +23,13 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from pmvir import __version__
+from pmvir import __version__, stage_cache
 from pmvir.capture import Capture, open_capture
 from pmvir.config import PipelineConfig
 from pmvir.decode import decode_frame, write_decoded, write_previews
+from pmvir.errors import ConfigError, PmvirError
+from pmvir.export import write_previews as write_view_previews
+from pmvir.export import write_refined_outputs
 from pmvir.geometry.stage import GeometryResult, geometry_report, run_geometry, write_geometry
 from pmvir.io.illumination import illumination_from_arrays
 from pmvir.io.ply import Mesh
@@ -70,8 +73,9 @@ def stages_for(config: PipelineConfig) -> list[Stage]:
     return list(STAGES[: Stage(config.stop_after).position + 1])
 
 
-def decode_views(cap: Capture, config: PipelineConfig, progress: Progress) -> list[DecodedView]:
+def decode_views(cap: Capture, config: PipelineConfig, progress: Progress | None = None) -> list[DecodedView]:
     """Decode every frame of an open capture (stage 1)."""
+    progress = progress or Progress.none()
     views = []
     n = len(cap.frames)
     for i, frame in enumerate(cap.frames):
@@ -90,6 +94,8 @@ def run(
     out: str | Path,
     *,
     progress: Progress | None = None,
+    cache: str | Path | None = None,
+    resume_from: Stage | str | None = None,
 ) -> PipelineResult:
     """Run the pipeline on a capture and write the result folder.
 
@@ -99,6 +105,10 @@ def run(
         out: the result folder (created; files of the same names are replaced).
         progress: reports ``(stage, overall fraction, message)`` (the fraction never
             decreases) and is asked to cancel at every stage, step and iteration boundary.
+        cache: a folder where the decode and geometry stages save their outputs
+            (:mod:`pmvir.stage_cache`), for a later run to resume from.
+        resume_from: the first stage to compute; the outputs of the stages before it are
+            loaded from ``cache`` (made with the same options for those stages).
 
     Returns:
         The stages run, their timings and the files written (relative to ``out``).
@@ -112,6 +122,11 @@ def run(
     result = ResultFolder(out)
     result.root.mkdir(parents=True, exist_ok=True)
     stages = stages_for(config)
+    resume = Stage(resume_from or Stage.DECODE)
+    if resume.position > 0 and cache is None:
+        raise PmvirError(f"resume_from={resume} needs the cache folder of an earlier run")
+    if resume not in stages:
+        raise ConfigError(f"resume_from={resume} is after stop_after={config.stop_after}")
     total = sum(STAGE_WEIGHTS[s] for s in stages)
     weight = {s: STAGE_WEIGHTS[s] / total for s in stages}
     t_run = time.perf_counter()
@@ -119,31 +134,61 @@ def run(
     with open_capture(capture) as cap, tempfile.TemporaryDirectory(prefix=".work-", dir=out) as work:
         counts = {"frames": len(cap.frames)}
         with progress.step(Stage.DECODE, weight[Stage.DECODE]) as p:
-            if config.stop_after == Stage.DECODE:  # the decoded frames are the result
+            if cache is not None and resume.position > Stage.DECODE.position:  # resuming needs a cache
+                views = stage_cache.load_stage(cache, Stage.DECODE, config)
+                p.update(0.9, "decoded frames loaded from the cache")
+            elif config.stop_after == Stage.DECODE:  # the decoded frames are the result
                 with p.step("read", 0.5) as q:
                     views = decode_views(cap, config, q)
                 with p.step("write", 0.5) as q:
                     result.write_folder("decoded", lambda d: _write_decoded_views(d, views, q))
             else:
-                views = decode_views(cap, config, p)
+                with p.step("read", 0.9) as q:
+                    views = decode_views(cap, config, q)
+            if cache is not None and resume.position == Stage.DECODE.position:
+                stage_cache.save_stage(cache, Stage.DECODE, config, views)
+            with p.step("previews", 0.1) as q:
+                write_view_previews(
+                    result, [(v.name, v.images) for v in views], max_size=config.export.preview_max_size, progress=q
+                )
         if Stage.GEOMETRY in stages:
             with progress.step(Stage.GEOMETRY, weight[Stage.GEOMETRY]) as p:
-                geometry = run_geometry(
-                    cap,
-                    [v.images for v in views],
-                    options=config.geometry,
-                    workdir=Path(work) / "geometry",
-                    progress=p,
-                )
+                if cache is not None and resume.position > Stage.GEOMETRY.position:
+                    geometry = stage_cache.load_stage(cache, Stage.GEOMETRY, config)
+                    p.update(1.0, "cameras and initial surface loaded from the cache")
+                else:
+                    geometry = run_geometry(
+                        cap,
+                        [v.images for v in views],
+                        options=config.geometry,
+                        workdir=Path(work) / "geometry",
+                        progress=p,
+                    )
+                    if cache is not None:
+                        stage_cache.save_stage(cache, Stage.GEOMETRY, config, geometry)
                 write_geometry(result, geometry)
                 sections["geometry"] = geometry_report(geometry)
         if Stage.REFINE in stages:
             with progress.step(Stage.REFINE, weight[Stage.REFINE]) as p:
-                refined, registered = _refine_stage(cap, views, geometry, config, p)
-                _write_refined(result, geometry, refined, [views[i].file for i in registered])
+                with p.step("optimize", 0.85) as q:
+                    refined, registered = _refine_stage(cap, views, geometry, config, q)
+                mesh = _write_refined(result, geometry, refined, [views[i].file for i in registered])
                 sections["refine"] = refine_report(refined)
+                with p.step("exports", 0.15) as q:
+                    sections["exports"] = write_refined_outputs(
+                        result,
+                        mesh,
+                        [(views[i].name, views[i].images) for i in registered],
+                        [cam for i in registered if (cam := geometry.cameras[i]) is not None],
+                        refined.sh,
+                        refined.rgb_scale,
+                        config=config,
+                        progress=q,
+                    )
     timings = {str(k): v for k, v in progress.timings.items()}
     timings["total"] = time.perf_counter() - t_run
+    if resume.position > 0:
+        sections["resumed_from"] = str(resume)
     result.write_json("report.json", _report(config, stages, timings, counts, sections))
     return PipelineResult(
         out=result.root, stages_run=[str(s) for s in stages], timings=timings, files=list(result.written)
@@ -159,7 +204,7 @@ def _refine_stage(
 ) -> tuple[RefineResult, list[int]]:
     """Polarimetric MVIR on the registered views (stage 3). Returns the result and those views' indices."""
     registered = [i for i, cam in enumerate(geometry.cameras) if cam is not None]
-    cameras = [geometry.cameras[i] for i in registered]
+    cameras = [cam for cam in geometry.cameras if cam is not None]  # in the order of registered
     observations = [
         observation_from_decoded(asdict(views[i].images), intensity=config.refine.intensity)
         for i in registered
@@ -183,10 +228,11 @@ def _refine_stage(
 
 def _write_refined(
     result: ResultFolder, geometry: GeometryResult, refined: RefineResult, files: list[str]
-) -> None:
+) -> Mesh:
     mesh = Mesh(refined.vertices, geometry.faces, albedo=refined.albedo, normals=refined.normals)
     result.write_mesh("mesh.ply", mesh)
     result.write_illumination(illumination_from_arrays(files, refined.sh, refined.rgb_scale))
+    return mesh
 
 
 def _stage_report(st: StageLog) -> dict:
@@ -231,7 +277,7 @@ def software_versions() -> dict[str, str]:
     for module in ("numpy", "scipy", "cv2", "open3d", "pycolmap", "torch"):
         try:
             versions[module] = __import__(module).__version__
-        except Exception:  # an optional library that is absent or broken is reported as such
+        except Exception:  # noqa: BLE001 - an absent or broken optional library is reported as such
             versions[module] = "unavailable"
     return versions
 

@@ -27,7 +27,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-from pmvir.errors import CanceledError
+from pmvir.errors import CanceledError, ConfigError
 
 #: report(stage, overall fraction in [0, 1], message)
 ReportFn = Callable[[str, float, str], None]
@@ -115,7 +115,7 @@ class Progress:
         exception the slice counts as done and its time is kept in :attr:`timings`.
         """
         if not 0.0 <= weight <= 1.0:
-            raise ValueError(f"step weight must be in [0, 1], got {weight}")
+            raise ConfigError(f"step weight must be in [0, 1], got {weight}")
         self.check_cancel(f"before {name}")
         child = Progress.__new__(Progress)
         child._sink = self._sink

@@ -72,6 +72,15 @@ RESULT_FILES: tuple[ResultFile, ...] = (
     ResultFile("dense.ply", "geometry", "application/octet-stream", "the fused dense stereo points"),
     ResultFile("report.json", "report", "application/json", "timings, counts, parameters, energies"),
     ResultFile("decoded/", "decode", "application/zip", "decoded frames and previews (decode-only runs)"),
+    ResultFile("previews/", "decode", "application/zip", "per view: I_int, DoP and AoP previews (PNG, small)"),
+    ResultFile(
+        "residuals/", "refine", "application/zip", "per view: observed minus rendered intensity and E_pol (PNG)"
+    ),
+    ResultFile("mesh.glb", "refine", "model/gltf-binary", "the refined mesh as glTF 2.0, +Y up, albedo COLOR_0"),
+    ResultFile("textured.glb", "refine", "model/gltf-binary", "decimated mesh with a UV atlas and albedo texture"),
+    ResultFile("textured.obj", "refine", "text/plain", "the same textured mesh as OBJ (with .mtl and PNG)"),
+    ResultFile("textured.mtl", "refine", "text/plain", "the OBJ's material: the albedo texture"),
+    ResultFile("textured_albedo.png", "refine", "image/png", "the baked albedo texture (sRGB)"),
 )
 
 #: Extra name served by the service: every file of the result in one zip.

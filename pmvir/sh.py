@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from pmvir.errors import ConfigError, ShapeError
+
 SH_BASIS_NAME = "pmvir-sh9"
 
 
@@ -23,9 +25,13 @@ def sh9_basis(normals: Any) -> Any:
 
     Returns:
         (..., 9) basis values, same type and dtype as ``normals``.
+
+    Example:
+        >>> sh9_basis(np.array([0.0, 0.0, 1.0])).round(4)
+        array([1.    , 0.    , 1.    , 0.    , 0.    , 0.    , 0.6667, 0.    , 0.    ])
     """
     if normals.shape[-1] != 3:
-        raise ValueError(f"expected (..., 3) normals, got {tuple(normals.shape)}")
+        raise ShapeError(f"expected (..., 3) normals, got {tuple(normals.shape)}")
     x, y, z = normals[..., 0], normals[..., 1], normals[..., 2]
     one = x * 0 + 1
     terms = [one, y, z, x, x * y, y * z, z * z - 1.0 / 3.0, x * z, x * x - y * y]
@@ -37,14 +43,22 @@ def sh9_basis(normals: Any) -> Any:
 
 
 def sh9_shading(normals: Any, coeffs: Any) -> Any:
-    """Shading S(N) for normals (..., 3) and coefficients (..., 9) (broadcast), shape (...)."""
+    """Shading S(N) for normals (..., 3) and coefficients (..., 9) (broadcast), shape (...).
+
+    Example:
+        Constant plus a light from +z (L2 = 0.5): brightest facing up, darkest facing down.
+
+        >>> up_down = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]])
+        >>> sh9_shading(up_down, np.array([1.0, 0, 0.5, 0, 0, 0, 0, 0, 0]))
+        array([1.5, 0.5])
+    """
     return (sh9_basis(normals) * coeffs).sum(-1)
 
 
 def fibonacci_sphere(n: int) -> np.ndarray:
     """``n`` unit directions spread evenly on the sphere (Fibonacci lattice), (n, 3) float64."""
     if n < 1:
-        raise ValueError(f"need at least one direction, got {n}")
+        raise ConfigError(f"need at least one direction, got {n}")
     i = np.arange(n, dtype=np.float64) + 0.5
     z = 1.0 - 2.0 * i / n
     r = np.sqrt(np.maximum(0.0, 1.0 - z * z))

@@ -17,11 +17,11 @@ from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
 import pmvir
-from service import routes_files, routes_jobs
-from service.queue import make_celery
+from service import console, routes_files, routes_info, routes_jobs
 from service.deps import Services
 from service.errors import install_error_handlers
-from service.models import Health, JobCreate, Ready
+from service.models import Health, JobCreate, JobRerun, Ready
+from service.queue import make_celery
 from service.settings import Settings, get_settings
 from service.storage import JobFiles
 from service.store import JobStore
@@ -46,6 +46,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=pmvir.__version__,
         description=DESCRIPTION,
         openapi_url="/openapi.json",
+        docs_url=None,  # /docs and /redoc come from service.console, with their scripts served locally
+        redoc_url=None,
     )
     app.state.settings = settings
     app.state.services = Services(
@@ -59,6 +61,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     app.include_router(routes_jobs.router)
     app.include_router(routes_files.router)
+    app.include_router(routes_info.router)
+    app.include_router(console.api)
+    app.include_router(console.pages)
 
     @app.get("/healthz", tags=["health"], summary="The process is up", response_model=Health)
     def healthz() -> Health:
@@ -77,7 +82,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         def probe() -> Ready:
             try:
                 redis_ok = svc.store.ping()
-            except Exception:
+            except Exception:  # noqa: BLE001 - any failure to answer means not ready
                 redis_ok = False
             storage_ok = svc.files.writable()
             return Ready(
@@ -87,7 +92,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         ready = await run_in_threadpool(probe)
         return JSONResponse(status_code=200 if ready.status == "ok" else 503, content=ready.model_dump())
 
-    app.openapi = lambda: openapi_document(app)  # type: ignore[method-assign]
+    app.openapi = lambda: openapi_document(app)  # type: ignore[method-assign]  # FastAPI's override
     return app
 
 
@@ -97,10 +102,11 @@ def openapi_document(app: FastAPI) -> dict[str, Any]:
         return app.openapi_schema
     doc = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
     schemas = doc.setdefault("components", {}).setdefault("schemas", {})
-    job_create = JobCreate.model_json_schema(ref_template="#/components/schemas/{model}")
-    for name, sub in job_create.pop("$defs", {}).items():
-        schemas.setdefault(name, sub)
-    schemas["JobCreate"] = job_create
+    for model in (JobCreate, JobRerun):  # bodies the routes read by hand
+        schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
+        for name, sub in schema.pop("$defs", {}).items():
+            schemas.setdefault(name, sub)
+        schemas[model.__name__] = schema
     doc["components"]["schemas"] = dict(sorted(schemas.items()))
     app.openapi_schema = doc
     return doc

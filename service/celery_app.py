@@ -20,7 +20,7 @@ import pmvir.pipeline  # noqa: E402,F401
 
 
 @app.task(name=RUN_JOB, bind=True, acks_late=True, reject_on_worker_lost=True)
-def run_job(self, job_id: str) -> None:  # noqa: ANN001 - Celery's bound task
+def run_job(self, job_id: str) -> None:
     """Run one job's pipeline (thin: everything is in service.runner)."""
     from service.runner import run_job as run
 
@@ -28,14 +28,18 @@ def run_job(self, job_id: str) -> None:  # noqa: ANN001 - Celery's bound task
 
 
 @signals.worker_ready.connect
-def _start_reaper(sender=None, **_: object) -> None:  # noqa: ANN001
+def _start_reaper(sender=None, **_: object) -> None:
+    from service import housekeeping
     from service.runner import start_reaper
 
     start_reaper(settings)
+    housekeeping.start(settings, name=getattr(sender, "hostname", None))
 
 
 @signals.worker_shutdown.connect
-def _stop_reaper(sender=None, **_: object) -> None:  # noqa: ANN001
+def _stop_reaper(sender=None, **_: object) -> None:
+    from service import housekeeping
     from service.runner import stop_reaper
 
     stop_reaper()
+    housekeeping.stop()

@@ -4,9 +4,12 @@ It starts Redis, the API and a worker by itself (loopback ports, a storage
 folder under ``--out``), generates a synthetic capture with ground truth
 (built-in shape, no download), submits it over HTTP with ``pmvir submit``
 (upload, start, progress, download), prints the result's accuracy against the
-ground truth, and stops everything it started, also when a step fails.
+ground truth and the web console's address. When stdin is a terminal it keeps
+the service up until Enter, so the result can be looked at in a browser; without
+a terminal, or with ``--no-wait``, it stops everything it started at once (also
+when a step fails).
 
-    python -m service.demo --out demo-out [--views 24] [--size 408x340]
+    python -m service.demo --out demo-out [--views 24] [--size 408x340] [--no-wait]
 """
 
 from __future__ import annotations
@@ -29,12 +32,15 @@ DEMO_OPTIONS = ("--set", "geometry.subdivision.max_area_px=8", "--set", "refine.
 
 def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m service.demo", description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", type=Path, default=Path("demo-out"), help="folder for everything (default demo-out)")
+    p.add_argument(
+        "--out", type=Path, default=Path("demo-out"), help="folder for everything (default demo-out)"
+    )
     p.add_argument("--shape", default="blob", help="built-in shape (default blob)")
     p.add_argument("--material", default="plastic", choices=("lambert", "plastic", "conductor"))
     p.add_argument("--views", type=int, default=24, help="views (default 24)")
     p.add_argument("--size", default="408x340", help="image size WxH, multiples of 4 (default 408x340)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-wait", action="store_true", help="stop the service at the end even in a terminal")
     return p.parse_args(argv)
 
 
@@ -50,8 +56,23 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     print(f"[demo] 1/4 synthesizing a {args.views}-view {args.material} '{args.shape}' capture -> {capture}")
     rc = pmvir_main(
-        ["synth", "--shape", args.shape, "--out", str(capture), "--views", str(args.views), "--size", args.size,
-         "--material", args.material, "--seed", str(args.seed), "--force", "--quiet"]
+        [
+            "synth",
+            "--shape",
+            args.shape,
+            "--out",
+            str(capture),
+            "--views",
+            str(args.views),
+            "--size",
+            args.size,
+            "--material",
+            args.material,
+            "--seed",
+            str(args.seed),
+            "--force",
+            "--quiet",
+        ]
     )
     if rc:
         return rc
@@ -63,16 +84,34 @@ def main(argv: list[str] | None = None) -> int:
         print(f"[demo] 3/4 submitting over HTTP (stop after '{stop_after}')")
         os.environ["PMVIR_API_KEY"] = API_KEY
         rc = pmvir_main(
-            ["submit", str(capture), "--server", stack.url, "--out", str(result), "--stop-after", stop_after,
-             "--poll", "0.5", *DEMO_OPTIONS]
+            [
+                "submit",
+                str(capture),
+                "--server",
+                stack.url,
+                "--out",
+                str(result),
+                "--stop-after",
+                stop_after,
+                "--poll",
+                "0.5",
+                "--label",
+                "demo",
+                *DEMO_OPTIONS,
+            ]
         )
         if rc:
             print(f"[demo] the job did not succeed; service logs:\n{stack.logs()}", file=sys.stderr)
             return rc
+        print("[demo] 4/4 result")
+        _summarize(result, capture)
+        print(f"[demo] the web console: {stack.url}/ui/  (API key: {API_KEY}); API docs: {stack.url}/docs")
+        if not args.no_wait and sys.stdin.isatty():
+            try:
+                input("[demo] the service stays up until you press Enter ")
+            except (EOFError, KeyboardInterrupt):
+                print()
     print("[demo]     service stopped")
-
-    print("[demo] 4/4 result")
-    _summarize(result, capture)
     print(f"[demo] done in {time.perf_counter() - t0:.0f} s; everything is under {out}")
     return 0
 
@@ -92,7 +131,9 @@ def _summarize(result: Path, capture: Path) -> None:
         print("[demo]       " + f"{'':12s}" + "".join(f"{k:>20s}" for k in keys))
         for name, path in rows:
             metrics = evaluate_paths(path, capture / "gt").to_dict()
-            cells = "".join(f"{'n/a' if metrics[k] is None else format(metrics[k], '.5f'):>20s}" for k in keys)
+            cells = "".join(
+                f"{'n/a' if metrics[k] is None else format(metrics[k], '.5f'):>20s}" for k in keys
+            )
             print(f"[demo]       {name:12s}{cells}")
         return
     decoded = sorted((result / "decoded").glob("*.npz"))

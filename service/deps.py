@@ -8,10 +8,11 @@ from dataclasses import dataclass
 from celery import Celery
 from fastapi import Request
 
+from pmvir.result import downloadable_names
 from service.errors import ApiError, ErrorItem, not_found
 from service.models import JobOut, PartialOut
 from service.settings import Settings
-from service.storage import RESULT_FILES, JobFiles
+from service.storage import JobFiles
 from service.store import Job, JobStore
 
 _JOB_ID = re.compile(r"^[0-9a-f]{32}$")
@@ -51,7 +52,7 @@ def reject_unknown_query(request: Request) -> None:
         )
 
 
-def _all_query_params(dependant):  # noqa: ANN001, ANN202
+def _all_query_params(dependant):
     yield from dependant.query_params
     for sub in dependant.dependencies:
         yield from _all_query_params(sub)
@@ -74,8 +75,9 @@ def job_out(svc: Services, job: Job) -> JobOut:
         p = svc.files.partial_path(job.id, path)
         received = p.stat().st_size if p.exists() else 0
         partial.append(PartialOut(path=path, received=received, total=total))
-    results = [n for n in RESULT_FILES if svc.files.result_file(job.id, n) is not None]
-    return JobOut.of(job, files=files, partial=partial, results=results)
+    results = [n for n in downloadable_names() if svc.files.result_file(job.id, n) is not None]
+    deliveries = svc.store.deliveries(job.id) if job.callback_url else None
+    return JobOut.of(job, files=files, partial=partial, results=results, deliveries=deliveries)
 
 
 def path_error(path: str, problem: str) -> ApiError:

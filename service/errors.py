@@ -15,8 +15,9 @@ import redis
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from pmvir.errors import CanceledError, CaptureError, ConfigError, PmvirError
 
@@ -64,6 +65,16 @@ class ApiError(Exception):
         self.status = status
         self.body = ErrorBody(error=code, message=message, errors=errors or [], received=received)
         self.headers = headers
+
+
+def invalid(exc: ValidationError, prefix: tuple[str, ...], message: str = "invalid request") -> ApiError:
+    """A 422 naming every field pydantic refused, under ``prefix`` (e.g. ("body", "options"))."""
+    items = [
+        ErrorItem(loc=[*prefix, *e["loc"]], msg=e["msg"], type=e["type"])
+        for e in exc.errors(include_url=False)
+    ]
+    names = ", ".join(".".join(str(p) for p in i.loc or ()) for i in items)
+    return ApiError(422, "validation_error", f"{message}: {names}", errors=items)
 
 
 def not_found(what: str) -> ApiError:
@@ -119,6 +130,20 @@ _STATUS_CODES = {
 }
 
 
+def unmatched_route_message(method: str, path: str) -> str:
+    """Why no route matches: the path as received, and the likely cause."""
+    shown = repr(path[:200])
+    if any(ord(c) < 0x20 or ord(c) == 0x7F for c in path):
+        why = "it contains a control character (a newline, tab, ...), which no route or file name accepts"
+    elif path.startswith("/v1/jobs/") and "/files/" in path:
+        why = "a capture file path is capture.json, frames/<name>.<ext>, masks/<name>.png or gt/..."
+    elif path.startswith("/v1/"):
+        why = "see /docs or /openapi.json for the routes"
+    else:
+        why = "the API lives under /v1 (see /docs)"
+    return f"no route matches {method} {shown}: {why}"
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Map ApiError, request validation, library errors and stray exceptions to JSON answers."""
 
@@ -137,9 +162,16 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         code = _STATUS_CODES.get(exc.status_code, "error")
-        return _json(
-            exc.status_code, ErrorBody(error=code, message=str(exc.detail)), getattr(exc, "headers", None)
-        )
+        message = str(exc.detail)
+        if exc.status_code == 404 and message == "Not Found":  # the router found no route
+            message = unmatched_route_message(request.method, request.scope.get("path", ""))
+        return _json(exc.status_code, ErrorBody(error=code, message=message), getattr(exc, "headers", None))
+
+    @app.exception_handler(ClientDisconnect)
+    async def _disconnect(request: Request, exc: ClientDisconnect) -> JSONResponse:
+        # A malformed body (e.g. a bad chunk size) ends the request as a disconnect: no traceback.
+        log.info("client went away on %s %s", request.method, request.url.path)
+        return _json(400, ErrorBody(error="client_disconnected", message="the request body ended early"))
 
     @app.exception_handler(ConfigError)
     async def _config(request: Request, exc: ConfigError) -> JSONResponse:

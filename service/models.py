@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 from datetime import UTC, datetime
+from enum import StrEnum
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from pmvir.config import PipelineConfig
-from service.store import FileInfo, Job
+from pmvir.result import downloadable_names
+from pmvir.stages import Stage
+from service.store import FileInfo, Job, JobStatus
 
-Status = Literal["created", "queued", "running", "succeeded", "failed", "canceled"]
-ResultName = Literal["mesh.ply", "illumination.json", "report.json", "result.zip"]
+#: The result files served by name (pmvir.result's table: single files, folders as .zip, result.zip).
+ResultName = StrEnum("ResultName", {n: n for n in downloadable_names()})  # type: ignore[misc]  # not literal
 
 
 class JobCreate(BaseModel):
@@ -25,6 +28,38 @@ class JobCreate(BaseModel):
         "out-of-range values are 422 errors naming each field.",
     )
     label: str | None = Field(default=None, max_length=200, description="Free text shown in job lists.")
+    callback_url: str | None = Field(
+        default=None,
+        max_length=2000,
+        pattern=r"^https?://",
+        description="http(s) URL POSTed a signed JSON event when the job ends (succeeded, failed or "
+        "canceled); its host must be one of the service's PMVIR_WEBHOOK_HOSTS.",
+    )
+    result_ttl: int | None = Field(
+        default=None,
+        ge=0,
+        le=10 * 365 * 86400,
+        description="Seconds after it finished that the job is deleted (0: kept); default PMVIR_RESULT_TTL.",
+    )
+
+
+class JobRerun(BaseModel):
+    """POST /v1/jobs/{id}/rerun: a new job on the same capture, from a stage on."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    options: dict[str, Any] = Field(
+        default_factory=dict,
+        description="Changes to the source job's options, merged into them key by key (nested groups "
+        'merged, lists replaced), e.g. {"refine": {"max_iterations": 40}}; the result is validated '
+        "as PipelineConfig.",
+    )
+    from_stage: Stage = Field(
+        default=Stage.REFINE,
+        description="The first stage to compute. The earlier stages' outputs are reused from the source "
+        "job, which must have run them with the same options for them (else 409 naming the group).",
+    )
+    label: str | None = Field(default=None, max_length=200, description="Default: the source job's label.")
 
 
 class FileOut(BaseModel):
@@ -62,11 +97,28 @@ def _dt(t: float | None) -> datetime | None:
     return None if t is None else datetime.fromtimestamp(t, tz=UTC)
 
 
+class WebhookAttempt(BaseModel):
+    """One delivery attempt of a job's webhook event."""
+
+    attempt: int = Field(ge=1)
+    time: float = Field(description="Unix seconds when the attempt was made.")
+    status_code: int | None = Field(default=None, description="The receiver's HTTP status, if it answered.")
+    error: str | None = Field(default=None, description="Why the attempt failed, if it did.")
+    ok: bool = Field(description="The receiver answered 2xx.")
+
+
+class WebhookOut(BaseModel):
+    """A job's callback URL and what became of its event."""
+
+    url: str
+    deliveries: list[WebhookAttempt] = Field(default_factory=list)
+
+
 class JobOut(BaseModel):
     """A job: its state, progress and files."""
 
     id: str
-    status: Status = Field(description="created, queued, running, succeeded, failed or canceled.")
+    status: JobStatus = Field(description="created, queued, running, succeeded, failed or canceled.")
     stage: str | None = Field(default=None, description="The pipeline stage running or last run.")
     progress: float = Field(ge=0.0, le=1.0, description="Overall fraction done, 0..1; never goes backwards.")
     label: str | None = None
@@ -82,10 +134,33 @@ class JobOut(BaseModel):
     deliveries: int = Field(ge=0, description="How many times a worker started the job.")
     files: list[FileOut] = Field(default_factory=list, description="Complete capture files.")
     partial_uploads: list[PartialOut] = Field(default_factory=list)
-    results: list[ResultName] = Field(default_factory=list, description="Result files ready to download.")
+    results: list[ResultName] = Field(
+        default_factory=list, description="Result files ready to download."
+    )
+    source_job: str | None = Field(default=None, description="For a rerun: the job whose capture it uses.")
+    result_ttl: int = Field(ge=0, description="Seconds after it finished that the job is deleted (0: kept).")
+    expires_at: datetime | None = Field(default=None, description="When the finished job will be deleted.")
+    webhook: WebhookOut | None = Field(default=None, description="The job's callback and its deliveries.")
+    resume_from: Stage | None = Field(
+        default=None, description="For a rerun: the first stage computed (earlier ones came from the cache)."
+    )
 
     @classmethod
-    def of(cls, job: Job, *, files: list[FileInfo], partial: list[PartialOut], results: list[str]) -> JobOut:
+    def of(
+        cls,
+        job: Job,
+        *,
+        files: list[FileInfo],
+        partial: list[PartialOut],
+        results: list[str],
+        deliveries: list[dict[str, Any]] | None = None,
+    ) -> JobOut:
+        expires = job.finished_at + job.ttl if job.ttl and job.finished_at else None
+        webhook = None
+        if job.callback_url:
+            webhook = WebhookOut(
+                url=job.callback_url, deliveries=[WebhookAttempt(**d) for d in deliveries or []]
+            )
         return cls(
             id=job.id,
             status=job.status,
@@ -104,7 +179,12 @@ class JobOut(BaseModel):
             deliveries=job.deliveries,
             files=[FileOut.of(f) for f in files],
             partial_uploads=partial,
-            results=results,  # type: ignore[arg-type]
+            results=results,
+            source_job=job.source_job,
+            result_ttl=job.ttl,
+            expires_at=_dt(expires),
+            webhook=webhook,
+            resume_from=job.resume_from,
         )
 
 
@@ -112,7 +192,7 @@ class JobSummary(BaseModel):
     """A job in a list."""
 
     id: str
-    status: Status
+    status: JobStatus
     stage: str | None = None
     progress: float = Field(ge=0.0, le=1.0)
     label: str | None = None
@@ -155,6 +235,42 @@ class LogOut(BaseModel):
     lines: list[LogLine]
     next: int = Field(ge=0, description="The since to ask for next.")
     total: int = Field(ge=0, description="Lines in the log so far.")
+
+
+class WorkerOut(BaseModel):
+    """A worker that renewed its heartbeat within the last few seconds."""
+
+    name: str
+    pid: int
+    version: str
+    cuda: bool = Field(description="torch sees a CUDA device in this worker.")
+    cuda_devices: int = Field(ge=0)
+    seen_at: float = Field(description="Unix seconds of its last heartbeat.")
+
+
+class DiskOut(BaseModel):
+    """The storage disk, in bytes, and what the jobs hold (walked at most every 30 s)."""
+
+    total: int = Field(ge=0)
+    used: int = Field(ge=0)
+    free: int = Field(ge=0)
+    jobs_bytes: int = Field(ge=0, description="Bytes under the job folders (captures, caches, results).")
+    jobs: int = Field(ge=0, description="Job folders on disk.")
+
+
+class InfoOut(BaseModel):
+    """GET /v1/info."""
+
+    version: str = Field(description="pmvir's version.")
+    stages: list[str] = Field(description="The pipeline's stages, in order.")
+    limits: dict[str, float] = Field(description="Size, count, time and retention limits (PMVIR_* settings).")
+    queue: str = Field(description="The Celery queue jobs go to.")
+    queue_length: int = Field(ge=0, description="Jobs waiting in the queue for a worker.")
+    workers_online: int = Field(ge=0)
+    workers: list[WorkerOut]
+    cuda_available: bool = Field(description="At least one online worker has CUDA.")
+    webhooks_enabled: bool = Field(description="Callback URLs are accepted (PMVIR_WEBHOOK_HOSTS is set).")
+    disk: DiskOut
 
 
 class Health(BaseModel):

@@ -25,7 +25,7 @@ _RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
 _CHUNK = 1 << 20
 
 
-def parse_range(header: str | None, size: int) -> tuple[int, int] | None | str:
+def parse_range(header: str | None, size: int) -> tuple[int, int] | str | None:
     """The inclusive byte range a Range header asks for.
 
     Returns:
@@ -79,7 +79,7 @@ def file_response(request: Request, path: Path, *, media_type: str, filename: st
     if_range = request.headers.get("if-range")
     if wanted is not None and if_range is not None and if_range.strip() != etag:
         wanted = None
-    if wanted == "unsatisfiable":
+    if isinstance(wanted, str):  # "unsatisfiable"
         body = ErrorBody(error="range_not_satisfiable", message=f"the file has {size} bytes")
         return JSONResponse(
             status_code=416,

@@ -8,6 +8,7 @@ from fastapi import APIRouter, Depends, Header, Path, Request, Response
 from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
+from pmvir.result import RESULT_ZIP, downloadable_names, result_file
 from service.auth import require_owner
 from service.deps import Services, owned_job, reject_unknown_query, services
 from service.errors import ApiError
@@ -21,12 +22,6 @@ router = APIRouter(prefix="/v1/jobs", tags=["files"], dependencies=[Depends(reje
 Owner = Annotated[str, Depends(require_owner)]
 Svc = Annotated[Services, Depends(services)]
 
-_MEDIA = {
-    "mesh.ply": "application/octet-stream",
-    "illumination.json": "application/json",
-    "report.json": "application/json",
-    "result.zip": "application/zip",
-}
 _BINARY = {"schema": {"type": "string", "format": "binary"}}
 #: The capture layout as a pattern, for the document (the handler checks it itself, naming the problem).
 CAPTURE_PATH_PATTERN = (
@@ -90,7 +85,8 @@ async def upload_file(
 @router.get(
     "/{job_id}/result/{name}",
     summary="Download a result file (HTTP Range supported)",
-    description="mesh.ply, illumination.json, report.json, or result.zip (every file the run wrote). "
+    description=f"{', '.join(downloadable_names()[:-1])}, or {RESULT_ZIP} (every file the run wrote); "
+    "a result folder is served as <folder>.zip. "
     "404 while the job has no such file (not finished, or the stage that writes it did not run).",
     response_class=Response,
     responses={
@@ -124,4 +120,5 @@ def get_result(
     path = svc.files.result_file(job.id, name)
     if path is None:
         raise ApiError(404, "not_found", f"{name} is not available (job {job.status})")
-    return file_response(request, path, media_type=_MEDIA[name], filename=name)
+    media = "application/zip" if name == RESULT_ZIP else result_file(name).media_type
+    return file_response(request, path, media_type=media, filename=str(name))

@@ -36,7 +36,7 @@ from pmvir.errors import CanceledError, PmvirError
 from service.queue import RUN_JOB
 from service.settings import Settings
 from service.storage import JobFiles
-from service.store import Job, JobStore
+from service.store import Claim, Job, JobStatus, JobStore
 
 log = logging.getLogger("pmvir.worker")
 
@@ -72,7 +72,7 @@ class _Run:
                 ):
                     self._stop_cached = True
                     return
-            except Exception as exc:  # Redis away: keep trying; the lease may lapse meanwhile
+            except Exception as exc:  # noqa: BLE001 - Redis away: keep trying; the lease may lapse meanwhile
                 log.warning("job %s: heartbeat failed: %s", self.job.id, exc)
 
     def __enter__(self) -> _Run:
@@ -116,7 +116,7 @@ class _Run:
                 self._stop_cached = True
             if message:
                 self.store.log(self.job.id, f"{stage}: {message}", max_lines=self.settings.max_log_lines)
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - progress is best effort; the job goes on
             log.warning("job %s: progress not recorded: %s", self.job.id, exc)
 
     def should_cancel(self) -> bool:
@@ -128,7 +128,7 @@ class _Run:
             self._last_check = now
             try:
                 self._stop_cached = self.store.should_stop(self.job.id, self.run_id)
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001 - keep the last known flag
                 log.warning("job %s: cancel flag not readable: %s", self.job.id, exc)
         return self._stop_cached
 
@@ -154,9 +154,9 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
     what, n = store.claim(
         job_id, run_id, lease_seconds=settings.lease_seconds, max_deliveries=settings.max_deliveries
     )
-    if what != "ok":
+    if what is not Claim.OK:
         log.info("job %s: nothing to run (%s)", job_id, what)
-        if what == "exhausted":
+        if what is Claim.EXHAUSTED:
             store.log(job_id, f"failed: started {n - 1} times, its worker died each time")
         return what
     job = store.get(job_id)
@@ -169,11 +169,11 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
     )
     out = files.run_dir(job_id, run_id)
 
-    def end(run: _Run, status: str, error: str | None = None) -> str:
+    def end(run: _Run, status: JobStatus, error: str | None = None) -> str:
         # The run's scratch folder goes before the job turns terminal: a client that sees
         # "canceled" or "failed" never finds the run's files still there.
         files.remove_tree(out)
-        if status == "canceled":
+        if status is JobStatus.CANCELED:
             return _end_canceled(store, files, job, run_id, run.final_timings())
         return _end(store, job, run_id, status, run.final_timings(), error)
 
@@ -187,20 +187,22 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
                     files.capture_dir(job_id),
                     out,
                     progress=Progress(run.progress, should_cancel=run.should_cancel),
+                    cache=files.cache_dir(job_id),
+                    resume_from=job.resume_from,
                 )
                 if run.should_cancel():  # canceled after the last boundary: honour it
                     raise CanceledError("canceled after the last stage")
                 files.publish_result(job_id, out)
             except CanceledError:
-                return end(run, "canceled")
+                return end(run, JobStatus.CANCELED)
             except SoftTimeLimitExceeded:
-                return end(run, "failed", f"time limit exceeded ({settings.job_soft_time_limit} s)")
+                return end(run, JobStatus.FAILED, f"time limit exceeded ({settings.job_soft_time_limit} s)")
             except PmvirError as exc:
-                return end(run, "failed", f"{type(exc).__name__}: {exc}")
+                return end(run, JobStatus.FAILED, f"{type(exc).__name__}: {exc}")
             except Exception as exc:
                 log.exception("job %s: unexpected error", job_id)
-                return end(run, "failed", f"internal error: {type(exc).__name__}: {exc}")
-            return end(run, "succeeded")
+                return end(run, JobStatus.FAILED, f"internal error: {type(exc).__name__}: {exc}")
+            return end(run, JobStatus.SUCCEEDED)
     finally:
         files.remove_tree(out)
         if store.get(job_id) is None:  # deleted while running: leave nothing behind
@@ -208,10 +210,10 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
 
 
 def _end(
-    store: JobStore, job: Job, run_id: str, status: str, timings: dict[str, float], error: str | None
+    store: JobStore, job: Job, run_id: str, status: JobStatus, timings: dict[str, float], error: str | None
 ) -> str:
     fields: dict[str, object] = {"stage_timings": timings, "error": error or ""}
-    if status == "succeeded":
+    if status is JobStatus.SUCCEEDED:
         fields["progress"] = 1.0
     if not store.finish(job, run_id, status, **fields):
         log.info("job %s: run %s was superseded; its outcome (%s) is dropped", job.id, run_id, status)
@@ -226,7 +228,7 @@ def _end_canceled(store: JobStore, files: JobFiles, job: Job, run_id: str, timin
         return "canceled"
     if current.run_id != run_id or not current.cancel_requested:
         return "superseded"
-    return _end(store, job, run_id, "canceled", timings, None)
+    return _end(store, job, run_id, JobStatus.CANCELED, timings, None)
 
 
 # ----------------------------------------------------------------------------- reaper
@@ -259,7 +261,7 @@ def _reaper_loop(settings: Settings, stop: threading.Event) -> None:
         try:
             for job_id in reap_once(store, send):
                 log.warning("job %s: worker lost, requeued", job_id)
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - the reaper thread must outlive any one failure
             log.warning("reaper: %s", exc)
         if stop.wait(interval):
             return
@@ -267,7 +269,7 @@ def _reaper_loop(settings: Settings, stop: threading.Event) -> None:
 
 def start_reaper(settings: Settings) -> None:
     """Start the reaper thread of this worker process (idempotent)."""
-    global _reaper
+    global _reaper  # noqa: PLW0603 - one reaper per worker process
     if _reaper is not None:
         return
     stop = threading.Event()
@@ -277,7 +279,7 @@ def start_reaper(settings: Settings) -> None:
 
 
 def stop_reaper() -> None:
-    global _reaper
+    global _reaper  # noqa: PLW0603 - one reaper per worker process
     if _reaper is not None:
         _reaper[1].set()
         _reaper = None

@@ -60,7 +60,9 @@ class Settings(BaseSettings):
     )
     max_zip_members: int = Field(default=2100, gt=0, description="Most members in a zipped capture.")
     max_zip_ratio: float = Field(
-        default=200.0, gt=1.0, description="Largest uncompressed/compressed ratio of a zip member over 1 MiB."
+        default=200.0,
+        gt=1.0,
+        description="Largest uncompressed/compressed ratio of a zip member over 1 MiB, and of the whole zip.",
     )
 
     # -- worker
@@ -95,7 +97,41 @@ class Settings(BaseSettings):
     )
     max_log_lines: int = Field(default=10_000, gt=0, description="Most log lines kept per job.")
 
-    @field_validator("api_keys", mode="before")
+    # -- retention
+    result_ttl: int = Field(
+        default=0,
+        ge=0,
+        le=10 * 365 * 86400,
+        description="Seconds after it finished that a job (record, capture, result) is deleted; 0 keeps "
+        "jobs until deleted by hand. A job's own result_ttl option overrides it.",
+    )
+    janitor_interval: float = Field(
+        default=60.0, gt=0.0, le=86400.0, description="Seconds between a worker's retention sweeps."
+    )
+
+    # -- webhooks
+    webhook_hosts: Annotated[tuple[str, ...], NoDecode] = Field(
+        default=(),
+        description="Comma-separated host names (or host:port) a job's callback_url may point to. Empty: "
+        "callbacks are refused (422).",
+    )
+    webhook_secret: str = Field(
+        default="",
+        description="Key of the HMAC-SHA256 signature of every webhook body (X-Pmvir-Signature). Needed "
+        "when webhook_hosts is set.",
+    )
+    webhook_attempts: int = Field(
+        default=5, ge=1, le=20, description="Most delivery attempts of one webhook event."
+    )
+    webhook_backoff: float = Field(
+        default=2.0,
+        gt=0.0,
+        le=3600.0,
+        description="Seconds before the second delivery attempt; doubled after each failure.",
+    )
+    webhook_timeout: float = Field(default=10.0, gt=0.0, le=120.0, description="Seconds per delivery attempt.")
+
+    @field_validator("api_keys", "webhook_hosts", mode="before")
     @classmethod
     def _split_keys(cls, value: object) -> object:
         if isinstance(value, str):
@@ -108,6 +144,8 @@ class Settings(BaseSettings):
             raise ValueError("job_hard_time_limit must be greater than job_soft_time_limit")
         if self.visibility_timeout <= self.job_hard_time_limit:
             raise ValueError("visibility_timeout must be longer than job_hard_time_limit (the longest job)")
+        if self.webhook_hosts and not self.webhook_secret:
+            raise ValueError("webhook_hosts is set but webhook_secret is empty: webhooks must be signed")
         return self
 
     @cached_property

@@ -7,6 +7,7 @@ Layout::
     <root>/jobs/<id>/partial/<h>.part    resumable (Content-Range) uploads not complete yet
     <root>/jobs/<id>/runs/<run id>/      a run's output while it is produced
     <root>/jobs/<id>/result/             the finished result (a run's folder, renamed)
+    <root>/jobs/<id>/cache/              stage outputs a rerun resumes from (pmvir.stage_cache)
     <root>/trash/                        folders being deleted (renamed here first, then removed)
 
 Everything that becomes visible appears by rename, so a reader never sees a
@@ -20,14 +21,13 @@ import hashlib
 import os
 import re
 import shutil
+import time
 import uuid
 import zipfile
 from pathlib import Path, PurePosixPath
 
 from pmvir.io.frames import FRAME_SUFFIXES
-
-#: The result files the API serves by name (section 3 of the capture-format spec, plus the zip).
-RESULT_FILES = ("mesh.ply", "illumination.json", "report.json", "result.zip")
+from pmvir.result import RESULT_FILES, RESULT_ZIP, downloadable_names
 
 _NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.+-]{0,127}$")
 _LAYOUT = {
@@ -97,6 +97,16 @@ class JobFiles:
     def result_dir(self, job_id: str) -> Path:
         return self.job_dir(job_id) / "result"
 
+    def cache_dir(self, job_id: str) -> Path:
+        return self.job_dir(job_id) / "cache"
+
+    def share(self, source_id: str, job_id: str) -> None:
+        """Give a rerun the source job's capture and stage cache: hard links (copies across devices)."""
+        for part in ("capture", "cache"):
+            src, dst = self.job_dir(source_id) / part, self.job_dir(job_id) / part
+            if src.is_dir():
+                shutil.copytree(src, dst, copy_function=_link_or_copy, dirs_exist_ok=True)
+
     def run_dir(self, job_id: str, run_id: str) -> Path:
         return self.job_dir(job_id) / "runs" / run_id
 
@@ -128,7 +138,7 @@ class JobFiles:
 
     def result_file(self, job_id: str, name: str) -> Path | None:
         """A finished result file, or None when the job has none of that name."""
-        if name not in RESULT_FILES:
+        if name not in downloadable_names():
             return None
         p = self.result_dir(job_id) / name
         return p if p.is_file() else None
@@ -149,6 +159,30 @@ class JobFiles:
     def delete(self, job_id: str) -> None:
         self.remove_tree(self.job_dir(job_id))
 
+    def usage(self, *, max_age: float = 30.0) -> dict[str, int]:
+        """Disk use: the storage disk's total/used/free bytes and the bytes and count of job folders.
+
+        The job folders are walked at most every ``max_age`` seconds (the last answer is reused).
+        """
+        self.root.mkdir(parents=True, exist_ok=True)
+        cached = _USAGE.get(self.root)
+        if cached is None or time.monotonic() - cached[0] > max_age:
+            jobs = self.root / "jobs"
+            folders = [d for d in jobs.iterdir() if d.is_dir()] if jobs.is_dir() else []
+            _USAGE[self.root] = cached = (
+                time.monotonic(),
+                sum(_tree_bytes(d) for d in folders),
+                len(folders),
+            )
+        disk = shutil.disk_usage(self.root)
+        return {
+            "total": disk.total,
+            "used": disk.used,
+            "free": disk.free,
+            "jobs_bytes": cached[1],
+            "jobs": cached[2],
+        }
+
     def free_bytes(self) -> int:
         self.root.mkdir(parents=True, exist_ok=True)
         return shutil.disk_usage(self.root).free
@@ -165,10 +199,15 @@ class JobFiles:
             return False
 
     def publish_result(self, job_id: str, run_dir: Path) -> Path:
-        """Zip a finished run's folder into result.zip inside it, then rename it to result/.
+        """Zip a finished run's folder into result.zip inside it (and each result folder into
+        ``<folder>.zip``, to be served singly), then rename it to result/.
 
         Running twice is harmless: an earlier result folder is moved away first.
         """
+        for entry in RESULT_FILES:
+            folder = run_dir / entry.name.rstrip("/")
+            if entry.is_folder and entry.single and folder.is_dir():
+                write_folder_zip(folder, run_dir / entry.download_name)
         write_result_zip(run_dir)
         final = self.result_dir(job_id)
         if final.exists():
@@ -182,12 +221,18 @@ def write_result_zip(folder: Path) -> Path:
 
     Text and PLY members are deflated; arrays and images are stored as they are (see ``_STORED``).
     """
-    target = folder / "result.zip"
-    tmp = folder / f".result.zip.{uuid.uuid4().hex}.tmp"
+    return write_folder_zip(folder, folder / RESULT_ZIP)
+
+
+def write_folder_zip(folder: Path, target: Path) -> Path:
+    """Zip every file under ``folder`` (but ``target`` and other .zip files beside it) into ``target``."""
+    tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex}.tmp")
     try:
         with zipfile.ZipFile(tmp, "w", allowZip64=True) as zf:
             for p in sorted(folder.rglob("*")):
                 if not p.is_file() or p.is_symlink() or p == target or p.name.endswith(".tmp"):
+                    continue
+                if p.parent == target.parent and p.suffix == ".zip":  # the folder zips beside result.zip
                     continue
                 stored = p.suffix.lower() in _STORED
                 zf.write(
@@ -200,6 +245,32 @@ def write_result_zip(folder: Path) -> Path:
     finally:
         tmp.unlink(missing_ok=True)
     return target
+
+
+_USAGE: dict[Path, tuple[float, int, int]] = {}
+
+
+def _tree_bytes(folder: Path) -> int:
+    """Bytes of the regular files under ``folder`` (hard links shared by reruns are counted per job)."""
+    total, stack = 0, [folder]
+    while stack:
+        try:
+            entries = list(os.scandir(stack.pop()))
+        except OSError:  # removed meanwhile
+            continue
+        for e in entries:
+            if e.is_dir(follow_symlinks=False):
+                stack.append(Path(e.path))
+            elif e.is_file(follow_symlinks=False):
+                total += e.stat(follow_symlinks=False).st_size
+    return total
+
+
+def _link_or_copy(src: str, dst: str) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
 
 
 def sha256_file(path: Path) -> str:

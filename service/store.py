@@ -13,8 +13,13 @@ Keys (``P`` is ``Settings.key_prefix``)::
     P:owner:<owner>:open   set: the owner's unfinished jobs (created, queued, running)
     P:running              set: jobs in status running (scanned for lapsed leases)
     P:idem:<owner>:<hash>  string with a TTL: Idempotency-Key -> job id
+    P:job:<id>:webhook     list of JSON delivery attempts of the job's webhook
+    P:expiry               zset: finished jobs with a ttl, scored by when they are to be deleted
+    P:webhooks             zset: jobs whose webhook event is due, scored by the next attempt's time
+    P:worker:<name>        string with a TTL: a live worker's JSON self-description (heartbeat)
 
-Every state change that depends on the current state is one Lua script, so
+Every state change that depends on the current state is one Lua script
+(:mod:`service.store_scripts`), so
 concurrent API processes and workers never interleave a check and a write.
 Progress only grows; a worker's writes count only while its run id is the
 job's current one (a stale, superseded run changes nothing).
@@ -22,138 +27,68 @@ job's current one (a stale, superseded run changes nothing).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any
 
 import redis
+import redis.lock
 
-STATUSES = ("created", "queued", "running", "succeeded", "failed", "canceled")
-TERMINAL = frozenset({"succeeded", "failed", "canceled"})
+from service import store_scripts as scripts
 
-_SCRIPT_CREATE = """
--- KEYS: job, owner jobs, owner open; ARGV: id, limit, created_at, field/value pairs...
-if redis.call('EXISTS', KEYS[1]) == 1 then return -1 end
-local n = redis.call('SCARD', KEYS[3])
-if n >= tonumber(ARGV[2]) then return n end
-redis.call('HSET', KEYS[1], unpack(ARGV, 4))
-redis.call('ZADD', KEYS[2], ARGV[3], ARGV[1])
-redis.call('SADD', KEYS[3], ARGV[1])
-return -2
-"""
 
-_SCRIPT_TRANSITION = """
--- KEYS: job, owner open, running, lease
--- ARGV: id, allowed (',a,b,'), new status, run id required ('' for any), field/value pairs...
-local st = redis.call('HGET', KEYS[1], 'status')
-if not st then return {0, ''} end
-if not string.find(ARGV[2], ',' .. st .. ',', 1, true) then return {0, st} end
-if ARGV[4] ~= '' and redis.call('HGET', KEYS[1], 'run_id') ~= ARGV[4] then return {0, st} end
-redis.call('HSET', KEYS[1], 'status', ARGV[3], unpack(ARGV, 5))
-local new = ARGV[3]
-if new == 'succeeded' or new == 'failed' or new == 'canceled' then
-  redis.call('SREM', KEYS[2], ARGV[1]); redis.call('SREM', KEYS[3], ARGV[1]); redis.call('DEL', KEYS[4])
-elseif new == 'queued' then
-  redis.call('SREM', KEYS[3], ARGV[1])
-end
-return {1, st}
-"""
+class JobStatus(StrEnum):
+    """Where a job is in its life: created -> queued -> running -> one of the terminal states."""
 
-_SCRIPT_CLAIM = """
--- KEYS: job, running, lease, owner open; ARGV: id, run id, now, lease ms, max deliveries
-local st = redis.call('HGET', KEYS[1], 'status')
-if not st then return {'gone', 0} end
-if st == 'succeeded' or st == 'failed' or st == 'canceled' then return {'done', 0} end
-if st == 'created' then return {'not_queued', 0} end
-if st == 'running' and redis.call('EXISTS', KEYS[3]) == 1 then return {'busy', 0} end
-local n = redis.call('HINCRBY', KEYS[1], 'deliveries', 1)
-if n > tonumber(ARGV[5]) then
-  redis.call('HSET', KEYS[1], 'status', 'failed', 'finished_at', ARGV[3], 'updated_at', ARGV[3],
-    'error', 'the job was started ' .. (n - 1) .. ' times and its worker died each time; giving up')
-  redis.call('SREM', KEYS[2], ARGV[1]); redis.call('SREM', KEYS[4], ARGV[1])
-  return {'exhausted', n}
-end
-redis.call('HSET', KEYS[1], 'status', 'running', 'run_id', ARGV[2], 'updated_at', ARGV[3])
-redis.call('HSETNX', KEYS[1], 'started_at', ARGV[3])
-redis.call('SADD', KEYS[2], ARGV[1])
-redis.call('SET', KEYS[3], ARGV[2], 'PX', ARGV[4])
-return {'ok', n}
-"""
+    CREATED = "created"
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELED = "canceled"
 
-_SCRIPT_HEARTBEAT = """
--- KEYS: job, lease; ARGV: run id, lease ms
-if redis.call('HGET', KEYS[1], 'run_id') ~= ARGV[1] then return 0 end
-if redis.call('HGET', KEYS[1], 'status') ~= 'running' then return 0 end
-redis.call('SET', KEYS[2], ARGV[1], 'PX', ARGV[2])
-return 1
-"""
+    @property
+    def terminal(self) -> bool:
+        """The job has ended (succeeded, failed or canceled) and never changes again."""
+        return self in TERMINAL
 
-_SCRIPT_PROGRESS = """
--- KEYS: job; ARGV: run id, fraction, stage, now, stage timings json
-if redis.call('HGET', KEYS[1], 'run_id') ~= ARGV[1] then return 0 end
-if redis.call('HGET', KEYS[1], 'status') ~= 'running' then return 0 end
-local old = tonumber(redis.call('HGET', KEYS[1], 'progress') or '0') or 0
-local new = tonumber(ARGV[2])
-if new > old then redis.call('HSET', KEYS[1], 'progress', ARGV[2]) end
-redis.call('HSET', KEYS[1], 'stage', ARGV[3], 'updated_at', ARGV[4], 'stage_timings', ARGV[5])
-return 1
-"""
 
-_SCRIPT_REQUEUE = """
--- KEYS: job, running, lease; ARGV: id, now
-local st = redis.call('HGET', KEYS[1], 'status')
-if st ~= 'running' then redis.call('SREM', KEYS[2], ARGV[1]); return 0 end
-if redis.call('EXISTS', KEYS[3]) == 1 then return 0 end
-redis.call('HSET', KEYS[1], 'status', 'queued', 'run_id', '', 'updated_at', ARGV[2])
-redis.call('SREM', KEYS[2], ARGV[1])
-return 1
-"""
+TERMINAL = frozenset({JobStatus.SUCCEEDED, JobStatus.FAILED, JobStatus.CANCELED})
 
-_SCRIPT_UPLOAD_BEGIN = """
--- KEYS: job, uploads, starting; ARGV: token, expiry
-local st = redis.call('HGET', KEYS[1], 'status')
-if not st then return 'gone' end
-if st ~= 'created' then return st end
-if redis.call('EXISTS', KEYS[3]) == 1 then return 'starting' end
-redis.call('ZADD', KEYS[2], ARGV[2], ARGV[1])
-return 'ok'
-"""
 
-_SCRIPT_UPLOAD_COMMIT = """
--- KEYS: job, files, uploads, partial; ARGV: token, path, info json
-redis.call('ZREM', KEYS[3], ARGV[1])
-local st = redis.call('HGET', KEYS[1], 'status')
-if st ~= 'created' then return st or 'gone' end
-redis.call('HSET', KEYS[2], ARGV[2], ARGV[3])
-redis.call('HDEL', KEYS[4], ARGV[2])
-return 'ok'
-"""
+class Gate(StrEnum):
+    """The store's answer when an upload or a start asks to go ahead (else the job's status)."""
 
-_SCRIPT_START_LOCK = """
--- KEYS: job, uploads, starting; ARGV: now, ttl s
-local st = redis.call('HGET', KEYS[1], 'status')
-if not st then return 'gone' end
-if st ~= 'created' then return st end
-redis.call('ZREMRANGEBYSCORE', KEYS[2], '-inf', ARGV[1])
-if redis.call('ZCARD', KEYS[2]) > 0 then return 'uploading' end
-if not redis.call('SET', KEYS[3], '1', 'NX', 'EX', ARGV[2]) then return 'starting' end
-return 'ok'
-"""
+    OK = "ok"
+    GONE = "gone"
+    UPLOADING = "uploading"
+    STARTING = "starting"
 
-_SCRIPT_CANCEL = """
--- KEYS: job, owner open, running, lease; ARGV: id, now
-local st = redis.call('HGET', KEYS[1], 'status')
-if not st then return '' end
-if st == 'created' or st == 'queued' then
-  redis.call('HSET', KEYS[1], 'status', 'canceled', 'cancel', '1',
-    'finished_at', ARGV[2], 'updated_at', ARGV[2])
-  redis.call('SREM', KEYS[2], ARGV[1]); redis.call('SREM', KEYS[3], ARGV[1]); redis.call('DEL', KEYS[4])
-  return 'canceled'
-end
-if st == 'running' then redis.call('HSET', KEYS[1], 'cancel', '1', 'updated_at', ARGV[2]) end
-return st
-"""
+
+class Claim(StrEnum):
+    """What a delivery of a job's task found (:meth:`JobStore.claim`)."""
+
+    OK = "ok"
+    GONE = "gone"
+    DONE = "done"
+    NOT_QUEUED = "not_queued"
+    BUSY = "busy"
+    EXHAUSTED = "exhausted"
+
+
+def _gate(answer: str) -> Gate | JobStatus:
+    return Gate(answer) if answer in Gate.__members__.values() else JobStatus(answer)
+
+
+@dataclass(frozen=True)
+class IdempotentJob:
+    """The job an Idempotency-Key was already bound to, and the fingerprint of the request that made it."""
+
+    job_id: str
+    fingerprint: str
 
 
 @dataclass(frozen=True)
@@ -171,7 +106,7 @@ class Job:
 
     id: str
     owner: str
-    status: str
+    status: JobStatus
     options: dict[str, Any]
     created_at: float
     updated_at: float
@@ -186,6 +121,10 @@ class Job:
     deliveries: int = 0
     run_id: str = ""
     stage_timings: dict[str, float] = field(default_factory=dict)
+    source_job: str | None = None
+    resume_from: str | None = None
+    ttl: int = 0
+    callback_url: str | None = None
 
     @classmethod
     def from_hash(cls, h: dict[str, str]) -> Job:
@@ -196,7 +135,7 @@ class Job:
         return cls(
             id=h["id"],
             owner=h["owner"],
-            status=h["status"],
+            status=JobStatus(h["status"]),
             options=json.loads(h.get("options") or "{}"),
             created_at=float(h["created_at"]),
             updated_at=float(h.get("updated_at") or h["created_at"]),
@@ -211,6 +150,10 @@ class Job:
             deliveries=int(h.get("deliveries") or 0),
             run_id=h.get("run_id") or "",
             stage_timings=json.loads(h.get("stage_timings") or "{}"),
+            source_job=h.get("source_job") or None,
+            resume_from=h.get("resume_from") or None,
+            ttl=int(h.get("ttl") or 0),
+            callback_url=h.get("callback_url") or None,
         )
 
 
@@ -223,18 +166,20 @@ class JobStore:
     """
 
     def __init__(self, client: redis.Redis, *, prefix: str = "pmvir"):
-        self.r = client
+        # decode_responses=True: every reply is str, which redis-py's `bytes | str` types cannot say.
+        self.r: Any = client
         self.p = prefix
-        self._create = client.register_script(_SCRIPT_CREATE)
-        self._transition = client.register_script(_SCRIPT_TRANSITION)
-        self._claim = client.register_script(_SCRIPT_CLAIM)
-        self._heartbeat = client.register_script(_SCRIPT_HEARTBEAT)
-        self._progress = client.register_script(_SCRIPT_PROGRESS)
-        self._requeue = client.register_script(_SCRIPT_REQUEUE)
-        self._upload_begin = client.register_script(_SCRIPT_UPLOAD_BEGIN)
-        self._upload_commit = client.register_script(_SCRIPT_UPLOAD_COMMIT)
-        self._start_lock = client.register_script(_SCRIPT_START_LOCK)
-        self._cancel = client.register_script(_SCRIPT_CANCEL)
+        self._create = client.register_script(scripts.CREATE)
+        self._transition = client.register_script(scripts.TRANSITION)
+        self._claim = client.register_script(scripts.CLAIM)
+        self._heartbeat = client.register_script(scripts.HEARTBEAT)
+        self._progress = client.register_script(scripts.PROGRESS)
+        self._requeue = client.register_script(scripts.REQUEUE)
+        self._upload_begin = client.register_script(scripts.UPLOAD_BEGIN)
+        self._upload_commit = client.register_script(scripts.UPLOAD_COMMIT)
+        self._start_lock = client.register_script(scripts.START_LOCK)
+        self._cancel = client.register_script(scripts.CANCEL)
+        self._delete_if_equal = client.register_script(scripts.DELETE_IF_EQUAL)
 
     @classmethod
     def from_url(cls, url: str, *, prefix: str = "pmvir") -> JobStore:
@@ -257,6 +202,25 @@ class JobStore:
     @property
     def _running(self) -> str:
         return f"{self.p}:running"
+
+    @property
+    def _expiry(self) -> str:
+        return f"{self.p}:expiry"
+
+    @property
+    def _webhooks(self) -> str:
+        return f"{self.p}:webhooks"
+
+    def _ending_keys(self, job_id: str, owner: str) -> list[str]:
+        """KEYS of the scripts that may end a job: job, owner open, running, lease, expiry, webhooks."""
+        return [
+            self.key(job_id),
+            self._owner_open(owner),
+            self._running,
+            self.key(job_id, "lease"),
+            self._expiry,
+            self._webhooks,
+        ]
 
     def ping(self) -> bool:
         return bool(self.r.ping())
@@ -282,7 +246,7 @@ class JobStore:
         fields = {
             "id": job_id,
             "owner": owner,
-            "status": "created",
+            "status": JobStatus.CREATED,
             "options": json.dumps(options),
             "label": label or "",
             "progress": "0",
@@ -317,36 +281,40 @@ class JobStore:
         return [Job.from_hash(h) for h in pipe.execute() if h], int(total)
 
     def transition(
-        self, job: Job, allowed: tuple[str, ...], new: str, *, run_id: str = "", **fields: Any
-    ) -> tuple[bool, str]:
+        self,
+        job: Job,
+        allowed: tuple[JobStatus, ...],
+        new: JobStatus,
+        *,
+        run_id: str = "",
+        **fields: Any,
+    ) -> tuple[bool, JobStatus | None]:
         """Move ``job`` to ``new`` if its status is in ``allowed`` (and, if given, its run is ``run_id``).
 
         Returns:
-            (done, the status before).
+            (done, the status before; None when the job is gone).
         """
         now = repr(time.time())
         kv: dict[str, str] = {"updated_at": now, **{k: _s(v) for k, v in fields.items()}}
         if new in TERMINAL:
             kv.setdefault("finished_at", now)
-        if new == "queued":
+        if new == JobStatus.QUEUED:
             kv.setdefault("queued_at", now)
         flat = [x for pair in kv.items() for x in pair]
         ok, before = self._transition(
-            keys=[self.key(job.id), self._owner_open(job.owner), self._running, self.key(job.id, "lease")],
-            args=[job.id, "," + ",".join(allowed) + ",", new, run_id, *flat],
+            keys=self._ending_keys(job.id, job.owner),
+            args=[job.id, "," + ",".join(allowed) + ",", new, run_id, now, *flat],
         )
-        return bool(ok), before
+        return bool(ok), JobStatus(before) if before else None
 
-    def cancel(self, job: Job) -> str:
+    def cancel(self, job: Job) -> JobStatus | None:
         """Cancel: created/queued jobs end now; a running job gets its cancel flag.
 
         Returns:
-            The status after ('' when the job is gone).
+            The status after (None when the job is gone).
         """
-        return self._cancel(
-            keys=[self.key(job.id), self._owner_open(job.owner), self._running, self.key(job.id, "lease")],
-            args=[job.id, repr(time.time())],
-        )
+        after = self._cancel(keys=self._ending_keys(job.id, job.owner), args=[job.id, repr(time.time())])
+        return JobStatus(after) if after else None
 
     def delete(self, job: Job) -> None:
         """Forget the job and the Idempotency-Key that made it (its files are the storage's business)."""
@@ -357,9 +325,11 @@ class JobStore:
         pipe.delete(
             *(
                 self.key(job.id, part)
-                for part in (None, "files", "partial", "uploads", "starting", "lease", "log")
+                for part in (None, "files", "partial", "uploads", "starting", "lease", "log", "webhook")
             )
         )
+        pipe.zrem(self._expiry, job.id)
+        pipe.zrem(self._webhooks, job.id)
         pipe.zrem(self._owner_jobs(job.owner), job.id)
         pipe.srem(self._owner_open(job.owner), job.id)
         pipe.srem(self._running, job.id)
@@ -367,12 +337,33 @@ class JobStore:
 
     # -- idempotency
 
-    def idempotent_job(self, owner: str, key_hash: str, job_id: str, ttl: int) -> str | None:
-        """Bind an Idempotency-Key to ``job_id``; returns the job id it was already bound to, or None."""
+    def bind_idempotency_key(
+        self, owner: str, key_hash: str, job_id: str, *, ttl: int, wait: float = 2.0
+    ) -> IdempotentJob | None:
+        """Bind an Idempotency-Key to ``job_id``, or find the job it is bound to.
+
+        A key bound to a job whose record is not written yet (its request is still being
+        handled) is waited for, up to ``wait`` seconds; a key whose job never appears (its
+        creator failed or died) is taken over.
+
+        Returns:
+            None when the key is now bound to ``job_id``; else the job it was bound to, with
+            the fingerprint of the request that made it.
+        """
         k = f"{self.p}:idem:{owner}:{key_hash}"
-        if self.r.set(k, job_id, nx=True, ex=ttl):
-            return None
-        return self.r.get(k)
+        deadline = time.monotonic() + wait
+        while not self.r.set(k, job_id, nx=True, ex=ttl):
+            existing = self.r.get(k)
+            if existing is None:
+                continue
+            fingerprint = self.r.hget(self.key(existing), "idem_fp")
+            if fingerprint is not None:
+                return IdempotentJob(job_id=existing, fingerprint=fingerprint)
+            if time.monotonic() > deadline:
+                self._delete_if_equal(keys=[k], args=[existing])
+            else:
+                time.sleep(0.05)
+        return None
 
     def forget_idempotency(self, owner: str, key_hash: str) -> None:
         self.r.delete(f"{self.p}:idem:{owner}:{key_hash}")
@@ -387,6 +378,13 @@ class JobStore:
             out[path] = FileInfo(path=path, size=int(d["size"]), sha256=d["sha256"])
         return out
 
+    def copy_files(self, source_id: str, job_id: str) -> int:
+        """Record the source job's complete files as the job's (a rerun shares its capture); how many."""
+        files = self.r.hgetall(self.key(source_id, "files"))
+        if files:
+            self.r.hset(self.key(job_id, "files"), mapping=files)
+        return len(files)
+
     def partial_total(self, job_id: str, path: str) -> int | None:
         v = self.r.hget(self.key(job_id, "partial"), path)
         return int(v) if v is not None else None
@@ -400,11 +398,13 @@ class JobStore:
     def clear_partial(self, job_id: str, path: str) -> None:
         self.r.hdel(self.key(job_id, "partial"), path)
 
-    def upload_begin(self, job_id: str, token: str, *, ttl: float = 120.0) -> str:
-        """Register an upload in progress; 'ok', or why not ('gone', 'starting', or the job's status)."""
-        return self._upload_begin(
-            keys=[self.key(job_id), self.key(job_id, "uploads"), self.key(job_id, "starting")],
-            args=[token, repr(time.time() + ttl)],
+    def upload_begin(self, job_id: str, token: str, *, ttl: float = 120.0) -> Gate | JobStatus:
+        """Register an upload in progress; Gate.OK, or why not (GONE, STARTING, or the job's status)."""
+        return _gate(
+            self._upload_begin(
+                keys=[self.key(job_id), self.key(job_id, "uploads"), self.key(job_id, "starting")],
+                args=[token, repr(time.time() + ttl)],
+            )
         )
 
     def upload_touch(self, job_id: str, token: str, *, ttl: float = 120.0) -> None:
@@ -413,27 +413,36 @@ class JobStore:
     def upload_end(self, job_id: str, token: str) -> None:
         self.r.zrem(self.key(job_id, "uploads"), token)
 
-    def upload_commit(self, job_id: str, token: str, info: FileInfo) -> str:
-        """Record a complete file if the job still takes uploads; 'ok' or why not."""
-        return self._upload_commit(
-            keys=[
-                self.key(job_id),
-                self.key(job_id, "files"),
-                self.key(job_id, "uploads"),
-                self.key(job_id, "partial"),
-            ],
-            args=[token, info.path, json.dumps({"size": info.size, "sha256": info.sha256})],
+    def upload_commit(self, job_id: str, token: str, info: FileInfo) -> Gate | JobStatus:
+        """Record a complete file if the job still takes uploads; Gate.OK or why not."""
+        return _gate(
+            self._upload_commit(
+                keys=[
+                    self.key(job_id),
+                    self.key(job_id, "files"),
+                    self.key(job_id, "uploads"),
+                    self.key(job_id, "partial"),
+                ],
+                args=[token, info.path, json.dumps({"size": info.size, "sha256": info.sha256})],
+            )
         )
+
+    def path_lock(self, job_id: str, path: str, *, timeout: float = 60.0) -> redis.lock.Lock:
+        """A lock held while one upload of ``path`` is recorded and renamed into the capture."""
+        name = self.key(job_id, f"lock:{hashlib.sha256(path.encode()).hexdigest()}")
+        return self.r.lock(name, timeout=timeout, blocking_timeout=timeout)
 
     def remove_files(self, job_id: str, paths: list[str]) -> None:
         if paths:
             self.r.hdel(self.key(job_id, "files"), *paths)
 
-    def start_lock(self, job_id: str, *, ttl: int = 900) -> str:
-        """Hold the job while its capture is validated; 'ok' or why not ('uploading', 'starting', status)."""
-        return self._start_lock(
-            keys=[self.key(job_id), self.key(job_id, "uploads"), self.key(job_id, "starting")],
-            args=[repr(time.time()), ttl],
+    def start_lock(self, job_id: str, *, ttl: int = 900) -> Gate | JobStatus:
+        """Hold the job while its capture is validated; Gate.OK or why not (UPLOADING, STARTING, status)."""
+        return _gate(
+            self._start_lock(
+                keys=[self.key(job_id), self.key(job_id, "uploads"), self.key(job_id, "starting")],
+                args=[repr(time.time()), ttl],
+            )
         )
 
     def start_unlock(self, job_id: str) -> None:
@@ -443,20 +452,27 @@ class JobStore:
 
     def claim(
         self, job_id: str, run_id: str, *, lease_seconds: float, max_deliveries: int
-    ) -> tuple[str, int]:
+    ) -> tuple[Claim, int]:
         """A delivery of the job's task starts a run.
 
         Returns:
-            ('ok', delivery number) when this run now owns the job; ('gone' | 'done' |
-            'not_queued' | 'busy', 0) when there is nothing to do; ('exhausted', n) when the job
+            (Claim.OK, delivery number) when this run now owns the job; (GONE | DONE |
+            NOT_QUEUED | BUSY, 0) when there is nothing to do; (EXHAUSTED, n) when the job
             was just failed for having killed its worker too often.
         """
         job = self.r.hget(self.key(job_id), "owner") or ""
         what, n = self._claim(
-            keys=[self.key(job_id), self._running, self.key(job_id, "lease"), self._owner_open(job)],
+            keys=[
+                self.key(job_id),
+                self._running,
+                self.key(job_id, "lease"),
+                self._owner_open(job),
+                self._expiry,
+                self._webhooks,
+            ],
             args=[job_id, run_id, repr(time.time()), int(lease_seconds * 1000), max_deliveries],
         )
-        return what, int(n)
+        return Claim(what), int(n)
 
     def heartbeat(self, job_id: str, run_id: str, *, lease_seconds: float) -> bool:
         """Extend the run's lease; False when the run no longer owns the job."""
@@ -481,13 +497,13 @@ class JobStore:
     def should_stop(self, job_id: str, run_id: str) -> bool:
         """True when the job was canceled, deleted, or taken over by another run."""
         status, cancel, current = self.r.hmget(self.key(job_id), "status", "cancel", "run_id")
-        return status != "running" or cancel == "1" or current != run_id
+        return status != JobStatus.RUNNING or cancel == "1" or current != run_id
 
-    def finish(self, job: Job, run_id: str, status: str, **fields: Any) -> bool:
+    def finish(self, job: Job, run_id: str, status: JobStatus, **fields: Any) -> bool:
         """End the run's job with a terminal ``status``, if the run still owns it (one atomic check)."""
         if not run_id:
             raise ValueError("finish needs the run id")
-        ok, _ = self.transition(job, ("running",), status, run_id=run_id, **fields)
+        ok, _ = self.transition(job, (JobStatus.RUNNING,), status, run_id=run_id, **fields)
         return ok
 
     def lapsed_running(self) -> list[str]:
@@ -508,6 +524,51 @@ class JobStore:
                 args=[job_id, repr(time.time())],
             )
         )
+
+    # -- retention, webhooks, workers
+
+    def expired(self, *, now: float, limit: int = 100) -> list[str]:
+        """Finished jobs whose ttl ran out by ``now`` (oldest first)."""
+        return list(self.r.zrangebyscore(self._expiry, "-inf", now, start=0, num=limit))
+
+    def delete_expiry(self, job_id: str) -> None:
+        self.r.zrem(self._expiry, job_id)
+
+    def due_webhooks(self, *, now: float, limit: int = 20) -> list[str]:
+        """Jobs whose webhook event is due by ``now``."""
+        return list(self.r.zrangebyscore(self._webhooks, "-inf", now, start=0, num=limit))
+
+    def take_webhook(self, job_id: str) -> bool:
+        """Claim a due webhook event (one caller among all workers wins)."""
+        return bool(self.r.zrem(self._webhooks, job_id))
+
+    def retry_webhook(self, job_id: str, *, at: float) -> None:
+        self.r.zadd(self._webhooks, {job_id: at})
+
+    def record_delivery(self, job_id: str, attempt: dict[str, Any]) -> int:
+        """Append a delivery attempt to the job's webhook record; returns how many there are."""
+        return int(self.r.rpush(self.key(job_id, "webhook"), json.dumps(attempt)))
+
+    def deliveries(self, job_id: str) -> list[dict[str, Any]]:
+        return [json.loads(x) for x in self.r.lrange(self.key(job_id, "webhook"), 0, 99)]
+
+    def worker_seen(self, name: str, info: dict[str, Any], *, ttl: float) -> None:
+        """A worker's heartbeat: its self-description, kept ``ttl`` seconds."""
+        self.r.set(f"{self.p}:worker:{name}", json.dumps(info), px=int(ttl * 1000))
+
+    def workers(self) -> list[dict[str, Any]]:
+        """The live workers' self-descriptions."""
+        keys = list(self.r.scan_iter(match=f"{self.p}:worker:*", count=100))
+        values = self.r.mget(keys) if keys else []
+        return [json.loads(v) for v in values if v]
+
+    def queue_length(self, queue: str) -> int:
+        """Messages waiting in a Celery queue on this Redis (every priority list of kombu's transport)."""
+        names = [queue, *(f"{queue}\x06\x16{p}" for p in (3, 6, 9))]
+        pipe = self.r.pipeline(transaction=False)
+        for n in names:
+            pipe.llen(n)
+        return int(sum(pipe.execute()))
 
     # -- log
 

@@ -41,7 +41,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def _wait(pred, timeout: float, what: str, proc: Proc | None = None) -> None:  # noqa: ANN001
+def _wait(pred, timeout: float, what: str, proc: Proc | None = None) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc is not None and proc.popen.poll() is not None:
@@ -49,7 +49,7 @@ def _wait(pred, timeout: float, what: str, proc: Proc | None = None) -> None:  #
         try:
             if pred():
                 return
-        except Exception:
+        except Exception:  # noqa: BLE001 - not up yet: poll again
             pass
         time.sleep(0.05)
     raise TimeoutError(f"{what}: not ready after {timeout} s" + (f"\n{proc.tail()}" if proc else ""))
@@ -69,7 +69,7 @@ class Proc:
     ):
         self.name = name
         self.log = log
-        self._fh = open(log, "ab")
+        self._fh = open(log, "ab")  # noqa: SIM115 - held for the life of the process, closed by kill()
         self.popen = subprocess.Popen(
             argv,
             stdout=self._fh,
@@ -191,7 +191,7 @@ class ServiceStack:
         import redis as redis_py
 
         client = redis_py.Redis(host="127.0.0.1", port=self.redis_port, socket_connect_timeout=0.5)
-        _wait(lambda: client.ping(), 15, "redis-server", self.redis)
+        _wait(client.ping, 15, "redis-server", self.redis)
         client.close()
         return self.redis
 

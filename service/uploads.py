@@ -34,7 +34,7 @@ from service.deps import Services, path_error
 from service.errors import ApiError, ErrorItem, conflict, not_found, too_large
 from service.models import UploadOut
 from service.storage import capture_path_problem, is_frame, sha256_file
-from service.store import FileInfo, Job
+from service.store import FileInfo, Gate, Job
 
 _CONTENT_RANGE = re.compile(r"^bytes (\d+)-(\d+)/(\d+)$")
 _FLUSH = 1 << 20
@@ -97,10 +97,16 @@ class _Sink:
 
     def __init__(self, path: Path, mode: str, *, hash_it: bool):
         self.path = path
-        self.f = open(path, mode)
+        self.f = open(path, mode)  # noqa: SIM115 - the sink owns the file until close()
         self.h = hashlib.sha256() if hash_it else None
         self.buf = bytearray()
         self.n = 0
+
+    def hexdigest(self) -> str:
+        """SHA-256 of what was written (hex); only for a sink opened with ``hash_it``."""
+        if self.h is None:
+            raise RuntimeError(f"{self.path}: this sink was opened without hashing")
+        return self.h.hexdigest()
 
     def _write(self, data: bytes) -> None:
         self.f.write(data)
@@ -168,11 +174,11 @@ def _job_room(svc: Services, job_id: str, path: str) -> int:
 
 def _begin(svc: Services, job: Job, token: str) -> None:
     why = svc.store.upload_begin(job.id, token)
-    if why == "ok":
+    if why is Gate.OK:
         return
-    if why == "gone":
+    if why is Gate.GONE:
         raise not_found("job")
-    if why == "starting":
+    if why is Gate.STARTING:
         raise conflict("the job is being started; it takes no more uploads")
     raise conflict(f"the job is {why}; files can only be uploaded while it is created")
 
@@ -191,16 +197,11 @@ def _check_manifest(path: Path) -> None:
 
 def _commit(svc: Services, job: Job, token: str, tmp: Path, info: FileInfo) -> None:
     """Record the file and rename it into the capture, one upload of a path at a time."""
-    lock = svc.store.r.lock(
-        svc.store.key(job.id, f"lock:{hashlib.sha256(info.path.encode()).hexdigest()}"),
-        timeout=60,
-        blocking_timeout=60,
-    )
-    with lock:
+    with svc.store.path_lock(job.id, info.path):
         why = svc.store.upload_commit(job.id, token, info)
-        if why != "ok":
+        if why is not Gate.OK:
             tmp.unlink(missing_ok=True)
-            if why == "gone":
+            if why is Gate.GONE:
                 raise not_found("job")
             raise conflict(f"the job is {why}; the upload was discarded")
         try:
@@ -256,7 +257,7 @@ async def _whole(request: Request, svc: Services, job: Job, path: str, limit: in
         await sink.close(sync=True)
         if path == "capture.json":
             await run_in_threadpool(_check_manifest, tmp)
-        info = FileInfo(path=path, size=sink.n, sha256=sink.h.hexdigest())  # type: ignore[union-attr]
+        info = FileInfo(path=path, size=sink.n, sha256=sink.hexdigest())
         await run_in_threadpool(_commit, svc, job, token, tmp, info)
         await run_in_threadpool(svc.store.clear_partial, job.id, path)
     except BaseException:

@@ -3,8 +3,10 @@
 Before anything is extracted, the zip's central directory is checked against
 the service's limits and the capture layout: member count
 (``max_zip_members``, 413), each member's declared size (``max_frame_bytes`` /
-``max_manifest_bytes``, 413), the declared total (``max_job_bytes``, 413), the
-frame count (``max_frames``, 413) and every member name (capture layout, 422).
+``max_manifest_bytes``, 413), the declared total (``max_job_bytes``, 413) and
+its ratio to the zip's size (``max_zip_ratio``, 413), the frame count
+(``max_frames``, 413), every member name (capture layout, and valid UTF-8 when
+flagged so, 422) and compression method (stored or deflate, 422).
 Extraction itself is :func:`pmvir.io.capture_zip.extract_capture_zip`, which
 rejects unsafe names, links, encrypted members and zip bombs (ratio) before
 writing, and counts the bytes again while writing (422 naming the member).
@@ -14,16 +16,15 @@ from __future__ import annotations
 
 import shutil
 import uuid
-import zipfile
 from pathlib import Path
 from typing import BinaryIO
 
 from pmvir.errors import CaptureError
-from pmvir.io.capture_zip import extract_capture_zip
+from pmvir.io.capture_zip import compression_problem, extract_capture_zip, open_zip, ratio_problem
 from service.deps import Services
 from service.errors import ApiError, ErrorItem, too_large
 from service.storage import CHUNK, capture_path_problem, is_frame, sha256_file
-from service.store import FileInfo
+from service.store import FileInfo, Gate
 from service.uploads import file_limit
 
 
@@ -45,14 +46,9 @@ def precheck_zip(svc: Services, zip_path: Path) -> None:
     """Check the central directory against limits and the capture layout (nothing is extracted)."""
     s = svc.settings
     try:
-        zf = zipfile.ZipFile(zip_path)
-    except (zipfile.BadZipFile, OSError) as exc:
-        raise ApiError(
-            422,
-            "invalid_zip",
-            f"capture: not a readable zip file ({exc})",
-            errors=[ErrorItem(file="capture", msg="not a readable zip file", type="invalid_zip")],
-        ) from exc
+        zf = open_zip(zip_path, "capture")
+    except CaptureError as exc:
+        raise _capture_error(exc) from exc
     with zf:
         infos = zf.infolist()
         if len(infos) > s.max_zip_members:
@@ -81,6 +77,10 @@ def precheck_zip(svc: Services, zip_path: Path) -> None:
             if problem:
                 errors.append(ErrorItem(file=info.filename, msg=f"member {problem}", type="invalid_path"))
                 continue
+            problem = compression_problem(info)
+            if problem:
+                errors.append(ErrorItem(file=info.filename, msg=f"member {problem}", type="unsupported_zip"))
+                continue
             limit = file_limit(svc, rel)
             if info.file_size > limit:
                 raise too_large(
@@ -91,10 +91,16 @@ def precheck_zip(svc: Services, zip_path: Path) -> None:
             frames += is_frame(rel)
         if errors:
             raise ApiError(
-                422, "invalid_zip", f"{len(errors)} zip member(s) outside the capture layout", errors=errors
+                422,
+                "invalid_zip",
+                f"{len(errors)} zip member(s) outside the capture layout or unsupported",
+                errors=errors,
             )
         if total > s.max_job_bytes:
             raise too_large(f"the zip expands to {total} bytes, more than the job limit of {s.max_job_bytes}")
+        bomb = ratio_problem(total, zip_path.stat().st_size, s.max_zip_ratio)
+        if bomb:
+            raise too_large(f"the zip as a whole {bomb}")
         if frames > s.max_frames:
             raise too_large(f"the zip holds {frames} frames, more than the limit of {s.max_frames}")
 
@@ -140,7 +146,7 @@ def import_zip(svc: Services, job_id: str, zip_path: Path) -> list[FileInfo]:
             info = FileInfo(path=rel, size=p.stat().st_size, sha256=sha256_file(p))
             svc.files.place(job_id, p, rel)
             why = svc.store.upload_commit(job_id, "", info)
-            if why != "ok":
+            if why is not Gate.OK:
                 raise ApiError(409, "conflict", f"the job is {why}")
             recorded.append(info)
         return recorded

@@ -147,7 +147,7 @@ def test_cameras_and_known_pose_mode(tmp_path):
         cam = cap.frames[0].camera
         assert cam is not None and (cam.width, cam.height) == (W, H)
         np.testing.assert_allclose(cam.K, [[20, 0, W / 2], [0, 20, H / 2], [0, 0, 1]])
-        R, t = look_at(np.array([3.0, 0.0, 1.0]), np.zeros(3))
+        R, _ = look_at(np.array([3.0, 0.0, 1.0]), np.zeros(3))
         np.testing.assert_allclose(cam.R, R, atol=1e-12)
         np.testing.assert_allclose(cam.center, [3.0, 0.0, 1.0], atol=1e-12)
         assert cap.index("002") == 2

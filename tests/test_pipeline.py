@@ -92,10 +92,10 @@ def test_reconstruct_cli_maps_flags_onto_the_config_tree(capture: Path, tmp_path
     config = build_config(args)
     assert config.decode.noise_floor == 0.02 and config.stop_after == "decode"
     bad = parser.parse_args(["reconstruct", str(capture), "--out", "x", "--set", "decode.noise_floor=2"])
-    with pytest.raises(ConfigError, match="decode.noise_floor"):
+    with pytest.raises(ConfigError, match=r"decode\.noise_floor"):
         build_config(bad)
     unknown = parser.parse_args(["reconstruct", str(capture), "--out", "x", "--set", "decode.nosuch=1"])
-    with pytest.raises(ConfigError, match="decode.nosuch"):
+    with pytest.raises(ConfigError, match=r"decode\.nosuch"):
         build_config(unknown)
 
 

@@ -47,7 +47,7 @@ def test_result_files_follow_the_spec(result) -> None:
     illum = read_illumination(out / "illumination.json")
     manifest = json.loads((capture / "capture.json").read_text())
     assert [f.file for f in illum.frames] == [f["file"] for f in manifest["frames"]]
-    cameras, images = read_colmap_text_model(out / "poses")
+    _, images = read_colmap_text_model(out / "poses")
     assert sorted(im.name for im in images.values()) == [f["file"] for f in manifest["frames"]]
     report = json.loads((out / "report.json").read_text())
     assert report["stages"] == ["decode", "geometry", "refine"]

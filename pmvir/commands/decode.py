@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import get_args
 
 from pydantic import ValidationError
 
@@ -38,7 +39,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--demosaic",
-        choices=["bilinear", "edge-aware"],
+        choices=list(get_args(DecodeOptions.model_fields["demosaic"].annotation)),
         default=defaults.demosaic,
         help=f"{fields['demosaic'].description} (default {defaults.demosaic})",
     )

@@ -75,7 +75,7 @@ def format_table(result: EvaluationResult) -> str:
     if r.albedo_scale is not None:
         rows.append(("albedo scale (R, G, B)", ", ".join(f"{s:.4g}" for s in r.albedo_scale)))
     rows.append(("aligned", "yes" if r.aligned else "no"))
-    if r.aligned:
+    if r.aligned and r.alignment is not None:
         rows.append(("alignment RMSE (camera centres)", _fmt(r.alignment_rmse)))
         rows.append(("alignment scale", f"{r.alignment['scale']:.6g}"))
     for name, err in r.illumination_per_frame.items():

@@ -51,11 +51,7 @@ def build_config(args: argparse.Namespace) -> PipelineConfig:
             raise ConfigError(f"{args.config}: cannot read options ({exc})") from exc
         if not isinstance(tree, dict):
             raise ConfigError(f"{args.config}: options must be a JSON object")
-    for item in args.overrides:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
-        _set_path(tree, key.split("."), _parse_value(value))
+    _apply_overrides(tree, args.overrides)
     named = {
         ("stop_after",): args.stop_after,
         ("refine", "polarimetric"): False if args.no_polarimetric else None,
@@ -77,6 +73,21 @@ def build_config(args: argparse.Namespace) -> PipelineConfig:
     except ValidationError as exc:
         problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
         raise ConfigError(f"invalid options: {problems}") from exc
+
+
+def parse_overrides(items: list[str]) -> dict[str, Any]:
+    """``--set section.field=VALUE`` items as a nested dict (VALUE is JSON, or a bare string)."""
+    tree: dict[str, Any] = {}
+    _apply_overrides(tree, items)
+    return tree
+
+
+def _apply_overrides(tree: dict[str, Any], items: list[str]) -> None:
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
+        _set_path(tree, key.split("."), _parse_value(value))
 
 
 def _parse_value(text: str) -> Any:

@@ -6,7 +6,8 @@ PipelineConfig tree as ``pmvir reconstruct``), uploads the capture with
 retries (large files resumable) and a progress bar, starts the job, polls it
 with a progress bar, and downloads ``result.zip`` into ``--out`` (extracted).
 A small ``.zip`` capture goes up in one request. Ctrl-C while waiting cancels
-the job. Exit status: 0 succeeded, 1 the job failed or was canceled, 2 a
+the job. With only the ``client`` extra installed (no numpy/OpenCV), the local
+check of the frame headers is skipped and the service does it. Exit status: 0 succeeded, 1 the job failed or was canceled, 2 a
 problem with the capture, the options or the service.
 """
 
@@ -20,7 +21,6 @@ import zipfile
 from pathlib import Path, PurePosixPath
 from typing import Any
 
-from pmvir.capture import open_capture, validate_capture
 from pmvir.commands.options import add_option_arguments, build_config
 from pmvir.errors import CaptureError, ConfigError
 
@@ -54,7 +54,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _bar(total: float, desc: str, unit: str, quiet: bool, **kw: Any):  # noqa: ANN202
+def _bar(total: float | None, desc: str, unit: str, quiet: bool, **kw: Any):
     from tqdm import tqdm
 
     return tqdm(total=total, desc=desc, unit=unit, disable=quiet, file=sys.stderr, dynamic_ncols=True, **kw)
@@ -67,14 +67,35 @@ def _upload(client: Any, job_id: str, root: Path, files: list[str], quiet: bool)
             client.upload_file(job_id, rel, root / rel, on_bytes=bar.update)
 
 
-def _files_of(cap: Any) -> list[str]:
-    files = ["capture.json"]
-    for f in cap.frames:
-        files.append(f.file)
-        if f.mask:
-            files.append(f.mask)
-    files += [g for g in ("gt/mesh.ply", "gt/illumination.json") if (cap.root / g).is_file()]
-    return files
+def _files_of(capture: Path) -> tuple[Path, list[str]]:
+    """The capture's root and the files to upload: those capture.json names (all of the layout
+    when the library's capture reader is not installed)."""
+    try:
+        from pmvir.capture import open_capture
+    except ModuleNotFoundError:
+        from pmvir.client import capture_files
+
+        root = capture if capture.is_dir() else capture.parent
+        return root, capture_files(root)
+    with open_capture(capture) as cap:
+        files = ["capture.json"]
+        for f in cap.frames:
+            files.append(f.file)
+            if f.mask:
+                files.append(f.mask)
+        files += [g for g in ("gt/mesh.ply", "gt/illumination.json") if (cap.root / g).is_file()]
+        return cap.root, files
+
+
+def _check_locally(capture: Path) -> None:
+    """The manifest and frame headers, when the library's capture reader is installed."""
+    try:
+        from pmvir.capture import validate_capture
+    except ModuleNotFoundError:
+        return
+    problems = validate_capture(capture, decode_frames=False)
+    if problems:
+        raise CaptureError(capture.name, "; ".join(str(p) for p in problems))
 
 
 def _wait(client: Any, job_id: str, args: argparse.Namespace) -> dict[str, Any]:
@@ -110,9 +131,7 @@ def run(args: argparse.Namespace) -> int:
     if not key:
         raise ConfigError("no API key: pass --api-key or set PMVIR_API_KEY")
     options = build_config(args).model_dump(mode="json")
-    problems = validate_capture(args.capture, decode_frames=False)
-    if problems:
-        raise CaptureError(args.capture.name, "; ".join(str(p) for p in problems))
+    _check_locally(args.capture)
     out = args.out or args.capture.with_name(args.capture.stem + "-result")
     label = args.label or args.capture.stem
     with PmvirClient(args.server, key, retries=args.retries) as client:
@@ -120,8 +139,8 @@ def run(args: argparse.Namespace) -> int:
             job = client.create_job_from_zip(args.capture, options, label=label)
         else:
             job = client.create_job(options, label=label, idempotency_key=uuid.uuid4().hex)
-            with open_capture(args.capture) as cap:
-                _upload(client, job["id"], cap.root, _files_of(cap), args.quiet)
+            root, files = _files_of(args.capture)
+            _upload(client, job["id"], root, files, args.quiet)
         job_id = job["id"]
         print(f"pmvir submit: job {job_id}", file=sys.stderr)
         client.start(job_id)

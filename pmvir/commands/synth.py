@@ -76,6 +76,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="do not write gt/views/<stem>.npz",
     )
+    p.add_argument(
+        "--save-stokes",
+        dest="save_stokes",
+        action="store_true",
+        default=None,
+        help="also store the noise-free per-pixel Stokes image (s0, s1, s2 per colour) as 'stokes' "
+        "in gt/views/<stem>.npz",
+    )
     p.add_argument("--force", action="store_true", help="replace the capture files in a non-empty CAPTURE")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -87,6 +95,8 @@ def run(args: argparse.Namespace) -> int:
     options = {field: getattr(args, field) for _, field, _ in _FLAGS if getattr(args, field) is not None}
     if args.gt_views is not None:
         options["gt_views"] = args.gt_views
+    if args.save_stokes is not None:
+        options["save_stokes"] = args.save_stokes
     bars: list[Any] = []
 
     def progress(v: ViewDone) -> None:

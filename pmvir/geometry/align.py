@@ -18,7 +18,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from pmvir.errors import ManifestError, ReconstructionError
+from pmvir.errors import ManifestError, ReconstructionError, ShapeError
 from pmvir.io.colmap_text import read_images_text
 
 
@@ -67,14 +67,14 @@ def umeyama(src: np.ndarray, dst: np.ndarray, *, with_scale: bool = True) -> Sim
         The Similarity; exact for noise-free data.
 
     Raises:
-        ValueError: shapes differ or are not (N, 3).
+        ShapeError: shapes differ or are not (N, 3).
         ReconstructionError: fewer than 3 points, or the points are (nearly) collinear
             so the rotation is not determined.
     """
     x = np.asarray(src, dtype=np.float64)
     y = np.asarray(dst, dtype=np.float64)
     if x.ndim != 2 or x.shape[1] != 3 or x.shape != y.shape:
-        raise ValueError(f"expected two (N, 3) arrays of the same shape, got {x.shape} and {y.shape}")
+        raise ShapeError(f"expected two (N, 3) arrays of the same shape, got {x.shape} and {y.shape}")
     if len(x) < 3:
         raise ReconstructionError(f"a similarity needs at least 3 corresponding points, got {len(x)}")
     if not (np.isfinite(x).all() and np.isfinite(y).all()):

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pmvir.errors import MeshError
+from pmvir.errors import InputError, MeshError, ShapeError
 
 
 @dataclass(frozen=True)
@@ -45,13 +45,14 @@ def check_vertices(vertices: np.ndarray) -> np.ndarray:
     """Validate vertex positions and return them as (N, 3) float64.
 
     Raises:
-        ValueError: wrong shape, or NaN / infinite coordinates.
+        ShapeError: wrong shape.
+        InputError: NaN / infinite coordinates.
     """
     v = np.asarray(vertices, dtype=np.float64)
     if v.ndim != 2 or v.shape[1] != 3:
-        raise ValueError(f"expected (N, 3) vertices, got shape {v.shape}")
+        raise ShapeError(f"expected (N, 3) vertices, got shape {v.shape}")
     if not np.all(np.isfinite(v)):
-        raise ValueError("vertices contain NaN or infinity")
+        raise InputError("vertices contain NaN or infinity")
     return v
 
 

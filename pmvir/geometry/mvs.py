@@ -47,6 +47,7 @@ import cv2
 import numpy as np
 
 from pmvir.camera import Camera
+from pmvir.errors import ConfigError, InputError, ShapeError
 
 #: Variance floor of a ZNCC window (grey levels^2 of the tone-mapped [0, 1] image): below it a
 #: window is textureless and gives no depth.
@@ -128,11 +129,11 @@ def matching_image(rgb: np.ndarray, *, colour: bool = True) -> np.ndarray:
     Returns:
         (H, W, C) float32 ``rgb ** (1 / 2.2)``, or (H, W, 1) for grey.
     """
-    a = np.asarray(rgb, dtype=np.float32)
+    a: np.ndarray = np.asarray(rgb, dtype=np.float32)
     if a.ndim == 2:
         a = a[..., None]
     if a.ndim != 3:
-        raise ValueError(f"expected an (H, W) or (H, W, C) image, got shape {np.shape(rgb)}")
+        raise ShapeError(f"expected an (H, W) or (H, W, C) image, got shape {np.shape(rgb)}")
     if not colour and a.shape[2] > 1:
         a = cv2.transform(a, np.full((1, a.shape[2]), 1.0 / a.shape[2], np.float32))[..., None]
     return np.power(np.maximum(a, 0.0), np.float32(1.0 / 2.2))
@@ -155,14 +156,14 @@ def prepare_view(
     """
     H, W = image.shape[:2]
     if (camera.height, camera.width) != (H, W):
-        raise ValueError(f"image is {W}x{H} but its camera is {camera.width}x{camera.height}")
+        raise ShapeError(f"image is {W}x{H} but its camera is {camera.width}x{camera.height}")
     if not 0.0 < scale <= 1.0:
-        raise ValueError(f"scale must lie in (0, 1], got {scale}")
+        raise ConfigError(f"scale must lie in (0, 1], got {scale}")
     w, h = max(8, round(W * scale)), max(8, round(H * scale))
     img = matching_image(image, colour=colour)
     m = np.ones((H, W), dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
     if m.shape != (H, W):
-        raise ValueError(f"mask is {m.shape[1]}x{m.shape[0]} but the image is {W}x{H}")
+        raise ShapeError(f"mask is {m.shape[1]}x{m.shape[0]} but the image is {W}x{H}")
     if (w, h) != (W, H):
         img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA).reshape(h, w, img.shape[2])
         m = cv2.resize(m.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) >= 0.5
@@ -206,9 +207,9 @@ def select_neighbours(
         ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
         m = None if masks is None else masks[j]
         if m is not None:
-            r = np.clip(uv[:, 1].astype(np.int64), 0, cam.height - 1)
-            c = np.clip(uv[:, 0].astype(np.int64), 0, cam.width - 1)
-            ok &= np.asarray(m, dtype=bool)[r, c]
+            rows = np.clip(uv[:, 1].astype(np.int64), 0, cam.height - 1)
+            cols = np.clip(uv[:, 0].astype(np.int64), 0, cam.width - 1)
+            ok &= np.asarray(m, dtype=bool)[rows, cols]
         seen[j] = ok
     centres = np.stack([c.center for c in cameras])
     rays = pts[None, :, :] - centres[:, None, :]  # (V, P, 3)
@@ -393,13 +394,13 @@ def sweep_depth(
         The :class:`DepthMap` on the reference grid.
     """
     if not sources:
-        raise ValueError("sweep_depth needs at least one source view")
+        raise InputError("sweep_depth needs at least one source view")
     if not 0.0 < near < far:
-        raise ValueError(f"need 0 < near < far, got {near}, {far}")
+        raise ConfigError(f"need 0 < near < far, got {near}, {far}")
     if window < 3 or window % 2 == 0:
-        raise ValueError(f"window must be odd and >= 3, got {window}")
+        raise ConfigError(f"window must be odd and >= 3, got {window}")
     if planes < 3:
-        raise ValueError(f"need at least 3 planes, got {planes}")
+        raise ConfigError(f"need at least 3 planes, got {planes}")
     h, w = ref.image.shape[:2]
     depth = np.zeros((h, w), np.float32)
     score = np.zeros((h, w), np.float32)
@@ -415,7 +416,7 @@ def sweep_depth(
     stacks = [_source_stack(s) for s in sources]
     channels = img.shape[2]
     if any(st.shape[2] != channels + 1 for st in stacks) or channels > 3:
-        raise ValueError("reference and source images must have the same number (1 to 3) of colours")
+        raise ShapeError("reference and source images must have the same number (1 to 3) of colours")
     border = tuple(-1.0 if k == channels else 0.0 for k in range(4))
     rels = []
     for s in sources:

@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from pmvir.camera import Camera
-from pmvir.errors import ReconstructionError
+from pmvir.errors import ReconstructionError, ShapeError
 from pmvir.geometry.mvs import project_points
 from pmvir.io.colmap_text import ColmapImage, image_from_camera, pinhole_from_camera, write_colmap_text_model
 
@@ -45,7 +45,7 @@ def write_colmap_array(path: str | Path, array: np.ndarray) -> None:
     if a.ndim == 2:
         a = a[..., None]
     if a.ndim != 3:
-        raise ValueError(f"expected an (h, w) or (h, w, c) array, got shape {a.shape}")
+        raise ShapeError(f"expected an (h, w) or (h, w, c) array, got shape {a.shape}")
     h, w, c = a.shape
     with open(path, "wb") as f:
         f.write(f"{w}&{h}&{c}&".encode("ascii"))

@@ -32,9 +32,16 @@ import numpy as np
 
 from pmvir.camera import Camera
 from pmvir.config import MvsOptions
-from pmvir.errors import ReconstructionError
+from pmvir.errors import ConfigError, ReconstructionError, ShapeError
 from pmvir.geometry.hull import Hull, carve_hull
-from pmvir.geometry.mvs import DepthMap, prepare_view, select_neighbours, sweep_depth, view_depth_range
+from pmvir.geometry.mvs import (
+    DepthMap,
+    StereoView,
+    prepare_view,
+    select_neighbours,
+    sweep_depth,
+    view_depth_range,
+)
 from pmvir.geometry.mvs_fusion import DensePoints, estimate_normals, filter_and_fuse, voxel_thin
 from pmvir.progress import Progress
 
@@ -123,7 +130,7 @@ def dense_stereo(
     progress = progress or Progress.none()
     n = len(images)
     if not (len(masks) == len(cameras) == len(names) == n):
-        raise ValueError(
+        raise ShapeError(
             f"images, masks, cameras and names must have one entry per view, got "
             f"{n}, {len(masks)}, {len(cameras)}, {len(names)}"
         )
@@ -182,13 +189,6 @@ def grid_scale(image: np.ndarray, options: MvsOptions) -> float:
     return float(min(1.0, max(options.scale, options.min_grid_px / max(longer, 1))))
 
 
-def _camera(cameras: Sequence[Camera | None], i: int) -> Camera:
-    cam = cameras[i]
-    if cam is None:
-        raise ValueError(f"view {i} has no camera")
-    return cam
-
-
 def depth_range(
     camera: Camera, hull: Hull, points: np.ndarray, mask: np.ndarray | None, *, margin: float
 ) -> tuple[float, float] | None:
@@ -226,11 +226,11 @@ def _dense_cpu(
 ) -> DenseResult:
     n = len(images)
     t0 = time.perf_counter()
-    views = [None] * n
+    views: list[StereoView | None] = [None] * n
     for i in registered:
         if neighbours[i] or any(i in neighbours[j] for j in registered):
             views[i] = prepare_view(
-                images[i], masks[i], cameras[i], scale=grid_scale(images[i], options), colour=options.colour
+                images[i], masks[i], _camera(cameras, i), scale=grid_scale(images[i], options), colour=options.colour
             )
     depth_maps: list[DepthMap | None] = [None] * n
     valid = [-1] * n
@@ -242,16 +242,17 @@ def _dense_cpu(
         rng = ranges[i]
         if rng is None:
             continue
-        depth_maps[i] = sweep_depth(
+        sources = [v for v in (views[j] for j in neighbours[i]) if v is not None]  # all prepared above
+        depth = depth_maps[i] = sweep_depth(
             ref,
-            [views[j] for j in neighbours[i]],
+            sources,
             *rng,
             planes=options.planes,
             window=options.window,
             top_k=options.top_k,
             min_score=options.min_score,
         )
-        valid[i] = int(depth_maps[i].valid.sum())
+        valid[i] = int(depth.valid.sum())
     t1 = time.perf_counter()
     progress.update(1.0, "fusing depth maps")
     pts_f, views_f, counts_f = filter_and_fuse(
@@ -263,9 +264,9 @@ def _dense_cpu(
     )
     consistent = np.bincount(views_f, minlength=n)
     fraction = [-1.0] * n
-    for i in range(n):
-        if views[i] is not None:  # of the object's pixels; without a mask, of the depths found
-            base = int(views[i].mask.sum()) if masks[i] is not None else max(valid[i], 0)
+    for i, view in enumerate(views):
+        if view is not None:  # of the object's pixels; without a mask, of the depths found
+            base = int(view.mask.sum()) if masks[i] is not None else max(valid[i], 0)
             fraction[i] = float(consistent[i] / max(base, 1))
     if options.voxel > 0:
         keep = voxel_thin(pts_f, options.voxel * diag)
@@ -304,7 +305,7 @@ def _dense_colmap(
     from pmvir.geometry.mvs_colmap import colmap_fusion, colmap_patch_match, write_workspace
 
     if workdir is None:
-        raise ValueError("the colmap-cuda backend needs a workdir")
+        raise ConfigError("the colmap-cuda backend needs a workdir")
     n = len(images)
     t0 = time.perf_counter()
     local = {i: k for k, i in enumerate(registered)}
@@ -312,7 +313,7 @@ def _dense_colmap(
         Path(workdir) / "colmap-dense",
         [images[i] for i in registered],
         [masks[i] for i in registered],
-        [cameras[i] for i in registered],
+        [_camera(cameras, i) for i in registered],
         [names[i] for i in registered],
         [[local[j] for j in neighbours[i]] for i in registered],
         pts,
@@ -351,13 +352,21 @@ def _dense_colmap(
     return result
 
 
+def _camera(cameras: Sequence[Camera | None], i: int) -> Camera:
+    """The camera of view ``i``, which the caller knows to be registered."""
+    cam = cameras[i]
+    if cam is None:
+        raise ReconstructionError(f"view {i} has no pose but was taken as registered")
+    return cam
+
+
 def _nearest_view(
     points: np.ndarray, normals: np.ndarray, cameras: Sequence[Camera | None], registered: list[int]
 ) -> np.ndarray:
     """Per point, the registered view whose viewing direction best faces its normal."""
     if len(points) == 0:
         return np.zeros(0, np.int64)
-    centres = np.stack([cameras[i].center for i in registered])
+    centres = np.stack([_camera(cameras, i).center for i in registered])
     best = np.full(len(points), -np.inf)
     view = np.zeros(len(points), np.int64)
     for k, c in enumerate(centres):

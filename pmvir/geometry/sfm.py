@@ -53,7 +53,7 @@ import pycolmap
 
 from pmvir.camera import Camera
 from pmvir.config import SfmOptions
-from pmvir.errors import ReconstructionError
+from pmvir.errors import InputError, ReconstructionError, ShapeError
 from pmvir.geometry.sfm_colmap import Progress, fundamental_matrix, quiet_colmap, run_colmap, sampson_error
 from pmvir.io.colmap_text import image_from_camera, pinhole_from_camera, write_colmap_text_model
 from pmvir.polarization.preview import srgb_encode
@@ -127,12 +127,12 @@ def sift_image(image: np.ndarray, mask: np.ndarray | None = None, *, equalize: b
     """
     grey = image.mean(axis=2) if image.ndim == 3 else image
     if grey.ndim != 2:
-        raise ValueError(f"expected an (H, W) or (H, W, C) image, got shape {image.shape}")
+        raise ShapeError(f"expected an (H, W) or (H, W, C) image, got shape {image.shape}")
     grey = np.nan_to_num(grey.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
     values = grey[mask] if mask is not None and mask.any() else grey.ravel()
     level = float(np.percentile(values, _EXPOSURE_PERCENTILE)) if values.size else 0.0
     scale = 1.0 / level if level > 1e-12 else 1.0
-    out = np.rint(srgb_encode(grey * np.float32(scale)) * 255.0).astype(np.uint8)
+    out: np.ndarray = np.rint(srgb_encode(grey * np.float32(scale)) * 255.0).astype(np.uint8)
     if equalize:
         out = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(out)
     return out
@@ -147,23 +147,24 @@ def _check_inputs(
 ) -> None:
     n = len(images)
     if len(names) != n or len(set(names)) != n:
-        raise ValueError(f"expected {n} distinct names, got {len(names)} ({len(set(names))} distinct)")
+        raise InputError(f"expected {n} distinct names, got {len(names)} ({len(set(names))} distinct)")
     for label, seq in (("cameras", cameras), ("intrinsics", intrinsics), ("masks", masks)):
         if seq is not None and len(seq) != n:
-            raise ValueError(f"{label} has {len(seq)} entries for {n} images")
+            raise ShapeError(f"{label} has {len(seq)} entries for {n} images")
     for i, im in enumerate(images):
         if im.ndim not in (2, 3) or min(im.shape[:2]) < 16:
-            raise ValueError(f"view {names[i]}: expected an (H, W, C) image of at least 16 x 16, got {im.shape}")
+            raise ShapeError(f"view {names[i]}: expected an (H, W, C) image of at least 16 x 16, got {im.shape}")
         h, w = im.shape[:2]
-        if masks is not None and masks[i] is not None and masks[i].shape != (h, w):
-            raise ValueError(f"view {names[i]}: mask {masks[i].shape} does not match the image {(h, w)}")
+        mask = masks[i] if masks is not None else None
+        if mask is not None and mask.shape != (h, w):
+            raise ShapeError(f"view {names[i]}: mask {mask.shape} does not match the image {(h, w)}")
         cam = cameras[i] if cameras is not None else None
         if cam is not None and (cam.width, cam.height) != (w, h):
-            raise ValueError(f"view {names[i]}: camera is {cam.width} x {cam.height}, the image {w} x {h}")
+            raise ShapeError(f"view {names[i]}: camera is {cam.width} x {cam.height}, the image {w} x {h}")
         k = intrinsics[i] if intrinsics is not None else None
         for K in (k, None if cam is None else cam.K):
             if K is not None and (np.shape(K) != (3, 3) or abs(float(np.asarray(K)[0, 1])) > 1e-12):
-                raise ValueError(f"view {names[i]}: intrinsics must be a 3 x 3 K without skew")
+                raise InputError(f"view {names[i]}: intrinsics must be a 3 x 3 K without skew")
 
 
 def _write_inputs(
@@ -193,9 +194,8 @@ def _view_intrinsics(
 ) -> np.ndarray | None:
     if intrinsics is not None and intrinsics[i] is not None:
         return np.asarray(intrinsics[i], dtype=np.float64)
-    if cameras is not None and cameras[i] is not None:
-        return cameras[i].K
-    return None
+    cam = cameras[i] if cameras is not None else None
+    return None if cam is None else cam.K
 
 
 def _sparse_points(
@@ -295,7 +295,8 @@ def estimate_poses(
         The SparseModel; in known-pose mode its cameras are the given objects.
 
     Raises:
-        ValueError: inconsistent arguments (lengths, shapes, skewed K).
+        ShapeError: inconsistent lengths or shapes of the arguments.
+        InputError: repeated names, or a skewed K.
         ReconstructionError: fewer views than ``min_registered_views``; too few registered
             views; too few 3D points. The message names the views that failed.
     """
@@ -307,7 +308,8 @@ def estimate_poses(
             f"too few views: {n} given, poses need at least min_registered_views = {options.min_registered_views}"
         )
     report = progress or (lambda fraction, step: None)
-    known = cameras is not None and all(c is not None for c in cameras)
+    known_cameras = [c for c in cameras or () if c is not None]
+    known = cameras is not None and len(known_cameras) == n
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
@@ -320,12 +322,12 @@ def estimate_poses(
     with quiet_colmap():
         rec, features, partners = run_colmap(
             workdir, image_dir, mask_dir, files, [im.shape[:2] for im in images], Ks,
-            list(cameras) if known else None, options, timings, report,
+            known_cameras if known else None, options, timings, report,
         )
 
     index = {name: i for i, name in enumerate(files)}
     view_of_image = {} if rec is None else {im.image_id: index[im.name] for im in rec.images.values()}
-    result_cameras: list[Camera | None] = list(cameras) if known else [None] * n
+    result_cameras: list[Camera | None] = list(known_cameras) if known else [None] * n
     if not known and rec is not None:
         for image in rec.images.values():
             if image.has_pose:

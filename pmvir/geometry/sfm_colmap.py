@@ -113,14 +113,14 @@ def run_colmap(
         models = pycolmap.incremental_mapping(
             database, image_dir, sparse_dir, options=_pipeline_options(options, constant)
         )
-    rec = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
+    best = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
     timings["mapping"] = time.perf_counter() - t0
-    if rec is not None:
+    if best is not None:
         report(0.9, "refining the poses")
         t0 = time.perf_counter()
-        _refine_sfm(rec, options, constant)
+        _refine_sfm(best, options, constant)
         timings["refinement"] = time.perf_counter() - t0
-    return rec, features, partners
+    return best, features, partners
 
 
 def _extract_features(
@@ -318,8 +318,8 @@ def _known_pose_reconstruction(database: Path, files: list[str], cameras: Sequen
         frames = db.read_all_frames()
         for frame in frames:
             (data_id,) = frame.image_ids  # one camera per rig: one image per frame
-            cam = cameras[index[images[data_id.id].name]]
-            frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(cam.R), cam.t)
+            pose = cameras[index[images[data_id.id].name]]
+            frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(pose.R), pose.t)
             rec.add_frame(frame)
         for image in images.values():
             rec.add_image(image)

@@ -33,7 +33,7 @@ import numpy as np
 from pmvir.camera import Camera
 from pmvir.capture import Capture
 from pmvir.config import GeometryOptions
-from pmvir.errors import ReconstructionError
+from pmvir.errors import ReconstructionError, ShapeError
 from pmvir.geometry.export import (
     colmap_reconstruction,
     colours_at,
@@ -127,7 +127,7 @@ def run_geometry(
     progress = progress or Progress.none()
     n = len(capture.frames)
     if len(views) != n:
-        raise ValueError(f"expected {n} decoded views (one per frame), got {len(views)}")
+        raise ShapeError(f"expected {n} decoded views (one per frame), got {len(views)}")
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
@@ -151,7 +151,7 @@ def run_geometry(
         )
     cameras = list(sparse.cameras)
     reg = [i for i in range(n) if cameras[i] is not None]
-    reg_cams = [cameras[i] for i in reg]
+    reg_cams = [cam for cam in cameras if cam is not None]  # in the order of reg
 
     with progress.step("dense", _STEP_WEIGHTS["dense"]) as p:
         dense = dense_stereo(

@@ -38,7 +38,7 @@ import numpy as np
 
 from pmvir.camera import Camera
 from pmvir.config import GeometryOptions
-from pmvir.errors import MeshError
+from pmvir.errors import ConfigError, MeshError, ShapeError
 from pmvir.geometry.mesh_ops import ReferenceSurface, check_vertices, edge_topology
 from pmvir.geometry.visibility import face_visibility, project_columns, vertex_visibility
 
@@ -182,7 +182,7 @@ def inherit_visibility(
         (M, V) bool.
     """
     if min_visible_corners not in (1, 2, 3):
-        raise ValueError(f"min_visible_corners must be 1, 2 or 3, got {min_visible_corners}")
+        raise ConfigError(f"min_visible_corners must be 1, 2 or 3, got {min_visible_corners}")
     vis = np.asarray(parent_vis, dtype=bool)
     par = np.asarray(parents, dtype=np.int64)
     present = par >= 0
@@ -211,7 +211,7 @@ def projected_face_areas(
     f = np.asarray(faces, dtype=np.int64)
     fvis = np.asarray(face_visible, dtype=bool)
     if fvis.shape != (len(f), len(cameras)):
-        raise ValueError(f"expected face_visible of shape {(len(f), len(cameras))}, got {fvis.shape}")
+        raise ShapeError(f"expected face_visible of shape {(len(f), len(cameras))}, got {fvis.shape}")
     best = np.zeros(len(f), dtype=np.float64)
     v_t = np.ascontiguousarray(v.T)
     for j, cam in enumerate(cameras):
@@ -275,11 +275,11 @@ def subdivide_until(
     f = np.asarray(faces, dtype=np.int64)
     vis = np.asarray(visibility, dtype=bool)
     if vis.shape != (len(v), len(cameras)):
-        raise ValueError(f"expected visibility of shape {(len(v), len(cameras))}, got {vis.shape}")
+        raise ShapeError(f"expected visibility of shape {(len(v), len(cameras))}, got {vis.shape}")
     if not max_area_px > 0:
-        raise ValueError(f"max_area_px must be > 0, got {max_area_px}")
+        raise ConfigError(f"max_area_px must be > 0, got {max_area_px}")
     if max_rounds < 0:
-        raise ValueError(f"max_rounds must be >= 0, got {max_rounds}")
+        raise ConfigError(f"max_rounds must be >= 0, got {max_rounds}")
     surface = ReferenceSurface(v, f) if project and len(f) else None
     input_face_vis = face_visibility(f, vis, min_visible_corners=min_visible_corners)
     rounds = 0

@@ -449,7 +449,7 @@ def bisect_faces(
     bc = c[:, 0] & c[:, 1] & ~c[:, 2]  # longest and b -> c
     ca = c[:, 0] & ~c[:, 1] & c[:, 2]  # longest and c -> a
     al = c[:, 0] & c[:, 1] & c[:, 2]
-    pieces = [
+    pieces: list[tuple[np.ndarray, list[np.ndarray | tuple[np.ndarray, ...]]]] = [
         (~c[:, 0], [f]),  # untouched (a face with any cut edge has its longest edge cut)
         (one, [(a, m0, cc), (m0, b, cc)]),
         (bc, [(a, m0, cc), (m0, b, m1), (m0, m1, cc)]),

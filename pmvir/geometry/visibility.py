@@ -26,6 +26,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from pmvir.camera import Camera
+from pmvir.errors import ConfigError, ShapeError
 from pmvir.geometry.mesh_ops import check_faces, check_vertices
 from pmvir.io.ply import vertex_normals
 
@@ -60,23 +61,24 @@ def vertex_visibility(
 
     Raises:
         MeshError: malformed faces.
-        ValueError: shapes or options out of range, masks not matching cameras.
+        ShapeError: wrong shapes, masks not matching cameras.
+        ConfigError: options out of range.
     """
     import open3d as o3d
 
     v = check_vertices(vertices)
     f = check_faces(faces, len(v))
     if not 0.0 < rel_tol < 0.5:
-        raise ValueError(f"rel_tol must lie in (0, 0.5), got {rel_tol}")
+        raise ConfigError(f"rel_tol must lie in (0, 0.5), got {rel_tol}")
     if not -1.0 <= min_cos < 1.0:
-        raise ValueError(f"min_cos must lie in [-1, 1), got {min_cos}")
+        raise ConfigError(f"min_cos must lie in [-1, 1), got {min_cos}")
     masks = _check_masks(masks, cameras)
     if normals is None:
         n = vertex_normals(v, f)
     else:
         n = np.asarray(normals, dtype=np.float64)
         if n.shape != v.shape:
-            raise ValueError(f"expected normals of shape {v.shape}, got {n.shape}")
+            raise ShapeError(f"expected normals of shape {v.shape}, got {n.shape}")
 
     vis = np.zeros((len(v), len(cameras)), dtype=bool)
     if len(v) == 0 or len(cameras) == 0:
@@ -153,10 +155,10 @@ def face_visibility(faces: np.ndarray, vertex_vis: np.ndarray, *, min_visible_co
         (F, V) bool.
     """
     if min_visible_corners not in (1, 2, 3):
-        raise ValueError(f"min_visible_corners must be 1, 2 or 3, got {min_visible_corners}")
+        raise ConfigError(f"min_visible_corners must be 1, 2 or 3, got {min_visible_corners}")
     vis = np.asarray(vertex_vis, dtype=bool)
     if vis.ndim != 2:
-        raise ValueError(f"expected (N, V) vertex visibility, got shape {vis.shape}")
+        raise ShapeError(f"expected (N, V) vertex visibility, got shape {vis.shape}")
     f = check_faces(faces, len(vis))
     if min_visible_corners == 3:
         return vis[f[:, 0]] & vis[f[:, 1]] & vis[f[:, 2]]
@@ -170,14 +172,14 @@ def _check_masks(masks: Sequence[np.ndarray | None] | None, cameras: Sequence[Ca
     if masks is None:
         return [None] * len(cameras)
     if len(masks) != len(cameras):
-        raise ValueError(f"expected one mask entry per camera ({len(cameras)}), got {len(masks)}")
-    out = []
-    for j, (m, cam) in enumerate(zip(masks, cameras)):
+        raise ShapeError(f"expected one mask entry per camera ({len(cameras)}), got {len(masks)}")
+    out: list[np.ndarray | None] = []
+    for j, (m, cam) in enumerate(zip(masks, cameras, strict=True)):
         if m is None:
             out.append(None)
             continue
         m = np.asarray(m)
         if m.shape != (cam.height, cam.width):
-            raise ValueError(f"mask {j}: expected shape ({cam.height}, {cam.width}), got {m.shape}")
+            raise ShapeError(f"mask {j}: expected shape ({cam.height}, {cam.width}), got {m.shape}")
         out.append(m.astype(bool, copy=False))
     return out

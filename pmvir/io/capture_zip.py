@@ -7,10 +7,15 @@ checked before anything is written:
 
 * names: relative, ``/``-separated, no ``..``/``.``/empty segments, no absolute
   names, no backslashes, no drive letters or ``:``, no NUL; no duplicates;
-* no symbolic links, no encrypted members;
+* names flagged UTF-8 must be valid UTF-8;
+* no symbolic links, no encrypted members, and only the stored and deflate
+  compression methods (Deflate64, LZMA, bzip2, ... are refused by name: what
+  real capture tools write is deflate, and every other decoder is more attack
+  surface);
 * at most ``max_members`` members, at most ``max_total_bytes`` uncompressed in
-  all (as declared, and counted again while extracting), and no member over
-  1 MiB whose uncompressed/compressed ratio exceeds ``max_ratio`` (zip bombs).
+  all (as declared, and counted again while extracting), no member over 1 MiB
+  whose uncompressed/compressed ratio exceeds ``max_ratio``, and the same ratio
+  for the whole zip (many small, highly compressible members are a zip bomb too).
 
 macOS metadata (``__MACOSX/``, ``.DS_Store``) is skipped.
 
@@ -36,6 +41,48 @@ DEFAULT_MAX_TOTAL_BYTES = 8 * 1024**3
 DEFAULT_MAX_RATIO = 200.0
 _RATIO_MIN_BYTES = 1 << 20  # small members (manifests, text) compress well legitimately
 _CHUNK = 1 << 20
+#: Compression methods accepted, by zip method number.
+SUPPORTED_COMPRESSION = {zipfile.ZIP_STORED: "stored", zipfile.ZIP_DEFLATED: "deflate"}
+_METHOD_NAMES = {9: "Deflate64", zipfile.ZIP_BZIP2: "bzip2", zipfile.ZIP_LZMA: "LZMA", 93: "Zstandard", 95: "XZ"}
+
+
+def open_zip(zip_path: str | Path, label: str) -> zipfile.ZipFile:
+    """Open a zip's central directory; CaptureError (naming the zip) when it cannot be read.
+
+    A member name flagged UTF-8 (bit 11) whose bytes are not UTF-8 is refused here, with the bytes shown.
+    """
+    try:
+        return zipfile.ZipFile(zip_path)
+    except UnicodeDecodeError as exc:
+        raise CaptureError(
+            label, f"zip member name {exc.object!r} is flagged UTF-8 but is not valid UTF-8 ({exc.reason})"
+        ) from None
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as exc:
+        raise CaptureError(label, f"not a readable zip file: {exc}") from exc
+
+
+def compression_problem(info: zipfile.ZipInfo) -> str | None:
+    """Why a member's compression method is refused, or None for stored/deflate."""
+    if info.compress_type in SUPPORTED_COMPRESSION:
+        return None
+    name = _METHOD_NAMES.get(info.compress_type, "unknown")
+    return (
+        f"uses compression method {info.compress_type} ({name}); only "
+        f"{' and '.join(SUPPORTED_COMPRESSION.values())} are accepted"
+    )
+
+
+def ratio_problem(uncompressed: int, compressed: int, max_ratio: float) -> str | None:
+    """Why ``uncompressed`` bytes from ``compressed`` is a zip bomb, or None (below 1 MiB: never)."""
+    if uncompressed <= _RATIO_MIN_BYTES:
+        return None
+    ratio = uncompressed / max(compressed, 1)
+    if ratio <= max_ratio:
+        return None
+    return (
+        f"expands {ratio:.0f}x ({compressed} -> {uncompressed} bytes), more than the limit of "
+        f"{max_ratio:.0f}x (zip bomb?)"
+    )
 
 
 def _is_ignored(name: str) -> bool:
@@ -60,7 +107,7 @@ def _name_problem(name: str) -> str | None:
 
 
 def _check_members(zf: zipfile.ZipFile, label: str, *, max_members: int, max_total_bytes: int,
-                   max_ratio: float) -> list[zipfile.ZipInfo]:
+                   max_ratio: float, zip_bytes: int) -> list[zipfile.ZipInfo]:
     infos = zf.infolist()
     if len(infos) > max_members:
         raise CaptureError(label, f"zip has {len(infos)} members, more than the limit of {max_members}")
@@ -80,21 +127,22 @@ def _check_members(zf: zipfile.ZipFile, label: str, *, max_members: int, max_tot
             raise CaptureError(label, f"zip member {name!r} is a symbolic link")
         if info.flag_bits & 0x1:
             raise CaptureError(label, f"zip member {name!r} is encrypted")
+        why = compression_problem(info)
+        if why:
+            raise CaptureError(label, f"zip member {name!r} {why}")
         total += info.file_size
         if total > max_total_bytes:
             raise CaptureError(
                 label, f"zip uncompressed size exceeds the limit of {max_total_bytes} bytes (at member {name!r})"
             )
-        if info.file_size > _RATIO_MIN_BYTES:
-            ratio = info.file_size / max(info.compress_size, 1)
-            if ratio > max_ratio:
-                raise CaptureError(
-                    label,
-                    f"zip member {name!r} expands {ratio:.0f}x ({info.compress_size} -> {info.file_size} bytes), "
-                    f"more than the limit of {max_ratio:.0f}x (zip bomb?)",
-                )
+        why = ratio_problem(info.file_size, info.compress_size, max_ratio)
+        if why:
+            raise CaptureError(label, f"zip member {name!r} {why}")
         if not _is_ignored(name):
             kept.append(info)
+    why = ratio_problem(total, zip_bytes, max_ratio)
+    if why:
+        raise CaptureError(label, f"the zip as a whole {why}")
     return kept
 
 
@@ -125,7 +173,8 @@ def extract_capture_zip(
         dest: an existing empty folder to extract into.
         max_members: most members the zip may list.
         max_total_bytes: most uncompressed bytes in all.
-        max_ratio: largest uncompressed/compressed ratio of a member over 1 MiB.
+        max_ratio: largest uncompressed/compressed ratio of a member over 1 MiB, and of the whole
+            zip when it expands to more than 1 MiB.
 
     Returns:
         The capture's root folder inside ``dest`` (``dest`` or its one sub-folder).
@@ -136,13 +185,14 @@ def extract_capture_zip(
     """
     zip_path, dest = Path(zip_path), Path(dest)
     label = zip_path.name
-    try:
-        zf = zipfile.ZipFile(zip_path)
-    except (zipfile.BadZipFile, OSError) as exc:
-        raise CaptureError(label, f"not a readable zip file: {exc}") from exc
-    with zf:
+    with open_zip(zip_path, label) as zf:
         infos = _check_members(
-            zf, label, max_members=max_members, max_total_bytes=max_total_bytes, max_ratio=max_ratio
+            zf,
+            label,
+            max_members=max_members,
+            max_total_bytes=max_total_bytes,
+            max_ratio=max_ratio,
+            zip_bytes=zip_path.stat().st_size,
         )
         prefix = _capture_prefix(infos, label)
         written = 0
@@ -163,7 +213,7 @@ def extract_capture_zip(
                                 label, f"zip member {info.filename!r} expands past its declared size"
                             )
                         out.write(chunk)
-            except (zipfile.BadZipFile, zlib.error, OSError, EOFError) as exc:
+            except (zipfile.BadZipFile, zlib.error, OSError, EOFError, NotImplementedError, ValueError) as exc:
                 raise CaptureError(label, f"zip member {info.filename!r} is corrupt: {exc}") from exc
     return dest / prefix.rstrip("/") if prefix else dest
 

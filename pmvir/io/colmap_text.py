@@ -220,7 +220,7 @@ def read_cameras_text(path: str | Path) -> dict[int, ColmapCamera]:
         tok = line.split()
         try:
             if len(tok) < 4:
-                raise ValueError("expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]")
+                raise ColmapFormatError("expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]")
             cam = ColmapCamera(
                 int(tok[0]), tok[1], int(tok[2]), int(tok[3]), tuple(float(t) for t in tok[4:])
             )
@@ -251,18 +251,18 @@ def read_images_text(path: str | Path) -> dict[int, ColmapImage]:
         tok = line.split()
         try:
             if len(tok) != 10:
-                raise ValueError(
+                raise ColmapFormatError(
                     f"expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME (10 fields), got {len(tok)}"
                 )
             pts = pts_line.split()
             if len(pts) % 3:
-                raise ValueError(f"POINTS2D line has {len(pts)} fields, not a multiple of 3 (X Y POINT3D_ID)")
+                raise ColmapFormatError(f"POINTS2D line has {len(pts)} fields, not a multiple of 3 (X Y POINT3D_ID)")
             arr = np.array(pts, dtype=np.float64).reshape(-1, 3)
             ids = np.array([int(p) for p in pts[2::3]], dtype=np.int64)
             img = ColmapImage(
                 int(tok[0]),
-                [float(t) for t in tok[1:5]],
-                [float(t) for t in tok[5:8]],
+                np.array([float(t) for t in tok[1:5]]),
+                np.array([float(t) for t in tok[5:8]]),
                 int(tok[8]),
                 tok[9],
                 arr[:, :2],

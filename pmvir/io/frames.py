@@ -54,7 +54,7 @@ import numpy as np
 import rawpy
 import tifffile
 
-from pmvir.errors import FrameError
+from pmvir.errors import ConfigError, DTypeError, FrameError, InputError, ShapeError
 
 #: Frame file suffixes (lower case) and the format each one holds.
 FRAME_SUFFIXES: dict[str, str] = {
@@ -71,6 +71,9 @@ RAW_DTYPES: tuple[str, ...] = ("uint8", "uint16le", "uint16be", "mono12p")
 RawDtype = Literal["uint8", "uint16le", "uint16be", "mono12p"]
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: Most pixels a frame may have (about 4x a 24 MP polarization sensor); checked from the header,
+#: before anything is decoded, so a small file declaring a huge image is refused cheaply.
+MAX_FRAME_PIXELS = 100_000_000
 _DNG_MIN_SIZE = 22  # LibRaw rejects raw images smaller than this in either direction
 
 
@@ -89,9 +92,9 @@ class RawFormat:
 
     def __post_init__(self) -> None:
         if self.dtype not in RAW_DTYPES:
-            raise ValueError(f"raw dtype must be one of {RAW_DTYPES}, got {self.dtype!r}")
+            raise ConfigError(f"raw dtype must be one of {RAW_DTYPES}, got {self.dtype!r}")
         if self.width <= 0 or self.height <= 0:
-            raise ValueError(f"raw size must be positive, got {self.width}x{self.height}")
+            raise ConfigError(f"raw size must be positive, got {self.width}x{self.height}")
 
     @property
     def nbytes(self) -> int:
@@ -105,10 +108,10 @@ class RawFormat:
 
 
 def frame_format(path: str | Path) -> str:
-    """``"png" | "tiff" | "dng" | "raw"`` from the suffix; ValueError for any other suffix."""
+    """``"png" | "tiff" | "dng" | "raw"`` from the suffix; InputError for any other suffix."""
     suffix = Path(path).suffix.lower()
     if suffix not in FRAME_SUFFIXES:
-        raise ValueError(f"{path}: unknown frame suffix {suffix!r}; expected one of {sorted(FRAME_SUFFIXES)}")
+        raise InputError(f"{path}: unknown frame suffix {suffix!r}; expected one of {sorted(FRAME_SUFFIXES)}")
     return FRAME_SUFFIXES[suffix]
 
 
@@ -130,7 +133,7 @@ def pack_mono12p(samples: np.ndarray) -> bytes:
     """Pack integer samples (any shape, values 0..4095) as GenICam Mono12p bytes, row-major."""
     flat = np.asarray(samples).reshape(-1)
     if flat.size and (flat.min() < 0 or flat.max() > 4095):
-        raise ValueError("mono12p holds values 0..4095 only")
+        raise InputError("mono12p holds values 0..4095 only")
     v = flat.astype(np.uint16)
     if v.size % 2:
         v = np.concatenate([v, np.zeros(1, np.uint16)])
@@ -148,7 +151,7 @@ def unpack_mono12p(data: bytes | np.ndarray, count: int) -> np.ndarray:
     need = (3 * count + 1) // 2
     b = np.frombuffer(data, dtype=np.uint8) if isinstance(data, (bytes, bytearray, memoryview)) else data
     if b.size < need:
-        raise ValueError(f"mono12p: {count} samples need {need} bytes, got {b.size}")
+        raise InputError(f"mono12p: {count} samples need {need} bytes, got {b.size}")
     b = b[:need]
     if b.size % 3:
         b = np.concatenate([b, np.zeros(3 - b.size % 3, np.uint8)])
@@ -193,7 +196,18 @@ def _png_header(data: bytes, label: str) -> tuple[int, int, int, int]:
         raise FrameError(label, "corrupt PNG (no IHDR chunk)")
     if not seen_iend:
         raise FrameError(label, "truncated PNG (no IEND chunk)")
-    return ihdr  # type: ignore[return-value]
+    return ihdr
+
+
+def _check_pixels(label: str, width: int, height: int) -> None:
+    if width < 1 or height < 1:
+        raise FrameError(label, f"the header declares an empty {width}x{height} image")
+    if width * height > MAX_FRAME_PIXELS:
+        raise FrameError(
+            label,
+            f"the header declares {width}x{height} = {width * height} pixels, more than the limit of "
+            f"{MAX_FRAME_PIXELS}",
+        )
 
 
 def _check_png_kind(label: str, bit_depth: int, colour_type: int) -> None:
@@ -208,9 +222,13 @@ def _check_png_kind(label: str, bit_depth: int, colour_type: int) -> None:
 
 def _read_png(path: Path, label: str) -> np.ndarray:
     data = path.read_bytes()
-    _, _, bit_depth, colour_type = _png_header(data, label)
+    w, h, bit_depth, colour_type = _png_header(data, label)
     _check_png_kind(label, bit_depth, colour_type)
-    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    _check_pixels(label, w, h)
+    try:
+        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise FrameError(label, f"PNG could not be decoded: {exc.err or exc}") from None
     if img is None:
         raise FrameError(label, "PNG could not be decoded")
     return img
@@ -224,6 +242,7 @@ def _tiff_page(tif: tifffile.TiffFile, label: str) -> tifffile.TiffPage:
         raise FrameError(label, f"expected a single-channel TIFF, got shape {page.shape}")
     if page.dtype not in (np.dtype(np.uint8), np.dtype(np.uint16)):
         raise FrameError(label, f"expected an 8- or 16-bit unsigned TIFF, got {page.dtype}")
+    _check_pixels(label, int(page.shape[1]), int(page.shape[0]))
     return page
 
 
@@ -233,7 +252,7 @@ def _read_tiff(path: Path, label: str) -> np.ndarray:
             page = _tiff_page(tif, label)
             size = path.stat().st_size
             if any(
-                o + n > size for o, n in zip(page.dataoffsets, page.databytecounts)
+                o + n > size for o, n in zip(page.dataoffsets, page.databytecounts, strict=True)
             ):
                 raise FrameError(label, "truncated TIFF (image data runs past the end of the file)")
             img = page.asarray()
@@ -360,6 +379,7 @@ def read_frame_size(
     if fmt == "png":
         w, h, bit_depth, colour_type = _png_header(path.read_bytes(), label)
         _check_png_kind(label, bit_depth, colour_type)
+        _check_pixels(label, w, h)
         return h, w
     if fmt == "tiff":
         try:
@@ -404,7 +424,7 @@ def _dng_tags(bit_depth: int) -> list[tuple]:
 def _encode(samples: np.ndarray, fmt: str, bit_depth: int, raw_dtype: str | None) -> bytes:
     h, w = samples.shape
     if fmt in ("png", "tiff"):
-        arr = samples.astype(np.uint8 if bit_depth <= 8 else np.uint16)
+        arr: np.ndarray = samples.astype(np.uint8 if bit_depth <= 8 else np.uint16)
         if fmt == "png":
             ok, buf = cv2.imencode(".png", arr)
             if not ok:
@@ -415,7 +435,7 @@ def _encode(samples: np.ndarray, fmt: str, bit_depth: int, raw_dtype: str | None
         return bio.getvalue()
     if fmt == "dng":
         if h < _DNG_MIN_SIZE or w < _DNG_MIN_SIZE:
-            raise ValueError(f"DNG frames must be at least {_DNG_MIN_SIZE}x{_DNG_MIN_SIZE} (LibRaw), got {w}x{h}")
+            raise ShapeError(f"DNG frames must be at least {_DNG_MIN_SIZE}x{_DNG_MIN_SIZE} (LibRaw), got {w}x{h}")
         bio = io.BytesIO()
         tifffile.imwrite(
             bio,
@@ -426,10 +446,10 @@ def _encode(samples: np.ndarray, fmt: str, bit_depth: int, raw_dtype: str | None
         )
         return bio.getvalue()
     if raw_dtype not in RAW_DTYPES:
-        raise ValueError(f"headerless frames need raw_dtype in {RAW_DTYPES}, got {raw_dtype!r}")
+        raise ConfigError(f"headerless frames need raw_dtype in {RAW_DTYPES}, got {raw_dtype!r}")
     limit = {"uint8": 8, "mono12p": 12}.get(raw_dtype, 16)
     if bit_depth > limit:
-        raise ValueError(f"raw dtype {raw_dtype} holds at most {limit} bits, bit_depth is {bit_depth}")
+        raise ConfigError(f"raw dtype {raw_dtype} holds at most {limit} bits, bit_depth is {bit_depth}")
     if raw_dtype == "uint8":
         return samples.astype(np.uint8).tobytes()
     if raw_dtype == "uint16le":
@@ -457,20 +477,21 @@ def write_frame(
         raw_dtype: one of :data:`RAW_DTYPES`, for .raw/.bin only.
 
     Raises:
-        ValueError: unknown suffix, not a 2-D integer array, values out of range,
-            a container too small for ``bit_depth``, a DNG under 22x22 pixels.
+        InputError: unknown suffix, values out of range for ``bit_depth``.
+        ShapeError / DTypeError: not a 2-D integer array; a DNG under 22x22 pixels.
+        ConfigError: ``bit_depth`` or ``raw_dtype`` out of range, a container too small for ``bit_depth``.
     """
     path = Path(path)
     fmt = frame_format(path)
     samples = np.asarray(samples)
     if samples.ndim != 2 or samples.size == 0:
-        raise ValueError(f"expected (H, W) samples, got shape {samples.shape}")
+        raise ShapeError(f"expected (H, W) samples, got shape {samples.shape}")
     if not np.issubdtype(samples.dtype, np.integer):
-        raise ValueError(f"expected integer samples, got {samples.dtype}")
+        raise DTypeError(f"expected integer samples, got {samples.dtype}")
     if not 1 <= bit_depth <= 16:
-        raise ValueError(f"bit_depth must be 1..16, got {bit_depth}")
+        raise ConfigError(f"bit_depth must be 1..16, got {bit_depth}")
     if samples.min() < 0 or samples.max() > (1 << bit_depth) - 1:
-        raise ValueError(
+        raise InputError(
             f"samples must lie in 0..{(1 << bit_depth) - 1} for bit_depth {bit_depth}, "
             f"got {samples.min()}..{samples.max()}"
         )

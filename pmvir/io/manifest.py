@@ -28,17 +28,18 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path, PurePosixPath
-from typing import Annotated, Literal
+from typing import Annotated, Final, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from pmvir.camera import Camera
 from pmvir.errors import ConfigError, ManifestError
+from pmvir.io import json_limits
 from pmvir.io.frames import FRAME_SUFFIXES, RawFormat
 from pmvir.polarization.layout import MosaicLayout, layout_from_sensor
 
-FORMAT = "pmvir-capture/1"
+FORMAT: Final = "pmvir-capture/1"
 MANIFEST_NAME = "capture.json"
 #: Largest accepted deviation of a manifest rotation from orthonormal with det +1
 #: (max abs entry of R^T R - I, and |det R - 1|).
@@ -90,7 +91,7 @@ class Intrinsics(_Closed):
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     @classmethod
-    def from_camera(cls, camera: Camera) -> "Intrinsics":
+    def from_camera(cls, camera: Camera) -> Intrinsics:
         K = camera.K
         return cls(width=camera.width, height=camera.height, fx=float(K[0, 0]), fy=float(K[1, 1]),
                    cx=float(K[0, 2]), cy=float(K[1, 2]))
@@ -123,7 +124,7 @@ class CamFromWorld(_Closed):
         return u @ vt, np.asarray(self.t, dtype=np.float64)
 
     @classmethod
-    def from_arrays(cls, R: np.ndarray, t: np.ndarray) -> "CamFromWorld":
+    def from_arrays(cls, R: np.ndarray, t: np.ndarray) -> CamFromWorld:
         return cls(R=np.asarray(R, dtype=np.float64).reshape(3, 3).tolist(),
                    t=np.asarray(t, dtype=np.float64).reshape(3).tolist())
 
@@ -157,7 +158,7 @@ class SensorSpec(_Closed):
     )
 
     @model_validator(mode="after")
-    def _levels_and_layout(self) -> "SensorSpec":
+    def _levels_and_layout(self) -> SensorSpec:
         top = (1 << self.bit_depth) - 1
         if self.white_level is None:
             self.white_level = float(top)
@@ -168,6 +169,11 @@ class SensorSpec(_Closed):
             )
         self.layout_value()  # raises on inconsistent overrides
         return self
+
+    @property
+    def white(self) -> float:
+        """``white_level``, or its default 2^bit_depth - 1 where the manifest left it out."""
+        return float((1 << self.bit_depth) - 1) if self.white_level is None else float(self.white_level)
 
     def layout_value(self) -> MosaicLayout:
         """The MosaicLayout (angles converted to the ccw sense)."""
@@ -218,7 +224,7 @@ class CaptureManifest(_Closed):
     frames: list[FrameEntry] = Field(min_length=1)
 
     @model_validator(mode="after")
-    def _frames_consistent(self) -> "CaptureManifest":
+    def _frames_consistent(self) -> CaptureManifest:
         seen: dict[str, str] = {}
         for f in self.frames:
             if f.name in seen:
@@ -242,9 +248,9 @@ def _format_errors(exc: ValidationError) -> str:
 def parse_manifest(data: bytes | str, *, label: str = MANIFEST_NAME) -> CaptureManifest:
     """Parse and validate ``capture.json`` content; ManifestError naming ``label`` and each bad field."""
     try:
-        doc = json.loads(data)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ManifestError(label, f"not valid JSON: {exc}") from exc
+        doc = json_limits.loads(data, source=label)
+    except json_limits.JsonError as exc:
+        raise ManifestError(label, exc.problem) from None
     if isinstance(doc, dict) and "format" not in doc:
         raise ManifestError(label, f"format: missing; expected {FORMAT!r}")
     try:

@@ -143,7 +143,7 @@ def _triangulate(polys: list, path: Path) -> np.ndarray:
     lengths = np.fromiter((len(p) for p in polys), dtype=np.int64, count=len(polys))
     if np.all(lengths == 3):
         return np.asarray(np.stack(polys), dtype=np.int64)
-    tris = []
+    tris: list[list[int]] = []
     for p in polys:  # fan-triangulate polygons (rare in our inputs)
         p = list(p)
         tris.extend([p[0], p[i], p[i + 1]] for i in range(1, len(p) - 1))

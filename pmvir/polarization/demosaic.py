@@ -31,8 +31,12 @@ Methods:
   frame's range, 16 times finer than 12-bit data), then the same bilinear
   polarization interpolation in float32. Frames under 8 pixels high or wide
   (a 2x2 Bayer image per angle, which OpenCV mishandles) use bilinear.
-* A monochrome layout has no colour step: both methods are the bilinear
-  polarization interpolation.
+* ``"guided"``: ``"bilinear"``, then the polarization (not the intensity)
+  replaced by a guided-filter estimate with the intensity as guide
+  (:mod:`pmvir.polarization.guided`): far less false polarization from
+  texture and noise, one colour-mean polarization shared by the colours.
+* A monochrome layout has no colour step: ``"bilinear"`` and ``"edge-aware"``
+  are the bilinear polarization interpolation.
 
 OpenCV names a Bayer code after the second row's second and third pixels, so
 its code for a pattern is "off by one" from the pattern's usual name: an
@@ -58,9 +62,12 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from pmvir.errors import ConfigError, DTypeError, ShapeError
+from pmvir.polarization.guided import GUIDED_REACH, guided_polarization
 from pmvir.polarization.layout import MosaicLayout
 
-DemosaicMethod = Literal["bilinear", "edge-aware"]
+DemosaicMethod = Literal["bilinear", "edge-aware", "guided"]
+_METHODS: tuple[str, ...] = ("bilinear", "edge-aware", "guided")
 
 #: OpenCV Bayer conversion name for each pattern (pattern letters are the
 #: colours at (0,0), (0,1), (1,0), (1,1)).
@@ -77,6 +84,8 @@ _SUPPORT_RADIUS = {
     (False, "edge-aware"): 1,
     (True, "bilinear"): 3,
     (True, "edge-aware"): 4,
+    (False, "guided"): GUIDED_REACH,
+    (True, "guided"): GUIDED_REACH + 1,
 }
 
 
@@ -108,7 +117,7 @@ def saturation_footprint(
         r = :func:`support_radius`.
     """
     if saturated.ndim != 2:
-        raise ValueError(f"expected an (H, W) saturation mask, got shape {saturated.shape}")
+        raise ShapeError(f"expected an (H, W) saturation mask, got shape {saturated.shape}")
     r = support_radius(layout, method)
     kernel = np.ones((2 * r + 1, 2 * r + 1), dtype=np.uint8)
     grown = cv2.dilate(saturated.astype(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
@@ -142,12 +151,23 @@ def demosaic(
         single channel (C = 1). The array is a transposed view of planar
         (4, C, H, W) storage: per-plane work is fast; ``np.ascontiguousarray``
         gives an (H, W, 4, C)-ordered copy if one is needed.
+
+    Example:
+        A uniform field, mosaicked then demosaicked, comes back unchanged:
+
+        >>> from pmvir.polarization.layout import IMX250MYR, mosaic
+        >>> field = np.broadcast_to(np.array([1.0, 0.5, 0.0, 0.5], np.float32)[:, None], (8, 8, 4, 3))
+        >>> planes = demosaic(mosaic(field, IMX250MYR), IMX250MYR)
+        >>> planes.shape, planes.dtype
+        ((8, 8, 4, 3), dtype('float32'))
+        >>> bool(np.allclose(planes, field))
+        True
     """
     _check_method(method)
     if mosaic.ndim != 2:
-        raise ValueError(f"expected an (H, W) mosaic, got shape {mosaic.shape}")
+        raise ShapeError(f"expected an (H, W) mosaic, got shape {mosaic.shape}")
     if mosaic.dtype != np.float32:
-        raise TypeError(f"expected a float32 mosaic, got {mosaic.dtype}")
+        raise DTypeError(f"expected a float32 mosaic, got {mosaic.dtype}")
     h, w = mosaic.shape
     layout.check_size(h, w)
     mosaic = np.ascontiguousarray(mosaic)
@@ -158,13 +178,15 @@ def demosaic(
         for dy in range(2):
             for dx in range(2):
                 _upsample2(columns[dx][dy::2], dy, dx, planes[block[dy, dx], 0])
-    elif method == "bilinear" or min(h, w) < _EA_MIN_SIZE:
+    elif method != "edge-aware" or min(h, w) < _EA_MIN_SIZE:
         columns = _column_phases(mosaic, 4)
         for dy in range(2):
             for dx in range(2):
                 _bilinear_colour(columns, layout, dy, dx, planes[block[dy, dx]])
     else:
         _edge_aware_colour(mosaic, layout, planes)
+    if method == "guided":
+        guided_polarization(planes)
     return planes.transpose(2, 3, 0, 1)
 
 
@@ -174,7 +196,7 @@ def _planes_for(out: np.ndarray | None, shape: tuple[int, int, int, int]) -> np.
         return np.empty(shape, dtype=np.float32)
     planes = out.transpose(2, 3, 0, 1)
     if planes.shape != shape or planes.dtype != np.float32 or not planes.flags.c_contiguous:
-        raise ValueError(
+        raise ShapeError(
             f"out must be an (H, W, 4, C) = {shape[2:] + shape[:2]} float32 array with planar "
             f"storage (a previous demosaic result); got {out.shape} {out.dtype}"
         )
@@ -182,8 +204,8 @@ def _planes_for(out: np.ndarray | None, shape: tuple[int, int, int, int]) -> np.
 
 
 def _check_method(method: str) -> None:
-    if method not in ("bilinear", "edge-aware"):
-        raise ValueError(f"method must be 'bilinear' or 'edge-aware', got {method!r}")
+    if method not in _METHODS:
+        raise ConfigError(f"method must be one of {', '.join(map(repr, _METHODS))}, got {method!r}")
 
 
 def _column_phases(image: np.ndarray, period: int) -> list[np.ndarray]:
@@ -262,11 +284,7 @@ def _bilinear_colour(columns: list[np.ndarray], layout: MosaicLayout, dy: int, d
         _upsample2(half, dy, dx, out[c])
     # green: two diagonal lattices; the two other positions get the mean of
     # their four edge neighbours (two from each green lattice).
-    filled = [[None, None], [None, None]]
-    for by in range(2):
-        for bx in range(2):
-            if colours[by, bx] == 1:
-                filled[by][bx] = quarter[by][bx]
+    filled = [row[:] for row in quarter]  # the green lattices as they are
     for by in range(2):
         for bx in range(2):
             if colours[by, bx] != 1:
@@ -281,13 +299,17 @@ def _bilinear_colour(columns: list[np.ndarray], layout: MosaicLayout, dy: int, d
 
 def _edge_aware_colour(mosaic: np.ndarray, layout: MosaicLayout, planes: np.ndarray) -> None:
     """OpenCV edge-aware Bayer demosaicing of each angle's image, then bilinear upsampling."""
+    if layout.bayer is None:
+        raise ConfigError("edge-aware demosaicing needs a colour (Bayer) layout")
     lo, hi, _, _ = cv2.minMaxLoc(mosaic)
     span = hi - lo
     scale = 65535.0 / span if span > 0 else 1.0
     # lo -> 0, hi -> 65535, rounded (one threaded pass)
-    q16 = cv2.normalize(mosaic, None, 0, 65535, cv2.NORM_MINMAX, dtype=cv2.CV_16U)
+    q16 = cv2.normalize(  # type: ignore[call-overload]  # the stubs refuse dst=None, which OpenCV allows
+        mosaic, None, 0, 65535, cv2.NORM_MINMAX, dtype=cv2.CV_16U
+    )
     columns = _column_phases(q16, 2)
-    code = getattr(cv2, f"COLOR_{_CV_BAYER[layout.bayer]}2RGB_EA")  # type: ignore[index]
+    code = getattr(cv2, f"COLOR_{_CV_BAYER[layout.bayer]}2RGB_EA")
     block = layout.angle_index_block()
     for dy in range(2):
         for dx in range(2):

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pmvir.errors import ConfigError
+from pmvir.errors import ConfigError, ShapeError
 
 #: Polarizer angles of the four intensity channels, degrees, in channel order.
 ANGLES_DEG: tuple[int, int, int, int] = (0, 45, 90, 135)
@@ -138,16 +138,18 @@ def layout_from_sensor(
     base = _KNOWN[name]
     block = base.polarizer_block
     if polarizer_block is not None:
-        block = tuple(tuple(int(a) for a in row) for row in polarizer_block)  # type: ignore[assignment]
-        if len(block) != 2 or any(len(row) != 2 for row in block):
+        rows = [[int(a) for a in row] for row in polarizer_block]
+        if len(rows) != 2 or any(len(row) != 2 for row in rows):
             raise ConfigError(f"polarizer_block must be 2x2, got {polarizer_block}")
+        block = ((rows[0][0], rows[0][1]), (rows[1][0], rows[1][1]))
     if aop_reference not in ("ccw", "cw"):
         raise ConfigError(f"aop_reference must be 'ccw' or 'cw', got {aop_reference!r}")
     if aop_reference == "cw":
-        block = tuple(tuple((-a) % 180 for a in row) for row in block)  # type: ignore[assignment]
+        (a, b), (c, d) = block
+        block = (((-a) % 180, (-b) % 180), ((-c) % 180, (-d) % 180))
     if bayer is not None and not base.is_colour:
         raise ConfigError(f"bayer override given for the monochrome layout {name}")
-    return MosaicLayout(polarizer_block=block, bayer=bayer if bayer is not None else base.bayer)  # type: ignore[arg-type]
+    return MosaicLayout(polarizer_block=block, bayer=bayer if bayer is not None else base.bayer)
 
 
 def mosaic(intensities: np.ndarray, layout: MosaicLayout) -> np.ndarray:
@@ -162,7 +164,7 @@ def mosaic(intensities: np.ndarray, layout: MosaicLayout) -> np.ndarray:
         value of its own polarizer angle and colour filter.
     """
     if intensities.ndim != 4 or intensities.shape[2] != 4 or intensities.shape[3] != layout.channels:
-        raise ValueError(
+        raise ShapeError(
             f"expected (H, W, 4, {layout.channels}) intensities, got {intensities.shape}"
         )
     h, w = intensities.shape[:2]

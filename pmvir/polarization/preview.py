@@ -23,6 +23,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pmvir.errors import ConfigError, ShapeError
+
 #: Percentile of the valid pixels' brightest channel mapped to white.
 EXPOSURE_PERCENTILE = 99.5
 #: DoP at and above which the AoP wheel is fully saturated.
@@ -58,7 +60,7 @@ def exposure_scale(image: np.ndarray, valid: np.ndarray | None = None, *,
         A positive scale (1.0 when the image is black).
     """
     if image.ndim != 3:
-        raise ValueError(f"expected an (H, W, C) image, got shape {image.shape}")
+        raise ShapeError(f"expected an (H, W, C) image, got shape {image.shape}")
     peak = image.max(axis=2)
     if valid is not None and valid.any():
         peak = peak[valid]
@@ -80,7 +82,7 @@ def intensity_preview(image: np.ndarray, *, scale: float = 1.0) -> np.ndarray:
         (H, W, 3) uint8, RGB.
     """
     if image.ndim != 3 or image.shape[2] != 3:
-        raise ValueError(f"expected an (H, W, 3) image, got shape {image.shape}")
+        raise ShapeError(f"expected an (H, W, 3) image, got shape {image.shape}")
     encoded = srgb_encode(image * np.float32(scale))
     return np.rint(encoded * 255.0).astype(np.uint8)
 
@@ -115,9 +117,9 @@ def aop_preview(aop: np.ndarray, dop: np.ndarray, valid: np.ndarray | None = Non
         (H, W, 3) uint8, RGB.
     """
     if aop.shape != dop.shape or aop.ndim != 2:
-        raise ValueError(f"expected matching (H, W) aop and dop, got {aop.shape} and {dop.shape}")
+        raise ShapeError(f"expected matching (H, W) aop and dop, got {aop.shape} and {dop.shape}")
     if not dop_full_saturation > 0:
-        raise ValueError(f"dop_full_saturation must be > 0, got {dop_full_saturation}")
+        raise ConfigError(f"dop_full_saturation must be > 0, got {dop_full_saturation}")
     hue = np.mod(aop, np.pi).astype(np.float32) * np.float32(360.0 / np.pi)
     sat = np.clip(dop / np.float32(dop_full_saturation), 0.0, 1.0).astype(np.float32)
     hsv = cv2.merge([hue, sat, np.ones_like(sat)])
@@ -136,7 +138,7 @@ def write_png(path: str | Path, image: np.ndarray) -> Path:
     """
     path = Path(path)
     if image.dtype != np.uint8 or image.ndim not in (2, 3):
-        raise ValueError(f"expected a uint8 (H, W) or (H, W, 3) image, got {image.dtype} {image.shape}")
+        raise ShapeError(f"expected a uint8 (H, W) or (H, W, 3) image, got {image.dtype} {image.shape}")
     data = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
     ok, buf = cv2.imencode(".png", data)
     if not ok:  # pragma: no cover - OpenCV failure

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from pmvir.errors import ShapeError
 from pmvir.polarization.layout import ANGLES_DEG
 
 #: Smallest s0 divided by when forming the DoP (normalized intensity units).
@@ -66,7 +67,7 @@ def intensities_from_polarization(s0: np.ndarray, aop: np.ndarray, dop: np.ndarr
     if s0.ndim == 2:
         s0 = s0[..., None]
     if s0.ndim != 3 or aop.shape != s0.shape[:2] or dop.shape != s0.shape[:2]:
-        raise ValueError(
+        raise ShapeError(
             f"expected s0 (H, W, C), aop and dop (H, W); got {s0.shape}, {aop.shape}, {dop.shape}"
         )
     theta = np.deg2rad(np.asarray(ANGLES_DEG, dtype=np.float64))
@@ -76,7 +77,7 @@ def intensities_from_polarization(s0: np.ndarray, aop: np.ndarray, dop: np.ndarr
 
 def _check_intensities(intensities: np.ndarray) -> None:
     if intensities.ndim != 4 or intensities.shape[2] != 4:
-        raise ValueError(f"expected (H, W, 4, C) intensities, got shape {intensities.shape}")
+        raise ShapeError(f"expected (H, W, 4, C) intensities, got shape {intensities.shape}")
 
 
 def stokes_from_intensities(i: np.ndarray) -> np.ndarray:
@@ -87,9 +88,15 @@ def stokes_from_intensities(i: np.ndarray) -> np.ndarray:
 
     Returns:
         (s0, s1, s2) stacked on the last axis, shape (..., 3), float32.
+
+    Example:
+        Light fully polarized along the 0 degree polarizer:
+
+        >>> stokes_from_intensities(np.array([1.0, 0.5, 0.0, 0.5]))
+        array([1., 1., 0.], dtype=float32)
     """
     if i.shape[-1] != 4:
-        raise ValueError(f"expected (..., 4) intensities, got {i.shape}")
+        raise ShapeError(f"expected (..., 4) intensities, got {i.shape}")
     i = i.astype(np.float32, copy=False)
     i0, i45, i90, i135 = (i[..., k] for k in range(4))
     s0 = (i0 + i45 + i90 + i135) * np.float32(0.5)
@@ -131,9 +138,13 @@ def aop_from_stokes(stokes: np.ndarray) -> np.ndarray:
     Returns:
         (...) float32 radians in [0, pi), in the sense of the polarizer angles
         (ccw from image +x toward image -y).
+
+    Example:
+        >>> np.degrees(aop_from_stokes(np.array([[1.0, 0.0, 1.0], [1.0, -1.0, 0.0]])))
+        array([45., 90.], dtype=float32)
     """
     if stokes.shape[-1] != 3:
-        raise ValueError(f"expected (..., 3) Stokes vectors, got {stokes.shape}")
+        raise ShapeError(f"expected (..., 3) Stokes vectors, got {stokes.shape}")
     return _aop(stokes[..., 1].astype(np.float32), stokes[..., 2].astype(np.float32))
 
 
@@ -146,9 +157,13 @@ def dop_from_stokes(stokes: np.ndarray, *, eps: float = DOP_EPS) -> np.ndarray:
 
     Returns:
         (...) float32 in [0, 1]; meaningless (but finite) where s0 is at the noise floor.
+
+    Example:
+        >>> dop_from_stokes(np.array([[2.0, 1.0, 0.0], [1.0, 0.6, 0.8]]))
+        array([0.5, 1. ], dtype=float32)
     """
     if stokes.shape[-1] != 3:
-        raise ValueError(f"expected (..., 3) Stokes vectors, got {stokes.shape}")
+        raise ShapeError(f"expected (..., 3) Stokes vectors, got {stokes.shape}")
     s = stokes.astype(np.float32, copy=False)
     return _dop(s[..., 0], s[..., 1], s[..., 2], eps)
 
@@ -181,7 +196,7 @@ def unpolarized_intensity(i_int: np.ndarray, dop: np.ndarray) -> np.ndarray:
         (H, W, C) float32.
     """
     if i_int.shape[:2] != dop.shape:
-        raise ValueError(f"i_int {i_int.shape} and dop {dop.shape} disagree in size")
+        raise ShapeError(f"i_int {i_int.shape} and dop {dop.shape} disagree in size")
     return (np.float32(1.0) - dop)[..., None] * i_int
 
 
@@ -206,7 +221,7 @@ def valid_pixels(
     valid = np.isfinite(s0) & (s0 * np.float32(0.5) > np.float32(noise_floor))
     if invalid is not None:
         if invalid.shape != s0.shape:
-            raise ValueError(f"invalid mask {invalid.shape} does not match s0 {s0.shape}")
+            raise ShapeError(f"invalid mask {invalid.shape} does not match s0 {s0.shape}")
         valid &= ~invalid
     return valid
 
@@ -264,8 +279,8 @@ def _weighted_sum(planes: list[np.ndarray], weight: float) -> np.ndarray:
     w = np.float32(weight)
     if all(p.flags.c_contiguous and p.dtype == np.float32 for p in planes):
         if len(planes) == 1:
-            return cv2.multiply(planes[0], float(w))
-        out = cv2.addWeighted(planes[0], float(w), planes[1], float(w), 0.0)
+            return planes[0] * w
+        out: np.ndarray = cv2.addWeighted(planes[0], float(w), planes[1], float(w), 0.0)
         for p in planes[2:]:
             cv2.scaleAdd(p, float(w), out, dst=out)
         return out

@@ -40,6 +40,14 @@ def azimuth(normal_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
     Returns:
         alpha (...) in [0, 2 pi) and a bool mask (...) of where it is defined.
+
+    Example:
+        Seen on the optical axis, a normal along camera +x has azimuth 0, one along image up
+        (camera -y) 90 degrees, and one facing the camera has none:
+
+        >>> alpha, defined = azimuth(torch.tensor([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]]))
+        >>> bool(alpha[0] == 0), round(math.degrees(alpha[1]), 4), defined.tolist()
+        (True, 90.0, [True, True, False])
     """
     nx, ny = normal_cam[..., 0], normal_cam[..., 1]
     defined = nx * nx + ny * ny > AZIMUTH_EPS
@@ -90,7 +98,7 @@ def pair_light(
         rgb_scale: (V, 3) L_scale per view.
         pairs: the stage's pairs.
     """
-    sizes = [b - a for a, b in zip(pairs.offsets[:-1], pairs.offsets[1:])]
+    sizes = [b - a for a, b in zip(pairs.offsets[:-1], pairs.offsets[1:], strict=True)]
     basis = torch.split(sh9_basis(normals.index_select(0, pairs.vertex)), sizes)
     shading = torch.cat([b @ sh[c] for c, b in enumerate(basis)])
     return shading[:, None] * rgb_scale.index_select(0, pairs.view)
@@ -278,11 +286,13 @@ def energy_terms(
         albedo = albedo(samples.intensity.detach(), light.detach())
     terms = {"pho": photometric_term(samples.intensity, light, albedo, problem.pairs, units=problem.units)}
     if problem.polarimetric:
+        aop, dop, defined = samples.aop, samples.dop, samples.aop_defined
+        assert aop is not None and dop is not None and defined is not None  # polarimetric views sample them
         terms["pol"] = polarimetric_term(
             samples.normal_cam,
-            samples.aop,
-            samples.dop,
-            samples.aop_defined if problem.pol_mask is None else samples.aop_defined & problem.pol_mask,
+            aop,
+            dop,
+            defined if problem.pol_mask is None else defined & problem.pol_mask,
             problem.pairs,
             k=problem.k,
             dop_weight=problem.dop_weight,

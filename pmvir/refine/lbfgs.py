@@ -163,6 +163,29 @@ def strong_wolfe(
     return best, n_eval
 
 
+def _two_loop(
+    g: torch.Tensor,
+    s_hist: list[torch.Tensor],
+    y_hist: list[torch.Tensor],
+    rho_hist: list[float],
+    *,
+    gamma: float,
+    apply_p: Callable[[torch.Tensor], torch.Tensor],
+) -> torch.Tensor:
+    """The L-BFGS direction -H g by the two-loop recursion, H0 = gamma * P (Nocedal & Wright, Alg. 7.4)."""
+    q = -g.clone()
+    alphas = []
+    for s, y, rho in zip(reversed(s_hist), reversed(y_hist), reversed(rho_hist), strict=True):
+        a = rho * float(s @ q)
+        q.add_(y, alpha=-a)
+        alphas.append(a)
+    q = apply_p(q).mul_(gamma)
+    for (s, y, rho), a in zip(zip(s_hist, y_hist, rho_hist, strict=True), reversed(alphas), strict=True):
+        b = rho * float(y @ q)
+        q.add_(s, alpha=a - b)
+    return q
+
+
 def minimize_lbfgs(
     fun: Objective,
     x0: torch.Tensor,
@@ -214,17 +237,7 @@ def minimize_lbfgs(
     reason = "max_iterations"
     it = 0
     for it in range(1, max_iterations + 1):
-        q = -g.clone()
-        alphas = []
-        for s, y, rho in zip(reversed(s_hist), reversed(y_hist), reversed(rho_hist)):
-            a = rho * float(s @ q)
-            q.add_(y, alpha=-a)
-            alphas.append(a)
-        q = apply_p(q).mul_(gamma)
-        for (s, y, rho), a in zip(zip(s_hist, y_hist, rho_hist), reversed(alphas)):
-            b = rho * float(y @ q)
-            q.add_(s, alpha=a - b)
-        d = q
+        d = _two_loop(g, s_hist, y_hist, rho_hist, gamma=gamma, apply_p=apply_p)
         gtd = float(g @ d)
         if not s_hist or gtd > -1e-30:
             s_hist, y_hist, rho_hist = [], [], []

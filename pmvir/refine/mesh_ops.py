@@ -89,7 +89,7 @@ def face_adjacency(faces: np.ndarray) -> np.ndarray:
     two = starts[sizes == 2]
     if len(two):
         pairs.append(np.stack([face_of[two], face_of[two + 1]], axis=1))
-    for s, n in zip(starts[sizes > 2], sizes[sizes > 2]):
+    for s, n in zip(starts[sizes > 2], sizes[sizes > 2], strict=True):
         grp = face_of[s : s + n]
         a, b = np.triu_indices(n, 1)
         pairs.append(np.stack([grp[a], grp[b]], axis=1))

@@ -145,7 +145,7 @@ def build_view_stack(
         raise ConfigError("need at least one view")
     n_chan = 6 if polarimetric else 3
     sizes = []
-    for c, (cam, obs) in enumerate(zip(cameras, observations)):
+    for c, (cam, obs) in enumerate(zip(cameras, observations, strict=True)):
         if obs.shape != (cam.height, cam.width):
             raise ConfigError(
                 f"view {c}: image is {obs.shape} (H, W) but the camera is ({cam.height}, {cam.width})"
@@ -239,7 +239,7 @@ def select_pairs(
         raise ConfigError(f"select_pairs with min_cos > -1 needs ({n}, 3) normals")
     vis = vis.astype(bool)
     vert_idx, view_idx, cos_all = [], [], []
-    for c, (cam, obs) in enumerate(zip(cameras, observations)):
+    for c, (cam, obs) in enumerate(zip(cameras, observations, strict=True)):
         idx = np.flatnonzero(vis[:, c])
         uv, depth = cam.project(vertices[idx])
         x, y = uv[:, 0] - 0.5, uv[:, 1] - 0.5
@@ -256,7 +256,7 @@ def select_pairs(
         kept = idx[ok][order]
         vert_idx.append(kept)
         view_idx.append(np.full(len(kept), c, dtype=np.int64))
-        if min_cos > -1.0:
+        if min_cos > -1.0 and normals is not None:  # checked above
             to_cam = cam.center[None, :] - vertices[kept]
             cos_all.append(
                 (normals[kept] * to_cam).sum(1) / np.maximum(np.linalg.norm(to_cam, axis=1), 1e-300)
@@ -363,7 +363,7 @@ def sample_pairs(
         views: the packed views.
         pairs: the stage's pairs.
     """
-    sizes = [b - a for a, b in zip(pairs.offsets[:-1], pairs.offsets[1:])]
+    sizes = [b - a for a, b in zip(pairs.offsets[:-1], pairs.offsets[1:], strict=True)]
     # torch.split (not slicing): its backward concatenates, slicing's would zero-fill (P, 3) per view.
     xs = torch.split(vertices.index_select(0, pairs.vertex), sizes)
     ns = torch.split(normals.index_select(0, pairs.vertex), sizes)

@@ -26,11 +26,13 @@ Angle of polarization reference (``aop_frame``):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from typing import Literal
 
 import numpy as np
 
 from pmvir.camera import Camera
+from pmvir.errors import ConfigError
 from pmvir.synth.lighting import ViewLight
 from pmvir.synth.materials import Material, material_stokes
 from pmvir.synth.raycast import Hits, MeshScene, pixel_directions, rotate_rows, trace
@@ -184,15 +186,17 @@ def render_view(
         The Stokes image (H, W, 3, 3) float32 and the geometry.
     """
     if supersample < 1:
-        raise ValueError(f"supersample must be >= 1, got {supersample}")
+        raise ConfigError(f"supersample must be >= 1, got {supersample}")
     if aop_frame not in ("normal", "ray"):
-        raise ValueError(f"aop_frame must be 'normal' or 'ray', got {aop_frame!r}")
-    opts = dict(material=material, ior=ior, extinction=extinction, specular=specular, aop_frame=aop_frame)
+        raise ConfigError(f"aop_frame must be 'normal' or 'ray', got {aop_frame!r}")
+    shade = partial(
+        _shade, material=material, ior=ior, extinction=extinction, specular=specular, aop_frame=aop_frame
+    )
     geom, hits, d_world, d_cam = render_geometry(scene, camera)
     h, w = camera.height, camera.width
     stokes = np.zeros((h * w, 3, 3), dtype=np.float32)
     if hits.hit.any():
-        stokes[hits.hit] = _shade(hits, d_world, d_cam, camera, light, **opts)
+        stokes[hits.hit] = shade(hits, d_world, d_cam, camera, light)
     if supersample > 1:
         edge = _edge_pixels(geom.mask, geom.depth).reshape(-1)
         idx = np.flatnonzero(edge)
@@ -206,6 +210,6 @@ def render_view(
             sub_hits = trace(scene, camera.center, dw)
             sub = np.zeros((len(dw), 3, 3), dtype=np.float32)
             if sub_hits.hit.any():
-                sub[sub_hits.hit] = _shade(sub_hits, dw, dc, camera, light, **opts)
+                sub[sub_hits.hit] = shade(sub_hits, dw, dc, camera, light)
             stokes[idx] = sub.reshape(len(idx), s * s, 3, 3).mean(axis=1)
     return ViewRender(stokes=stokes.reshape(h, w, 3, 3), geometry=geom)

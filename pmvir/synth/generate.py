@@ -15,7 +15,10 @@ Output layout::
 background), ``normal_cam`` (H, W, 3) float32 unit shading normals in camera
 axes, ``aop`` and ``dop`` (H, W) float32 and ``i_int`` (H, W, 3) float32 (the
 noise-free rendered values in decoded units, before the mosaic, noise,
-quantization and clipping), ``mask`` (H, W) bool.
+quantization and clipping), ``mask`` (H, W) bool; with ``save_stokes`` also
+``stokes`` (H, W, 3, 3) float32: per colour (R, G, B) the noise-free linear
+Stokes vector (s0, s1, s2) in full-scale units (gain times radiance), i.e. the
+sensor's input: its polarizer intensities are ``(s0 + s1 cos 2t + s2 sin 2t) / 2``.
 
 Units: the decoded ``I_int`` of a Lambertian pixel is ``K * S(N) * rgb_scale``
 exactly (before noise) with the ``sh`` and ``rgb_scale`` of
@@ -53,7 +56,7 @@ from pmvir.errors import ConfigError
 from pmvir.io.frames import write_frame
 from pmvir.io.illumination import illumination_from_arrays, write_illumination
 from pmvir.io.ply import Mesh, write_mesh_ply
-from pmvir.synth.builtin_renderer import ViewGeometry, render_geometry, render_view
+from pmvir.synth.builtin_renderer import render_geometry, render_view
 from pmvir.synth.lighting import EnvLight, ViewLight, env_lights, sh_lights
 from pmvir.synth.options import SynthOptions, synth_options
 from pmvir.synth.raycast import MeshScene
@@ -187,6 +190,9 @@ def _mitsuba_view(mesh: Mesh, camera: Camera, light: ViewLight, opts: SynthOptio
     """Stokes image from the optional Mitsuba renderer (imported only here)."""
     from pmvir.synth import mitsuba_renderer  # imports Mitsuba itself only when rendering
 
+    if mesh.albedo is None:
+        raise ConfigError("the Mitsuba renderer needs a mesh with per-vertex albedo")
+
     kwargs: dict[str, Any]
     if isinstance(light, EnvLight):
         dirs = mitsuba_renderer.envmap_directions(128, 256)  # Mitsuba's lat-long convention (y up)
@@ -262,7 +268,11 @@ def synthesize(
         raise ConfigError(
             "--renderer mitsuba needs Mitsuba 3, the optional extra: pip install 'pmvir[mitsuba]'"
         )
-    geometry = builtin_shape(shape) if shape is not None else load_mesh(mesh, up=opts.mesh_up)
+    if shape is not None:
+        geometry = builtin_shape(shape)
+    else:
+        assert mesh is not None  # exactly one of them is given (checked above)
+        geometry = load_mesh(mesh, up=opts.mesh_up)
     out = Path(out)
     if opts.texture == "procedural":
         albedo = procedural_albedo(geometry.vertices, seed=opts.seed)
@@ -297,7 +307,7 @@ def synthesize(
             )
             stokes, geom = view.stokes, view.geometry
         else:
-            geom: ViewGeometry = render_geometry(scene, cam)[0]
+            geom = render_geometry(scene, cam)[0]
             stokes = _mitsuba_view(truth, cam, light, opts, i)
         t_render = time.perf_counter() - t0
         if gain is None:
@@ -318,6 +328,7 @@ def synthesize(
                     "normal_cam": geom.normal_cam,
                     **polarization_truth(stokes, gain),
                     "mask": geom.mask,
+                    **({"stokes": (stokes * gain).astype(np.float32)} if opts.save_stokes else {}),
                 },
             )
         entries.append(

@@ -178,7 +178,7 @@ class EnvTable:
     shading: np.ndarray
 
     @classmethod
-    def from_map(cls, env: np.ndarray, *, grid: tuple[int, int] = (48, 96), block: int = 4) -> "EnvTable":
+    def from_map(cls, env: np.ndarray, *, grid: tuple[int, int] = (48, 96), block: int = 4) -> EnvTable:
         """Tabulate the shading of ``env``, integrated over a ``block`` x ``block`` averaged copy."""
         coarse = _block_mean(env, block) if env.shape[0] % block == 0 and env.shape[1] % block == 0 else env
         normals = latlong_directions(*grid).reshape(-1, 3)

@@ -35,6 +35,8 @@ from typing import Literal
 
 import numpy as np
 
+from pmvir.errors import ConfigError, ShapeError
+
 Material = Literal["lambert", "plastic", "conductor"]
 MATERIALS: tuple[str, ...] = ("lambert", "plastic", "conductor")
 
@@ -117,12 +119,12 @@ def material_stokes(
     """
     n = albedo.shape[0]
     if albedo.shape != (n, 3) or diffuse_shading.shape != (n, 3) or mirror_radiance.shape != (n, 3):
-        raise ValueError(
+        raise ShapeError(
             f"expected (N, 3) albedo, shading and radiance, got {albedo.shape}, "
             f"{diffuse_shading.shape}, {mirror_radiance.shape}"
         )
     if material not in MATERIALS:
-        raise ValueError(f"unknown material {material!r}; expected one of {MATERIALS}")
+        raise ConfigError(f"unknown material {material!r}; expected one of {MATERIALS}")
     c = np.clip(np.asarray(cos_zenith, dtype=np.float64), 0.0, 1.0)
     out = np.zeros((n, 3, 3), dtype=np.float64)
     k = np.asarray(albedo, dtype=np.float64)

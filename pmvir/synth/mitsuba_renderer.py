@@ -159,7 +159,7 @@ def _mitsuba() -> tuple[Any, Any]:
         def __init__(self, props: Any) -> None:
             mi.Texture.__init__(self, props)
             self.mean_value = float(props.get("mean", 0.5))
-            self.mesh = None
+            self.mesh: Any = None  # set once the mesh is built
 
         def eval(self, si: Any, active: Any = True) -> Any:
             return mi.UnpolarizedSpectrum(self.mesh.eval_attribute_1(_ALBEDO_ATTRIBUTE, si, active))
@@ -167,7 +167,7 @@ def _mitsuba() -> tuple[Any, Any]:
         def eval_1(self, si: Any, active: Any = True) -> Any:
             return self.mesh.eval_attribute_1(_ALBEDO_ATTRIBUTE, si, active)
 
-        def mean(self) -> float:
+        def mean(self) -> float:  # type: ignore[override]  # Mitsuba takes a Python float here
             return self.mean_value
 
         def is_spatially_varying(self) -> bool:
@@ -176,7 +176,7 @@ def _mitsuba() -> tuple[Any, Any]:
         def to_string(self) -> str:
             return f"VertexAlbedo[mean={self.mean_value}]"
 
-    mi.register_texture("pmvir_vertex_albedo", lambda props: VertexAlbedo(props))
+    mi.register_texture("pmvir_vertex_albedo", VertexAlbedo)
     return mi, dr
 
 
@@ -369,7 +369,7 @@ def render_view_stokes(
             spec, _, _ = integrator.sample(scene, sampler, ray)
             s0, s1, s2 = (mi.Float(spec[i, 0][0]) for i in range(3))
             # (s1, s2) from Mitsuba's basis to the target basis, a rotation by 2 gamma.
-            stokes = (s0, cos2g * s1 + sin2g * s2, cos2g * s2 - sin2g * s1)
+            stokes = [s0, cos2g * s1 + sin2g * s2, cos2g * s2 - sin2g * s1]
             stokes = [dr.select(dr.isfinite(x), x, 0.0) for x in stokes]
             dr.eval(*stokes)  # one path-tracing kernel for the three components
             sums = [dr.block_sum(x, k) for x in stokes]

@@ -93,6 +93,11 @@ class SynthOptions(BaseModel):
     gt_views: bool = Field(
         default=True, description="Write gt/views/<stem>.npz (depth, normals, noise-free AoP/DoP/I_int)."
     )
+    save_stokes: bool = Field(
+        default=False,
+        description="Also write the noise-free per-pixel Stokes image (s0, s1, s2 per colour, full-scale "
+        "units) as 'stokes' (H, W, 3, 3) in gt/views/<stem>.npz (needs gt_views).",
+    )
 
     @field_validator("size", mode="before")
     @classmethod
@@ -115,7 +120,7 @@ class SynthOptions(BaseModel):
         return v
 
     @model_validator(mode="after")
-    def _check_ior(self) -> "SynthOptions":
+    def _check_ior(self) -> SynthOptions:
         if self.material == "plastic" and self.ior <= 1.0:
             raise ValueError(f"plastic needs ior > 1, got {self.ior}")
         return self

@@ -20,6 +20,7 @@ import numpy as np
 import open3d as o3d
 
 from pmvir.camera import Camera
+from pmvir.errors import InputError
 from pmvir.io.ply import Mesh
 
 
@@ -58,10 +59,10 @@ class MeshScene:
         self._albedo32 = np.asarray(self.albedo, dtype=np.float32)
 
     @classmethod
-    def from_mesh(cls, mesh: Mesh) -> "MeshScene":
+    def from_mesh(cls, mesh: Mesh) -> MeshScene:
         """Build from a mesh that has normals and albedo."""
         if mesh.normals is None or mesh.albedo is None:
-            raise ValueError("MeshScene needs a mesh with normals and albedo")
+            raise InputError("MeshScene needs a mesh with normals and albedo")
         return cls(mesh.vertices, mesh.faces, mesh.normals.astype(np.float64), mesh.albedo)
 
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pmvir.errors import ConfigError
+from pmvir.errors import ConfigError, ShapeError
 from pmvir.polarization.layout import ANGLES_DEG, IMX250MYR, MosaicLayout, mosaic
 
 
@@ -65,7 +65,7 @@ def stokes_to_intensities(stokes: np.ndarray) -> np.ndarray:
         (H, W, 4, C) float32 intensities in :data:`ANGLES_DEG` order, clamped at >= 0.
     """
     if stokes.ndim != 4 or stokes.shape[-1] != 3:
-        raise ValueError(f"expected (H, W, C, 3) Stokes, got {stokes.shape}")
+        raise ShapeError(f"expected (H, W, C, 3) Stokes, got {stokes.shape}")
     # cos 2theta, sin 2theta are (1, 0), (0, 1), (-1, 0), (0, -1) for 0, 45, 90, 135 degrees: exact.
     assert ANGLES_DEG == (0, 45, 90, 135)
     s = np.asarray(stokes, dtype=np.float32)

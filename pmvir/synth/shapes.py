@@ -90,7 +90,7 @@ def geodesic_sphere(frequency: int) -> tuple[np.ndarray, np.ndarray]:
         counter-clockwise seen from outside.
     """
     if frequency < 1:
-        raise ValueError(f"frequency must be >= 1, got {frequency}")
+        raise ConfigError(f"frequency must be >= 1, got {frequency}")
     iv, ifaces = _icosahedron()
     n = frequency
     ii, jj = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
@@ -98,13 +98,13 @@ def geodesic_sphere(frequency: int) -> tuple[np.ndarray, np.ndarray]:
     ii, jj = ii[keep], jj[keep]  # lattice point (i, j): a + i/n (b - a) + j/n (c - a)
     local = -np.ones((n + 1, n + 1), dtype=np.int64)
     local[ii, jj] = np.arange(len(ii))
-    tris = []
+    corners = []
     for i in range(n):
         for j in range(n - i):
-            tris.append((local[i, j], local[i + 1, j], local[i, j + 1]))
+            corners.append((local[i, j], local[i + 1, j], local[i, j + 1]))
             if i + j + 1 < n:
-                tris.append((local[i + 1, j], local[i + 1, j + 1], local[i, j + 1]))
-    tris = np.asarray(tris, dtype=np.int64)
+                corners.append((local[i + 1, j], local[i + 1, j + 1], local[i, j + 1]))
+    tris = np.asarray(corners, dtype=np.int64)
     a, b, c = iv[ifaces[:, 0]], iv[ifaces[:, 1]], iv[ifaces[:, 2]]
     pts = a[:, None] + (ii / n)[None, :, None] * (b - a)[:, None] + (jj / n)[None, :, None] * (c - a)[:, None]
     pts = pts.reshape(-1, 3)

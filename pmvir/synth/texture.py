@@ -20,6 +20,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from pmvir.errors import ShapeError
+
 
 def value_noise(points: np.ndarray, frequency: float, rng: np.random.Generator) -> np.ndarray:
     """Smooth 3-D value noise in [0, 1] at ``points`` (N, 3) inside [-1, 1]^3, (N,) float64.
@@ -68,7 +70,7 @@ def procedural_albedo(vertices: np.ndarray, *, seed: int) -> np.ndarray:
     """
     v = np.asarray(vertices, dtype=np.float64)
     if v.ndim != 2 or v.shape[1] != 3:
-        raise ValueError(f"expected (N, 3) vertices, got {v.shape}")
+        raise ShapeError(f"expected (N, 3) vertices, got {v.shape}")
     rng = np.random.default_rng([seed, 7301])
     # Broad patches: Voronoi cells of random sites near the surface, one palette colour each.
     n_sites = 16

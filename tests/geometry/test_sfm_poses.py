@@ -236,7 +236,7 @@ def test_too_few_views_is_an_error(sfm_views: dict, tmp_path: Path) -> None:
 
 def test_textureless_object_is_an_error_in_sfm(textureless_capture: Path, tmp_path: Path) -> None:
     data = _load(textureless_capture)
-    with pytest.raises(ReconstructionError, match="registered 0 of 12 views.*textureless") as info:
+    with pytest.raises(ReconstructionError, match=r"registered 0 of 12 views.*textureless") as info:
         estimate_poses(data["images"], data["names"], masks=data["masks"], options=SfmOptions(), workdir=tmp_path)
     assert "000 (" in str(info.value)  # names the views that failed, with their feature counts
 
@@ -254,7 +254,7 @@ def test_textureless_object_with_known_poses_needs_no_sparse_points(textureless_
 
 def test_non_overlapping_frames_are_an_error_in_sfm(unrelated_capture: Path, tmp_path: Path) -> None:
     data = _load(unrelated_capture)
-    with pytest.raises(ReconstructionError, match="registered 0 of 8 views.*overlap") as info:
+    with pytest.raises(ReconstructionError, match=r"registered 0 of 8 views.*overlap") as info:
         estimate_poses(data["images"], data["names"], masks=data["masks"], options=SfmOptions(), workdir=tmp_path)
     assert all(f"{name} (" in str(info.value) for name in data["names"])
 
@@ -263,7 +263,7 @@ def test_too_few_registered_views_is_an_error(sfm_views: dict, tmp_path: Path) -
     """Requiring every view of a capture of two unrelated halves: the views that failed are named."""
     front, back = [12, 13, 14, 15], [19, 20, 21, 22]  # level ring, 30 degrees apart; 120+ degrees between halves
     idx = front + back
-    with pytest.raises(ReconstructionError, match="SfM registered [0-4] of 8 views, at least 8 needed") as info:
+    with pytest.raises(ReconstructionError, match=r"SfM registered [0-4] of 8 views, at least 8 needed") as info:
         estimate_poses(
             [sfm_views["images"][i] for i in idx], [sfm_views["names"][i] for i in idx],
             masks=[sfm_views["masks"][i] for i in idx], options=SfmOptions(min_registered_fraction=1.0),

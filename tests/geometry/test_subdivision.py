@@ -137,7 +137,7 @@ def test_reference_surface_projection_lands_on_faces():
     p = rng.normal(size=(200, 3))
     p /= np.linalg.norm(p, axis=1, keepdims=True)
     p *= rng.uniform(0.9, 1.1, size=(200, 1))
-    q, ids = surface.project(p)
+    q, _ = surface.project(p)
     assert _on_some_face(q, v, f, tol=1e-9).all()
     corners = (np.tile(v[f[:, k]], (len(p), 1)) for k in range(3))
     every = closest_points_on_triangles(np.repeat(p, len(f), 0), *corners).reshape(len(p), len(f), 3)
@@ -342,6 +342,7 @@ def test_geometry_options_reject_bad_values():
 def test_edge_topology_of_tetrahedron_and_inconsistent_orientation():
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=np.float64)
     f = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])  # outward
+    assert np.linalg.det(v[f]).sum() > 0  # six times the signed volume: outward faces
     topo = edge_topology(f, 4)
     assert topo.n_edges == 6 and topo.interior.all() and not topo.boundary.any()
     assert np.all(topo.edges[:, 0] < topo.edges[:, 1])

@@ -118,7 +118,7 @@ def test_mono12p_odd_frame_round_trip(tmp_path):
 
 
 def test_write_rejects_values_above_bit_depth(tmp_path):
-    with pytest.raises(ValueError, match="0..4095"):
+    with pytest.raises(ValueError, match=r"0\.\.4095"):
         write_frame(tmp_path / "f.png", np.full((4, 4), 4096, np.uint16), bit_depth=12)
 
 

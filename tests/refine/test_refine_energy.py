@@ -217,7 +217,7 @@ def test_grazing_pairs_are_left_out_below_the_minimum_viewing_cosine() -> None:
     tilt = np.radians([0.0, 50.0, 70.0])
     # turn each normal about the y axis away from the direction to the camera
     normals = np.stack(
-        [np.cos(t) * d + np.sin(t) * np.cross([0.0, 1.0, 0.0], d) for t, d in zip(tilt, to_cam)]
+        [np.cos(t) * d + np.sin(t) * np.cross([0.0, 1.0, 0.0], d) for t, d in zip(tilt, to_cam, strict=True)]
     )
     vis = np.ones((3, 1), bool)
     kept = select_pairs(pts, vis, [cam], [obs], device="cpu", dtype=F64, normals=normals, min_cos=0.5)

@@ -77,7 +77,7 @@ def test_refinement_improves_accuracy_and_beats_the_mvir_baseline(plastic, plast
 def test_every_term_is_logged_per_iteration_and_the_cost_decreases(plastic_runs) -> None:
     full, baseline, _, _ = plastic_runs
     assert len(full.stages) == 3
-    for st, tau in zip(full.stages, (60.0, 120.0, 360.0)):
+    for st, tau in zip(full.stages, (60.0, 120.0, 360.0), strict=True):
         assert st.tau_pol == tau and st.k == 0.5
         assert len(st.energies) == len(st.grad_max) >= 2
         for e in st.energies:

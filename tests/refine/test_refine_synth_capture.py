@@ -32,7 +32,7 @@ def capture_run(tmp_path_factory: pytest.TempPathFactory):
     path = synthesize(root / "cap", shape="blob", views=24, size=(256, 216), material="plastic", seed=3)
     gopts = GeometryOptions(subdivision={"max_area_px": 8.0})
     with open_capture(path) as cap:
-        views = decode_views(cap, PipelineConfig(), lambda f, m="": None)
+        views = decode_views(cap, PipelineConfig())
         masks = [cap.read_mask(i) for i in range(len(cap.frames))]
         geo = run_geometry(cap, [v.images for v in views], options=gopts, workdir=root / "work")
     reg = [i for i, c in enumerate(geo.cameras) if c is not None]

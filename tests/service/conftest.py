@@ -13,6 +13,7 @@ import httpx
 import pytest
 
 from service.testing import ServiceStack, write_noise_capture
+
 from svc_helpers import FLIGHT_KEY, FUZZ_KEY, KEY, LIMITS, OTHER_KEY, client_for, require_redis
 
 
@@ -63,7 +64,7 @@ def long_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.hookimpl(wrapper=True, tryfirst=True)
-def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):  # noqa: ANN201
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):
     rep = yield
     setattr(item, "rep_" + rep.when, rep)
     return rep

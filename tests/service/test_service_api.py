@@ -12,9 +12,10 @@ import httpx
 import numpy as np
 import pytest
 
-from svc_helpers import DECODE_ONLY, KEY, OTHER_KEY, client_for, finished, new_job, upload, wait_for
 from pmvir.io.frames import write_frame
 from service.testing import ServiceStack
+
+from svc_helpers import DECODE_ONLY, KEY, OTHER_KEY, client_for, finished, new_job, upload, wait_for
 
 
 def sha(data: bytes) -> str:
@@ -45,7 +46,7 @@ def test_job_runs_end_to_end_and_its_result_parses(
     assert job["progress"] == 1.0 and job["stage"] == "decode"
     assert job["stage_timings"]["decode"] > 0
     assert job["deliveries"] == 1 and job["error"] is None
-    assert set(job["results"]) == {"report.json", "result.zip"}
+    assert set(job["results"]) == {"decoded.zip", "previews.zip", "report.json", "result.zip"}
     assert {f["path"] for f in job["files"]} == set(done_job["uploads"])
     progresses = [j["progress"] for j in done_job["seen"]]
     assert progresses == sorted(progresses)

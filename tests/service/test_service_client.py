@@ -13,6 +13,7 @@ import pytest
 from pmvir.cli import main
 from pmvir.client import PmvirClient, ServiceError
 from service.testing import ServiceStack, write_noise_capture
+
 from svc_helpers import KEY, client_for, finished, new_job, wait_for
 
 

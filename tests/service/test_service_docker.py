@@ -30,7 +30,12 @@ def test_compose_runs_api_worker_and_redis_sharing_the_storage_volume() -> None:
 
 def test_dockerfile_installs_the_service_and_runs_unprivileged() -> None:
     text = (DOCKER / "Dockerfile").read_text()
-    assert '".[service]"' in text and "torch==2.13.0" in text
+    assert "ARG BASE_IMAGE=" in text and "FROM ${BASE_IMAGE}" in text
+    assert (
+        "-r /tmp/requirements.lock" in text
+        and "--extra-index-url" in text
+        and 'pip install --no-deps ".[full,service]"' in text
+    )
     assert "USER pmvir" in text and "ENV PMVIR_STORAGE=/data" in text
     assert 'CMD ["pmvir", "serve", "--host", "0.0.0.0", "--port", "8000"]' in text
     ignore = [
@@ -39,3 +44,23 @@ def test_dockerfile_installs_the_service_and_runs_unprivileged() -> None:
         if ln.strip() and not ln.startswith("#")
     ]
     assert ignore[0] == "*" and "!pmvir/" in ignore and "!service/" in ignore
+    assert "!docker/requirements.lock" in ignore
+
+
+def test_lock_file_pins_every_declared_dependency_of_the_image() -> None:
+    lock = {
+        ln.split("==")[0]: ln.split("==")[1]
+        for ln in (DOCKER / "requirements.lock").read_text().splitlines()
+        if ln and not ln.startswith("#")
+    }
+    for name in (
+        "torch",
+        "fastapi",
+        "starlette",
+        "python-multipart",
+        "pycolmap",
+        "pydantic-settings",
+        "httpx",
+    ):
+        assert name in lock, name
+    assert all(v[0].isdigit() and "+" not in v for v in lock.values())

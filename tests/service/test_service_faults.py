@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from service.testing import ServiceStack
+
 from svc_helpers import KEY, LIMITS, client_for, finished, new_job, wait_for
 
 pytestmark = pytest.mark.slow

@@ -24,6 +24,7 @@ from hypothesis.errors import Unsatisfiable  # noqa: E402
 from schemathesis import GenerationMode  # noqa: E402
 
 from service.testing import ServiceStack  # noqa: E402
+
 from svc_helpers import FUZZ_KEY, client_for, finished, upload, wait_for  # noqa: E402
 
 EXAMPLES = 12
@@ -37,7 +38,7 @@ AUTH = {"Authorization": f"Bearer {FUZZ_KEY}"}
 EXCLUDED = [schemathesis.checks.positive_data_acceptance]
 
 
-def fuzz(operation, *, mode, path_parameters: dict | None = None) -> None:  # noqa: ANN001
+def fuzz(operation, *, mode, path_parameters: dict | None = None) -> None:
     @given(case=operation.as_strategy(mode, path_parameters=path_parameters))
     @settings(
         max_examples=EXAMPLES,
@@ -46,7 +47,7 @@ def fuzz(operation, *, mode, path_parameters: dict | None = None) -> None:  # no
         database=None,
         suppress_health_check=list(HealthCheck),
     )
-    def run(case) -> None:  # noqa: ANN001
+    def run(case) -> None:
         response = case.call_and_validate(headers=AUTH, timeout=30, excluded_checks=EXCLUDED)
         STATUS_SEEN.setdefault(operation.label, set()).add(response.status_code)
 
@@ -80,7 +81,7 @@ def test_api_conforms_to_its_schema(stack: ServiceStack, small_capture: Path) ->
                     fuzz(operation, mode=mode, path_parameters=params)
                 except Unsatisfiable:
                     assert mode is GenerationMode.NEGATIVE  # nothing to break in a request without inputs
-                except Exception as exc:  # collect every operation's failure, then report them all
+                except Exception as exc:  # noqa: BLE001 - collect every failure, then report them all
                     failures.append(f"{operation.label} {mode.value} {params or ''}:\n{exc}")
             ran.append(operation.label)
         with client_for(stack, FUZZ_KEY) as c:  # keep the key under its in-flight limit

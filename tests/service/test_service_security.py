@@ -10,6 +10,7 @@ import httpx
 import pytest
 
 from service.testing import ServiceStack
+
 from svc_helpers import FLIGHT_KEY, KEY, LIMITS, OTHER_KEY, client_for, new_job
 
 FRAME_LIMIT = int(LIMITS["PMVIR_MAX_FRAME_BYTES"])
@@ -24,7 +25,7 @@ def storage_files(stack: ServiceStack) -> set[str]:
 
 
 @pytest.fixture()
-def c(stack: ServiceStack):  # noqa: ANN201
+def c(stack: ServiceStack):
     """A client whose jobs are deleted after the test (the key's in-flight limit stays free)."""
     with client_for(stack) as client:
         yield client
@@ -178,17 +179,19 @@ def test_jobs_in_flight_per_key_is_429(stack: ServiceStack) -> None:
 
 def test_low_free_disk_is_507(tmp_path: Path) -> None:
     """A service told to keep more free space than any disk has refuses every upload."""
-    with ServiceStack(tmp_path / "st", api_keys=("k507",), env={"PMVIR_MIN_FREE_BYTES": str(1 << 62)}) as st:
-        with client_for(st, "k507") as c:
-            job_id = c.post("/v1/jobs", json={}).json()["id"]
-            r = c.put(f"/v1/jobs/{job_id}/files/frames/000.png", content=b"abc")
-            assert r.status_code == 507 and r.json()["error"] == "insufficient_storage"
-            assert c.get(f"/v1/jobs/{job_id}").json()["files"] == []
-            zipped = c.post(
-                "/v1/jobs",
-                files={"capture": ("c.zip", zip_bytes({"capture.json": b"{}"}), "application/zip")},
-            )
-            assert zipped.status_code == 507
+    with (
+        ServiceStack(tmp_path / "st", api_keys=("k507",), env={"PMVIR_MIN_FREE_BYTES": str(1 << 62)}) as st,
+        client_for(st, "k507") as c,
+    ):
+        job_id = c.post("/v1/jobs", json={}).json()["id"]
+        r = c.put(f"/v1/jobs/{job_id}/files/frames/000.png", content=b"abc")
+        assert r.status_code == 507 and r.json()["error"] == "insufficient_storage"
+        assert c.get(f"/v1/jobs/{job_id}").json()["files"] == []
+        zipped = c.post(
+            "/v1/jobs",
+            files={"capture": ("c.zip", zip_bytes({"capture.json": b"{}"}), "application/zip")},
+        )
+        assert zipped.status_code == 507
 
 
 # ----------------------------------------------------------------------------- zipped captures
@@ -214,12 +217,12 @@ def assert_nothing_kept(
 
 
 @pytest.fixture()
-def zc(stack: ServiceStack):  # noqa: ANN201
+def zc(stack: ServiceStack):
     with client_for(stack, OTHER_KEY) as c:
         yield c, c.get("/v1/jobs").json()["total"], storage_files(stack)
 
 
-def test_zip_bomb_is_rejected_before_extraction(stack: ServiceStack, zc) -> None:  # noqa: ANN001
+def test_zip_bomb_is_rejected_before_extraction(stack: ServiceStack, zc) -> None:
     c, jobs, files = zc
     bomb = zip_bytes({"capture.json": b"{}", "frames/000.png": b"\0" * (64 << 20)})
     assert len(bomb) < 200_000  # 64 MiB of zeros deflate to almost nothing
@@ -228,7 +231,7 @@ def test_zip_bomb_is_rejected_before_extraction(stack: ServiceStack, zc) -> None
     assert_nothing_kept(c, stack, jobs, files)
 
 
-def test_zip_with_too_many_members_is_rejected(stack: ServiceStack, zc) -> None:  # noqa: ANN001
+def test_zip_with_too_many_members_is_rejected(stack: ServiceStack, zc) -> None:
     c, jobs, files = zc
     n = int(LIMITS["PMVIR_MAX_ZIP_MEMBERS"]) + 1
     r = post_zip(c, zip_bytes({"capture.json": b"{}", **{f"masks/{i:03d}.png": b"m" for i in range(n)}}))
@@ -239,7 +242,7 @@ def test_zip_with_too_many_members_is_rejected(stack: ServiceStack, zc) -> None:
 @pytest.mark.parametrize(
     "member", ["../evil.png", "/etc/evil.png", "frames/../../evil.png", "notes/readme.txt", "frames/x.exe"]
 )
-def test_zip_member_outside_the_layout_is_422(stack: ServiceStack, zc, member: str) -> None:  # noqa: ANN001
+def test_zip_member_outside_the_layout_is_422(stack: ServiceStack, zc, member: str) -> None:
     c, jobs, files = zc
     r = post_zip(c, zip_bytes({"capture.json": b"{}", member: b"x"}))
     assert r.status_code == 422, r.text
@@ -248,7 +251,7 @@ def test_zip_member_outside_the_layout_is_422(stack: ServiceStack, zc, member: s
     assert not (stack.root / "evil.png").exists() and not (stack.storage / "evil.png").exists()
 
 
-def test_zip_whose_member_lies_about_its_size_is_422(stack: ServiceStack, zc) -> None:  # noqa: ANN001
+def test_zip_whose_member_lies_about_its_size_is_422(stack: ServiceStack, zc) -> None:
     c, jobs, files = zc
     data = bytearray(
         zip_bytes({"capture.json": b"{}", "frames/000.raw": b"\7" * 5000}, compression=zipfile.ZIP_STORED)
@@ -261,7 +264,7 @@ def test_zip_whose_member_lies_about_its_size_is_422(stack: ServiceStack, zc) ->
     assert_nothing_kept(c, stack, jobs, files)
 
 
-def test_zip_too_large_for_one_request_is_413(stack: ServiceStack, zc) -> None:  # noqa: ANN001
+def test_zip_too_large_for_one_request_is_413(stack: ServiceStack, zc) -> None:
     c, jobs, files = zc
     big = bytes(range(256)) * (int(LIMITS["PMVIR_MAX_ZIP_BYTES"]) // 256 + 8192)
     r = post_zip(c, big)
@@ -269,14 +272,14 @@ def test_zip_too_large_for_one_request_is_413(stack: ServiceStack, zc) -> None: 
     assert_nothing_kept(c, stack, jobs, files)
 
 
-def test_not_a_zip_is_422(stack: ServiceStack, zc) -> None:  # noqa: ANN001
+def test_not_a_zip_is_422(stack: ServiceStack, zc) -> None:
     c, jobs, files = zc
     r = post_zip(c, b"this is not a zip file")
     assert r.status_code == 422 and r.json()["error"] == "invalid_zip"
     assert_nothing_kept(c, stack, jobs, files)
 
 
-def test_zip_without_manifest_is_422(stack: ServiceStack, zc) -> None:  # noqa: ANN001
+def test_zip_without_manifest_is_422(stack: ServiceStack, zc) -> None:
     c, jobs, files = zc
     r = post_zip(c, zip_bytes({"frames/000.png": b"x"}))
     assert r.status_code == 422 and r.json()["errors"][0]["file"] == "capture.json"

@@ -10,6 +10,7 @@ import pytest
 
 from service.store import FileInfo, JobStore
 from service.testing import ServiceStack
+
 from svc_helpers import require_redis
 
 

@@ -100,7 +100,7 @@ def test_content_range_parsing() -> None:
 def test_owner_for_key() -> None:
     s = Settings(api_keys="alpha, beta ,,gamma")
     assert s.api_keys == ("alpha", "beta", "gamma")
-    owners = dict((k.decode(), o) for k, o in s.key_owners)
+    owners = {k.decode(): o for k, o in s.key_owners}
     assert owner_for_key("beta", s.key_owners) == owners["beta"]
     assert len(set(owners.values())) == 3 and "beta" not in owners["beta"]
     for wrong in ("", "bet", "betaa", "BETA", " beta"):

@@ -95,7 +95,7 @@ def test_projection_matches_camera(mitsuba):
     parts = [uv_sphere(c, 0.08, 8, 16) for c in centers]
     offsets = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])
     vertices = np.concatenate([p[0] for p in parts])
-    faces = np.concatenate([p[1] + o for p, o in zip(parts, offsets)])
+    faces = np.concatenate([p[1] + o for p, o in zip(parts, offsets, strict=True)])
     image = render_view_stokes(vertices, faces, np.full((len(vertices), 3), 0.5), camera,
                                material="diffuse", envmap=np.ones((8, 16, 3), np.float32), spp=32)
     labels, count = ndimage.label(image.alpha > 0)
@@ -178,7 +178,7 @@ def test_aop_follows_spec_sense_on_sphere(mitsuba, material, options, offset):
 
 
 def test_same_seed_same_image_and_seed_changes_noise(mitsuba):
-    vertices, faces, normals = uv_sphere(n_lat=12, n_lon=24)
+    vertices, faces, _ = uv_sphere(n_lat=12, n_lon=24)
     camera = small_camera(16, 12, 15.0, 14.0, 8.0, 6.0)
     args = (vertices, faces, np.full((len(vertices), 3), 0.6), camera)
     kw = dict(material="pplastic", sh=SH, rgb_scale=np.ones(3), spp=4)

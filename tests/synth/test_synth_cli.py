@@ -77,7 +77,7 @@ def test_cli_bad_inputs_exit_2_with_one_line(
 
 
 def test_unknown_shape_raises_config_error(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match="unknown shape 'cube'.*sphere, blob, dented, knot"):
+    with pytest.raises(ConfigError, match=r"unknown shape 'cube'.*sphere, blob, dented, knot"):
         synthesize(tmp_path / "x", shape="cube", views=1, size=(32, 32))
 
 

@@ -1,0 +1,149 @@
+"""Guided polarization demosaicing: sharp intensity, polarization from a guided filter.
+
+Why: in a bilinear demosaic every polarizer angle is interpolated from its own
+lattice (every second pixel, and every fourth of one colour), so intensity
+texture reaches the four angles at different sub-pixel offsets:
+``s1 = I0 - I90`` and ``s2 = I45 - I135`` pick up a difference of two
+interpolations of the *intensity* (false polarization), and each sample's noise
+goes straight into them. On real surfaces what varies at pixel scale is mostly
+the intensity (albedo, shading, and in a path-traced render its Monte Carlo
+noise); the normalized Stokes vector ``(s1, s2) / s0`` (DoP and AoP) follows the
+surface normal and is smooth. The intensity-correlation idea of the
+polarization-demosaicing literature (Zhang et al. 2016, "Image interpolation for
+division of focal plane polarimeters with intensity correlation"; the guided,
+edge-aware residual interpolation of Morimatsu et al., ICIP 2020 / IEEE Access
+2021) uses that: keep the intensity sharp and estimate the polarization relative
+to it, with a guided filter (He et al. 2013) whose guide is the intensity.
+
+Per colour c:
+
+1. bilinear demosaic (:func:`pmvir.polarization.demosaic.demosaic`, method
+   ``"bilinear"``): ``I_k`` for k = 0, 45, 90, 135 degrees, and from them
+   ``g = I0 + I45 + I90 + I135`` (= 2 s0), ``s1 = I0 - I90``, ``s2 = I45 - I135``;
+2. ``g``, ``s1``, ``s2`` are averaged over 2x2 pixels (half resolution: the fast
+   guided filter of He & Sun 2015);
+3. in every (2r + 1)^2 window of the half-resolution image, ``s_i`` is fitted
+   as ``a g + b`` (least squares), with ``a`` pulled toward the window's
+   intensity-weighted polarization ``q = mean(s_i) / mean(g)`` by a ridge term
+   ``eps = (tau mean(g))^2``:
+   ``a = (cov(g, s_i) + eps q) / (var(g) + eps)``, ``b = mean(s_i) - a mean(g)``.
+   Where the intensity is flat ``a -> q`` and ``b -> 0``: ``s_i = q g``, the
+   polarization ratio of the window times the pixel's own intensity (noise and
+   false polarization averaged out, texture kept). Where a window straddles
+   an edge between two differently polarized regions (an occluding contour, a
+   highlight), the fit passes through both, as a guided filter does, instead of
+   mixing them;
+4. ``a`` and ``b`` are box-averaged over the windows that contain each pixel,
+   brought back to full resolution (bilinear, the registration of
+   ``cv2.resize``), and ``s_i' = a g + b`` at full resolution, with the
+   full-resolution ``g``;
+5. back to intensities, keeping each pair's bilinear mean: ``I0, I90 =
+   (I0 + I90) / 2 +- s1' / 2`` and ``I45, I135 = (I45 + I135) / 2 +- s2' / 2``;
+   so ``s0`` is the bilinear one, unchanged (and so is the small mismatch
+   ``(I0 + I90) - (I45 + I135)``, zero for any physical field).
+
+Exactness: on affine fields (every channel linear in x, y) the window
+statistics ``cov``, ``var`` are the same in every window and the box and
+2x2-mean/bilinear resampling steps reproduce affine fields, so ``s_i' = s_i``:
+constant and linear fields come back exactly away from the border (up to the
+ridge term's ``q``, which varies across windows only as the ratio of two
+affine fields does: a second-order effect, below 1e-5 in the tests).
+
+Reach: the bilinear step's, widened by the 2x2 mean, two (2r + 1)^2 box passes
+at half resolution and the bilinear upsampling: 12 px (mono) and 13 px (colour)
+for r = 2 (:data:`GUIDED_REACH`, checked against the measured impulse response).
+Saturated samples invalidate that neighbourhood (``saturation_footprint``).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+#: Window half-width r at half resolution ((2r + 1)^2 half-resolution pixels). On the Mitsuba
+#: frames of bench/demosaic.py r = 2 measured clearly better than r = 1 at 1224x1024 and about
+#: equal at 612x512; r = 3 blurs the polarization of small objects (README, Decoding).
+GUIDED_RADIUS = 2
+#: Ridge strength, relative to the window's mean intensity (0.1 measured best of 0.03 .. 3).
+GUIDED_TAU = 0.1
+#: Chebyshev reach, full-resolution pixels, of the whole method on a monochrome sensor (bilinear,
+#: 2x2 mean, two box passes of radius r at half resolution, bilinear upsampling); a colour sensor
+#: adds 1. Checked against the measured impulse response (tests/polarization/test_demosaic.py).
+GUIDED_REACH = 4 * GUIDED_RADIUS + 4
+
+#: mean(g) at or below this (normalized units) gives zero polarization.
+_EPS = 1e-6
+
+
+def guided_polarization(planes: np.ndarray, *, radius: int = GUIDED_RADIUS, tau: float = GUIDED_TAU) -> None:
+    """Replace the polarization of bilinear-demosaiced planes by the guided estimate, in place.
+
+    Args:
+        planes: planar intensities (4, C, H, W) float32, angle axis 0, 45, 90,
+            135 degrees, H and W even (the storage behind :func:`demosaic`'s
+            result); overwritten.
+        radius: window half-width r at half resolution, >= 1.
+        tau: ridge strength (> 0) pulling each window's fit toward its
+            intensity-weighted polarization ratio.
+    """
+    if planes.ndim != 4 or planes.shape[0] != 4 or planes.dtype != np.float32:
+        raise ValueError(f"expected (4, C, H, W) float32 planes, got {planes.shape} {planes.dtype}")
+    n_col, h, w = planes.shape[1:]
+    if h % 2 or w % 2:
+        raise ValueError(f"expected an even-sized image, got {w}x{h}")
+    if radius < 1 or not tau > 0:
+        raise ValueError(f"need radius >= 1 and tau > 0, got {radius}, {tau}")
+    size = (2 * radius + 1, 2 * radius + 1)
+    half = (w // 2, h // 2)
+
+    def box(x: np.ndarray) -> np.ndarray:
+        return cv2.boxFilter(x, -1, size, borderType=cv2.BORDER_REPLICATE)
+
+    def up(x: np.ndarray) -> np.ndarray:
+        return cv2.resize(x, (w, h), interpolation=cv2.INTER_LINEAR)
+
+    # colour sums of each angle at half resolution (2x2 means), then g, s1, s2 there
+    quads = [_half_colour_sum(planes[k], half) for k in range(4)]
+    gh = cv2.add(cv2.add(quads[0], quads[2]), cv2.add(quads[1], quads[3]))  # C * 2 s0
+    mean_g = box(gh)
+    var_g = cv2.subtract(box(cv2.multiply(gh, gh)), cv2.multiply(mean_g, mean_g))
+    eps = cv2.multiply(mean_g, mean_g, scale=tau * tau)
+    floor = 2.0 * n_col * _EPS
+    _, lit = cv2.threshold(mean_g, floor, 1.0, cv2.THRESH_BINARY)  # 0 where dark
+    inv_mean_g = cv2.divide(lit, cv2.max(mean_g, floor))
+    np.maximum(var_g, 0.0, out=var_g)  # rounding can make it slightly negative
+    den = cv2.add(var_g, eps)
+    inv_den = np.reciprocal(np.maximum(den, np.float32(1e-30), out=den))
+    coeffs = []
+    for plus, minus in ((0, 2), (1, 3)):
+        sh = cv2.subtract(quads[plus], quads[minus])
+        mean_s = box(sh)
+        cov = cv2.subtract(box(cv2.multiply(gh, sh)), cv2.multiply(mean_g, mean_s))
+        q = cv2.multiply(mean_s, inv_mean_g)
+        a = cv2.multiply(cv2.multiply(cv2.add(cov, cv2.multiply(eps, q)), inv_den), lit)
+        b = cv2.subtract(cv2.multiply(mean_s, lit), cv2.multiply(a, mean_g))
+        # per colour c: s_c' = A g_c + B / C, so that the colour sum is A g + B
+        coeffs.append((up(box(a)), up(cv2.multiply(box(b), 1.0 / n_col))))
+    pair_sum = (np.empty((h, w), np.float32), np.empty((h, w), np.float32))
+    g = np.empty((h, w), np.float32)
+    s_new = np.empty((h, w), np.float32)
+    for c in range(n_col):
+        i0, i45, i90, i135 = (planes[k, c] for k in range(4))
+        cv2.add(i0, i90, dst=pair_sum[0])  # the pair sums are kept
+        cv2.add(i45, i135, dst=pair_sum[1])
+        cv2.add(pair_sum[0], pair_sum[1], dst=g)  # 2 s0 of colour c
+        for (plus, minus), total, (a_full, b_full) in zip(
+            ((i0, i90), (i45, i135)), pair_sum, coeffs, strict=True
+        ):
+            cv2.multiply(a_full, g, dst=s_new)
+            cv2.add(s_new, b_full, dst=s_new)
+            cv2.addWeighted(total, 0.5, s_new, 0.5, 0.0, dst=plus)
+            cv2.subtract(total, plus, dst=minus)
+
+
+def _half_colour_sum(angle_planes: np.ndarray, half: tuple[int, int]) -> np.ndarray:
+    """2x2 means of one angle's (C, H, W) planes, summed over colours: (H/2, W/2) float32."""
+    total = cv2.resize(angle_planes[0], half, interpolation=cv2.INTER_AREA)
+    for plane in angle_planes[1:]:
+        cv2.add(total, cv2.resize(plane, half, interpolation=cv2.INTER_AREA), dst=total)
+    return total
