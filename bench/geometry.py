@@ -1,8 +1,10 @@
-"""Benchmark of the geometric stage (pmvir.geometry.stage) on the three shared models.
+"""Benchmark of the geometric stage (pmvir.geometry.stage) on the three shared models and the built-in shapes.
 
 For each model of ../shared/data/models (bunny, dragon, armadillo; y up, normalized to a unit
-bounding-box diagonal) a synthetic capture is made with pmvir synth (plastic, 36 views of 612 x 512,
-seed 0; cached under $TMPDIR/pmvir-bench/geometry), decoded, and the stage run twice:
+bounding-box diagonal), or built-in shape (``--models blob knot gear mug``: genus 0 and genus 1
+shapes with self-occlusion, a bore and a thin handle), a synthetic capture is made with pmvir synth
+(plastic, 36 views of 612 x 512, seed 0; cached under $TMPDIR/pmvir-bench/geometry), decoded, and
+the stage run twice:
 
 * known poses (the capture's intrinsics and cam_from_world): per-step times, counts, and the
   accuracy / completeness of initial.ply (the subdivided initial surface) against gt/mesh.ply
@@ -37,6 +39,7 @@ from pmvir.geometry.align import CameraAlignment, umeyama
 from pmvir.geometry.stage import GeometryResult, geometry_report, run_geometry
 from pmvir.io.ply import Mesh, read_mesh
 from pmvir.synth.generate import synthesize
+from pmvir.synth.shapes import SHAPES
 
 ROOT = Path(__file__).resolve().parent
 SHARED = Path(os.environ.get("PMVIR_SHARED", ROOT.parent / ".." / "shared"))
@@ -45,19 +48,14 @@ STEPS = ("poses", "depth_maps", "fusion", "surface", "visibility", "subdivision"
 
 
 def make_capture(name: str, work: Path) -> Path:
+    """The benchmark capture of a Stanford model or a built-in shape (cached under ``work``)."""
     out = work / name
     if (out / "capture.json").is_file():
         return out
-    synthesize(
-        out,
-        mesh=SHARED / "data" / "models" / MODELS[name],
-        views=36,
-        size=(612, 512),
-        material="plastic",
-        mesh_up="y",
-        seed=0,
-        overwrite=True,
+    source = (
+        {"mesh": SHARED / "data" / "models" / MODELS[name], "mesh_up": "y"} if name in MODELS else {"shape": name}
     )
+    synthesize(out, views=36, size=(612, 512), material="plastic", seed=0, overwrite=True, **source)
     return out
 
 
@@ -154,11 +152,11 @@ def run(
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--models", nargs="+", default=list(MODELS), choices=list(MODELS))
+    parser.add_argument("--models", nargs="+", default=list(MODELS), choices=list(MODELS) + list(SHAPES))
     parser.add_argument("--no-sfm", action="store_true", help="only the known-pose run")
     parser.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "pmvir-bench" / "geometry")
     args = parser.parse_args()
-    if not (SHARED / "data" / "models").is_dir():
+    if set(args.models) & set(MODELS) and not (SHARED / "data" / "models").is_dir():
         raise SystemExit(f"no models under {SHARED / 'data' / 'models'} (set PMVIR_SHARED)")
     args.work.mkdir(parents=True, exist_ok=True)
     options = GeometryOptions()
@@ -236,7 +234,7 @@ def print_model(name: str, entry: dict, *, flush: bool = False) -> None:
 
 
 def print_summary(results: dict) -> None:
-    head = f"{'model':<10} {'mode':<6} {'reg':>4} {'centre':>7} {'acc':>7} {'comp':>7} {'verts':>8} "
+    head = f"{'model':<10} {'mode':<6} {'reg':>4} {'centre':>7} {'acc':>7} {'comp':>7} {'verts':>8} {'cc':>3} "
     head += " ".join(f"{s[:8]:>8}" for s in STEPS)
     print()
     print(head)
@@ -253,10 +251,13 @@ def print_summary(results: dict) -> None:
                 f"{name:<10} {mode:<6} {r['registered']:>4} {centre:>7} {r['accuracy']:>7.4f} "
                 f"{r['completeness']:>7.4f} {r['vertices']:>8,} "
             )
+            kept = [c for c in r.get("surface", {}).get("components", []) if c.get("kept")]
+            line += f"{len(kept):>3} "
             line += " ".join(f"{r['timings'].get(s, 0.0):>8.1f}" for s in STEPS)
             print(line)
     print(
-        "accuracy / completeness / centre error in GT bounding-box diagonals; times in seconds "
+        "accuracy / completeness / centre error in GT bounding-box diagonals; cc: surface components kept; "
+        "times in seconds "
         f"(decode not included); {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}"
     )
 

@@ -111,7 +111,7 @@ class Case:
         self.dir = args.work / f"{model}-{material}-v{args.views}-{w}x{h}-s{SEED}"
         self.capture = self.dir / "capture"
         self.mesh_file = models_dir / MODELS[model]
-        self.geometry_options = GeometryOptions(subdivision_max_area_px=args.subdivision_area)
+        self.geometry_options = GeometryOptions(subdivision={"max_area_px": args.subdivision_area})
         self.geometry_file = self.dir / f"geometry-{_key(self.geometry_options.model_dump(mode='json'))}.npz"
         self._views = None
         self._geometry: dict | None = None
@@ -459,8 +459,8 @@ def main() -> None:
     parser.add_argument(
         "--subdivision-area",
         type=float,
-        default=GeometryOptions().subdivision_max_area_px,
-        help="geometry.subdivision_max_area_px (px^2)",
+        default=GeometryOptions().subdivision.max_area_px,
+        help="geometry.subdivision.max_area_px (px^2)",
     )
     parser.add_argument(
         "--samples", type=int, default=1_000_000, help="ground-truth samples for completeness"

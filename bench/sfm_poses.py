@@ -4,8 +4,10 @@ Usage: .venv/bin/python bench/sfm_poses.py [--models bunny dragon armadillo] [--
        [--size 612x512] [--focal-factor 1.2] [--keep DIR]
 
 For each model of ../shared/data/models (normalized, plastic, pmvir synth's built-in renderer)
-it synthesizes a capture, decodes I_int and runs ``estimate_poses`` twice: with the capture's
-cameras (known poses) and without them (SfM, intrinsics estimated). It prints per run the
+it synthesizes a capture, decodes I_int (or I_min, ``--grey min``) and runs ``estimate_poses``
+three times: with the capture's cameras (known poses), without them but with the intrinsics
+(``sfm-K``), and with neither (``sfm``, intrinsics estimated); ``--mapper global`` uses COLMAP's
+global mapper, ``--guided`` turns guided matching on. It prints per run the
 registered views, sparse points (and their median / 90th-percentile distance to the true
 surface for known poses), the mean reprojection error, the camera-centre errors after a Umeyama
 similarity (largest, in % of the scene size = bounding-box diagonal of the true camera centres,
@@ -30,7 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pmvir.capture import open_capture
-from pmvir.config import GeometryOptions
+from pmvir.config import SfmOptions
 from pmvir.decode import decode_frame
 from pmvir.errors import ReconstructionError
 from pmvir.evaluate import SurfaceQuery
@@ -49,14 +51,20 @@ def _shared() -> Path:
     return Path(env) if env else Path(__file__).resolve().parents[1] / ".." / "shared"
 
 
-def _run(capture: Path, known: bool, workdir: Path) -> dict:
+#: The rows per model: known poses; SfM with the intrinsics given; SfM estimating them.
+MODES = ("known", "sfm-K", "sfm")
+
+
+def _run(capture: Path, mode: str, workdir: Path, options: SfmOptions) -> dict:
+    known = mode == "known"
     with open_capture(capture) as cap:
         t0 = time.perf_counter()
         images, masks = [], []
         for i in range(len(cap)):
             raw = cap.read_raw(i)
             mask = cap.read_mask(i)
-            images.append(decode_frame(raw.mosaic, cap.layout, saturated=raw.saturated, mask=mask).i_int)
+            decoded = decode_frame(raw.mosaic, cap.layout, saturated=raw.saturated, mask=mask)
+            images.append(decoded.i_int if options.grey == "int" else decoded.i_min)
             masks.append(mask)
         decode_s = time.perf_counter() - t0
         true = [f.camera for f in cap.frames]
@@ -64,10 +72,11 @@ def _run(capture: Path, known: bool, workdir: Path) -> dict:
     t0 = time.perf_counter()
     cpu0 = time.process_time()
     model = estimate_poses(
-        images, names, cameras=true if known else None, masks=masks, options=GeometryOptions(), workdir=workdir
+        images, names, cameras=true if known else None, masks=masks, options=options, workdir=workdir,
+        intrinsics=[c.K for c in true] if mode == "sfm-K" else None,
     )
     row: dict = {
-        "mode": "known" if known else "sfm",
+        "mode": mode,
         "registered": model.num_registered,
         "views": len(names),
         "points": len(model.points),
@@ -105,7 +114,13 @@ def main() -> int:
     ap.add_argument("--size", default="612x512")
     ap.add_argument("--focal-factor", type=float, default=1.2)
     ap.add_argument("--keep", type=Path, help="keep the captures and work folders here")
+    ap.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
+    ap.add_argument("--mapper", choices=("incremental", "global"), default=SfmOptions().mapper)
+    ap.add_argument("--grey", choices=("int", "min"), default=SfmOptions().grey)
+    ap.add_argument("--guided", action="store_true", help="guided matching")
+    ap.add_argument("--tag", default="", help="results go to bench/results/sfm_poses[-TAG].json")
     args = ap.parse_args()
+    options = SfmOptions(mapper=args.mapper, grey=args.grey, guided_matching=args.guided)
     models_dir = _shared() / "data" / "models"
     if not models_dir.is_dir():
         print(f"no models at {models_dir}", file=sys.stderr)
@@ -122,12 +137,13 @@ def main() -> int:
                     focal_factor=args.focal_factor, mesh_up=UP[name], overwrite=True,
                 )
             synth_s = time.perf_counter() - t0
-            for known in (True, False):
+            for mode in args.modes:
+                known = mode == "known"
                 try:
-                    row = {"model": name, "synth_s": synth_s, **_run(capture, known, root / f"{name}-work")}
+                    row = {"model": name, "synth_s": synth_s, **_run(capture, mode, root / f"{name}-work", options)}
                 except ReconstructionError as exc:
-                    results.append({"model": name, "mode": "known" if known else "sfm", "error": str(exc)})
-                    print(f"{name:10s} {'known' if known else 'sfm':5s} ReconstructionError: {exc}", flush=True)
+                    results.append({"model": name, "mode": mode, "error": str(exc)})
+                    print(f"{name:10s} {mode:5s} ReconstructionError: {exc}", flush=True)
                     continue
                 results.append(row)
                 t = row["timings"]
@@ -144,11 +160,12 @@ def main() -> int:
                     f"(cpu {row['cpu_s']:.1f}s; {steps})",
                     flush=True,
                 )
-    out = Path(__file__).resolve().parent / "results" / "sfm_poses.json"
+    out = Path(__file__).resolve().parent / "results" / f"sfm_poses{'-' + args.tag if args.tag else ''}.json"
     out.parent.mkdir(exist_ok=True)
     out.write_text(json.dumps({
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load_avg": os.getloadavg()},
-        "views": args.views, "size": args.size, "focal_factor": args.focal_factor, "results": results,
+        "views": args.views, "size": args.size, "focal_factor": args.focal_factor,
+        "options": options.model_dump(mode="json"), "results": results,
     }, indent=1))
     print(f"wrote {out}")
     return 0

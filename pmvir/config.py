@@ -8,6 +8,7 @@ its range and its meaning. Unknown keys are errors (``extra="forbid"``).
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -53,10 +54,9 @@ class DecodeOptions(_Options):
     )
 
 
-class GeometryOptions(_Options):
-    """Initial geometry (pipeline stage 2, paper section 4.2): visibility and subdivision."""
+class SfmOptions(_Options):
+    """Camera poses and sparse points (:mod:`pmvir.geometry.sfm`): known-pose triangulation or SfM."""
 
-    # -- poses: known-pose triangulation or SfM (pmvir.geometry.sfm)
     min_registered_views: int = Field(
         default=3,
         ge=2,
@@ -73,9 +73,10 @@ class GeometryOptions(_Options):
     min_sparse_points: int = Field(
         default=50,
         ge=1,
-        description="Poses fail when fewer 3D points than this are triangulated from 3 or more views (a "
-        "textureless object, or frames that do not overlap: chance matches seldom agree in 3 views); "
-        "dense stereo takes its view pairs and depth ranges from them.",
+        description="SfM fails when fewer 3D points than this are triangulated from 3 or more views (a "
+        "textureless object, or frames that do not overlap: chance matches seldom agree in 3 views). Known "
+        "poses never need sparse points: the cameras' visual hull bounds the depth search and the points, "
+        "where there are some, only tighten it.",
     )
     sift_max_features: int = Field(default=4096, ge=64, description="Most SIFT features extracted per view.")
     sift_peak_threshold: float = Field(
@@ -108,153 +109,149 @@ class GeometryOptions(_Options):
     sequential_matching_overlap: int = Field(
         default=12, ge=1, description="Successors in capture order each view is matched with (many views)."
     )
-    sfm_init_min_inliers: int = Field(
+    init_min_inliers: int = Field(
         default=50,
         ge=15,
         description="Verified matches the initial view pair of incremental SfM needs (COLMAP: 100).",
     )
-    sfm_register_min_inliers: int = Field(
+    register_min_inliers: int = Field(
         default=15,
         ge=6,
         description="2D-3D inliers a view needs to be registered by incremental SfM (COLMAP: 30).",
     )
-    sfm_max_reprojection_error: float = Field(
+    max_reprojection_error: float = Field(
         default=2.0,
         ge=0.0,
         description="After incremental SfM, observations reprojecting farther than this (pixels) are "
         "dropped and a last bundle adjustment with a robust (Cauchy, 1 px) loss refines poses, focal "
         "lengths and points (0: skip; COLMAP keeps observations up to 4 px).",
     )
-    sfm_shared_intrinsics: bool = Field(
+    shared_intrinsics: bool = Field(
         default=True,
         description="Without given intrinsics, views of one image size share one estimated camera "
         "(one focal length: far better constrained than one per view).",
     )
-    sfm_seed: int = Field(default=0, ge=0, description="Random seed of RANSAC and view selection in SfM.")
+    seed: int = Field(default=0, ge=0, description="Random seed of RANSAC and view selection in SfM.")
+    mapper: Literal["incremental", "global"] = Field(
+        default="incremental",
+        description="SfM mapper: COLMAP's incremental mapping, or its global mapper (GLOMAP: rotation "
+        "averaging and global positioning), both followed by the robust bundle adjustment.",
+    )
+    guided_matching: bool = Field(
+        default=False,
+        description="SfM matching: after RANSAC, match again along the verified epipolar geometry (COLMAP "
+        "guided matching). Off: on the 36-view 432x360 test blob it moved the estimated focal length from "
+        "within 1% to 1.1% off.",
+    )
+    grey: Literal["int", "min"] = Field(
+        default="int",
+        description="The image SIFT sees: 'int' = I_int, 'min' = I_min = (1 - DoP) I_int, the unpolarized "
+        "part, in which specular highlights (strongly polarized on dielectrics) are dimmed.",
+    )
 
-    visibility_min_cos: float = Field(
-        default=0.05,
-        ge=-1.0,
-        lt=1.0,
-        description="A vertex is back-facing (not visible) in a view when the cosine between its "
-        "area-weighted normal and the direction to the camera centre is at most this (0.05: about 87 "
-        "degrees; grazing vertices land on mixed silhouette pixels).",
-    )
-    visibility_rel_tol: float = Field(
-        default=1e-4,
-        gt=0.0,
-        lt=0.5,
-        description="Relative tolerance of the ray-cast occlusion test: a triangle occludes a vertex "
-        "only if it crosses the camera-to-vertex segment before (1 - tol) of its length.",
-    )
-    subdivision_max_area_px: float = Field(
-        default=2.0,
-        gt=0.0,
-        description="sqrt(3) subdivision is repeated until every triangle's projected area, in each "
-        "view that sees it, is below this many pixels^2. A step divides areas by 3, so the largest ends "
-        "in [2/3, 2) px^2; with about two triangles per vertex that is at most about 4 px^2 (a vertex "
-        "every 2 pixels) in the view that sees the surface largest: near the image resolution the "
-        "refinement samples, at a quarter of the vertices (and cost) of a 0.5 px^2 threshold.",
-    )
-    subdivision_max_rounds: int = Field(
-        default=6, ge=0, le=12, description="Most sqrt(3) steps (each triples the face count)."
-    )
-    subdivision_max_vertices: int = Field(
-        default=2_000_000,
-        ge=3,
-        description="Subdivision stops before a step that would make the mesh exceed this many vertices.",
-    )
-    subdivision_min_visible_corners: Literal[1, 2, 3] = Field(
-        default=3,
-        description="A face counts as visible in a view when at least this many of its corners are; "
-        "a vertex added by subdivision is visible in the views in which the input face it lies on is "
-        "(3: all corners, conservative: no new vertex gets a view in which part of its face may be hidden).",
-    )
-    # -- dense multi-view stereo (pmvir.geometry.mvs*)
-    mvs_backend: Literal["auto", "cpu", "colmap-cuda"] = Field(
+
+class MvsOptions(_Options):
+    """Dense multi-view stereo (:mod:`pmvir.geometry.mvs_dense`): depth maps, consistency, fusion."""
+
+    backend: Literal["auto", "cpu", "colmap-cuda"] = Field(
         default="auto",
         description="Dense stereo: 'cpu' (pmvir's plane sweep), 'colmap-cuda' (COLMAP PatchMatch and "
         "stereo fusion through pycolmap, needs pycolmap built with CUDA), 'auto' (colmap-cuda when "
         "pycolmap.has_cuda, else cpu).",
     )
-    mvs_scale: float = Field(
+    scale: float = Field(
         default=0.5,
         gt=0.0,
         le=1.0,
         description="CPU stereo works on images resampled by this factor (0.5: half width and height, "
-        "a quarter of the pixels; chosen for the time budget on two cores).",
+        "a quarter of the pixels; chosen for the time budget on two cores), but never on a grid whose "
+        "longer side is below min_grid_px.",
     )
-    mvs_colour: bool = Field(
+    min_grid_px: int = Field(
+        default=160,
+        ge=16,
+        description="CPU stereo grid: the scale is raised (up to 1) so that the longer image side keeps at "
+        "least this many pixels (160: measured on 12-view 320x256 captures, full resolution gave 4x the pixels but a "
+        "third of them consistent across views).",
+    )
+    colour: bool = Field(
         default=True,
         description="CPU stereo matches the three colour channels (ZNCC with covariances and variances "
         "summed over colours); False: their mean (faster, loses hue-only texture).",
     )
-    mvs_neighbours: int = Field(
+    neighbours: int = Field(
         default=5, ge=1, le=20, description="Source views matched against each reference view."
     )
-    mvs_top_k: int = Field(
+    top_k: int = Field(
         default=2,
         ge=1,
         le=20,
         description="Per pixel, the mean of this many best neighbour costs is the aggregated cost "
         "(robust to occlusion and highlights in the other neighbours).",
     )
-    mvs_planes: int = Field(
+    planes: int = Field(
         default=96, ge=8, le=1024, description="Fronto-parallel depth planes, evenly spaced in inverse depth."
     )
-    mvs_window: int = Field(
+    window: int = Field(
         default=7, ge=3, le=31, description="ZNCC window side in pixels of the stereo grid (odd)."
     )
-    mvs_min_score: float = Field(
+    min_score: float = Field(
         default=0.3,
         ge=-1.0,
         lt=1.0,
         description="Smallest aggregated ZNCC for a depth to be kept before the consistency filter.",
     )
-    mvs_min_angle_deg: float = Field(
+    min_angle_deg: float = Field(
         default=5.0, ge=0.0, lt=90.0, description="Smallest triangulation angle of a neighbour view, degrees."
     )
-    mvs_max_angle_deg: float = Field(
+    max_angle_deg: float = Field(
         default=60.0,
         gt=0.0,
         le=180.0,
         description="Largest triangulation angle of a neighbour view, degrees.",
     )
-    mvs_depth_margin: float = Field(
+    depth_margin: float = Field(
         default=0.1,
         ge=0.0,
         le=2.0,
         description="A view's depth range (1st to 99th percentile of its sparse points' depths) is "
         "widened on both sides by this fraction of its far depth.",
     )
-    mvs_consistency_px: float = Field(
+    consistency_px: float = Field(
         default=1.0,
         gt=0.0,
         description="Geometric consistency: largest forward-backward reprojection error, pixels of the "
         "stereo grid.",
     )
-    mvs_consistency_depth: float = Field(
+    consistency_depth: float = Field(
         default=0.01, gt=0.0, lt=1.0, description="Geometric consistency: largest relative depth difference."
     )
-    mvs_min_consistent: int = Field(
+    min_consistent: int = Field(
         default=2,
         ge=1,
         le=20,
         description="A depth is fused when at least this many other views agree with it.",
     )
-    mvs_voxel: float = Field(
+    sparse_rig_views: int = Field(
+        default=12,
+        ge=0,
+        description="Captures with at most this many registered views fuse a depth that one other view "
+        "confirms (min_consistent is lowered to 1): their views are 45-90 degrees apart and seldom three "
+        "agree (measured on 12-view 320x256 blobs: completeness 0.048 -> 0.017, accuracy 0.0022 -> 0.0029).",
+    )
+    voxel: float = Field(
         default=0.002,
         ge=0.0,
         description="Fused points are thinned to one per cube of this side, a fraction of the sparse "
         "points' bounding-box diagonal (0: no thinning).",
     )
-    mvs_min_points: int = Field(
+    min_points: int = Field(
         default=1000,
         ge=100,
         description="Fewer fused points than this is a ReconstructionError (textureless or non-overlapping "
         "views), not an empty mesh.",
     )
-    mvs_min_consistent_fraction: float = Field(
+    min_consistent_fraction: float = Field(
         default=0.05,
         ge=0.0,
         lt=1.0,
@@ -263,23 +260,37 @@ class GeometryOptions(_Options):
         "views are textureless or do not overlap: a ReconstructionError (measured: textured synthetic "
         "captures 0.15-0.75, a textureless sphere and frames with unrelated textures at most 0.02).",
     )
-    # -- initial surface (pmvir.geometry.surface)
-    surface_poisson_depth: int | None = Field(
+
+    @model_validator(mode="after")
+    def _check_window_and_angles(self) -> MvsOptions:
+        if self.window % 2 == 0:
+            raise ValueError(f"window must be odd, got {self.window}")
+        if self.min_angle_deg >= self.max_angle_deg:
+            raise ValueError(
+                f"min_angle_deg ({self.min_angle_deg}) must be below max_angle_deg ({self.max_angle_deg})"
+            )
+        return self
+
+
+class SurfaceOptions(_Options):
+    """The initial surface (:mod:`pmvir.geometry.surface`): screened Poisson, trimming, cleaning."""
+
+    poisson_depth: int | None = Field(
         default=None,
         ge=5,
         le=12,
         description="Screened Poisson octree depth (grid at most 2^depth per side); None: automatic, the "
-        "depth whose finest cell is closest to surface_poisson_voxel_px full-resolution pixels at the median "
+        "depth whose finest cell is closest to poisson_voxel_px full-resolution pixels at the median "
         "viewing distance, clamped to 6..10.",
     )
-    surface_poisson_voxel_px: float = Field(
+    poisson_voxel_px: float = Field(
         default=3.0,
         gt=0.0,
         description="Automatic Poisson depth: target finest-cell size in full-resolution pixels (3: measured "
         "more accurate than 1.5 on the benchmark models, the coarser grid averaging the stereo noise, and "
         "3x faster).",
     )
-    surface_trim_density_quantile: float = Field(
+    trim_density_quantile: float = Field(
         default=0.0,
         ge=0.0,
         lt=1.0,
@@ -287,39 +298,183 @@ class GeometryOptions(_Options):
         "(0: off; the distance and silhouette trimming remove unobserved parts without cutting holes "
         "into well observed ones).",
     )
-    surface_trim_distance: float = Field(
+    trim_distance: float = Field(
         default=0.01,
         gt=0.0,
         description="Poisson vertices farther than this fraction of the dense points' bounding-box "
         "diagonal from every dense point are removed (unobserved guesses).",
     )
-    surface_target_faces: int = Field(
+    min_component_points: int = Field(
+        default=200,
+        ge=1,
+        description="A connected component of the surface besides the largest is kept when at least this "
+        "many fused points lie nearest to it (a thin handle or a second lobe cut off by trimming is real "
+        "surface; a few stray points are not). report.json lists every component, kept or not, and why.",
+    )
+    target_faces: int = Field(
         default=150_000, ge=100, description="The trimmed surface is simplified to at most this many faces."
     )
-    surface_min_angle_deg: float = Field(
+    min_angle_deg: float = Field(
         default=2.0,
         ge=0.0,
         lt=30.0,
         description="Triangles with a smaller interior angle (degrees) are slivers and are collapsed.",
     )
-    surface_split_factor: float = Field(
+    split_factor: float = Field(
         default=1.75,
         ge=1.0,
         description="Before visibility and subdivision, faces projecting larger than this times "
-        "subdivision_max_area_px (in a view they face) are bisected, so that the uniform sqrt(3) "
+        "subdivision.max_area_px (in a view they face) are bisected, so that the uniform sqrt(3) "
         "subdivision needs one step fewer (1.75: one step then brings the largest below the threshold).",
     )
 
-    @model_validator(mode="after")
-    def _check_mvs(self) -> GeometryOptions:
-        if self.mvs_window % 2 == 0:
-            raise ValueError(f"mvs_window must be odd, got {self.mvs_window}")
-        if self.mvs_min_angle_deg >= self.mvs_max_angle_deg:
-            raise ValueError(
-                f"mvs_min_angle_deg ({self.mvs_min_angle_deg}) must be below mvs_max_angle_deg "
-                f"({self.mvs_max_angle_deg})"
-            )
-        return self
+
+class VisibilityOptions(_Options):
+    """Per-vertex visibility (:mod:`pmvir.geometry.visibility`)."""
+
+    min_cos: float = Field(
+        default=0.05,
+        ge=-1.0,
+        lt=1.0,
+        description="A vertex is back-facing (not visible) in a view when the cosine between its "
+        "area-weighted normal and the direction to the camera centre is at most this (0.05: about 87 "
+        "degrees; grazing vertices land on mixed silhouette pixels).",
+    )
+    rel_tol: float = Field(
+        default=1e-4,
+        gt=0.0,
+        lt=0.5,
+        description="Relative tolerance of the ray-cast occlusion test: a triangle occludes a vertex "
+        "only if it crosses the camera-to-vertex segment before (1 - tol) of its length.",
+    )
+
+
+class SubdivisionOptions(_Options):
+    """sqrt(3) subdivision of the initial surface (:mod:`pmvir.geometry.subdivision`)."""
+
+    max_area_px: float = Field(
+        default=2.0,
+        gt=0.0,
+        description="sqrt(3) subdivision is repeated until every triangle's projected area, in each "
+        "view that sees it, is below this many pixels^2. A step divides areas by 3, so the largest ends "
+        "in [2/3, 2) px^2; with about two triangles per vertex that is at most about 4 px^2 (a vertex "
+        "every 2 pixels) in the view that sees the surface largest: near the image resolution the "
+        "refinement samples, at a quarter of the vertices (and cost) of a 0.5 px^2 threshold.",
+    )
+    max_rounds: int = Field(
+        default=6, ge=0, le=12, description="Most sqrt(3) steps (each triples the face count)."
+    )
+    max_vertices: int = Field(
+        default=2_000_000,
+        ge=3,
+        description="Subdivision stops before a step that would make the mesh exceed this many vertices.",
+    )
+    min_visible_corners: Literal[1, 2, 3] = Field(
+        default=3,
+        description="A face counts as visible in a view when at least this many of its corners are; "
+        "a vertex added by subdivision is visible in the views in which the input face it lies on is "
+        "(3: all corners, conservative: no new vertex gets a view in which part of its face may be hidden).",
+    )
+
+
+#: The flat keys of GeometryOptions before it was grouped (deprecated; accepted for one release):
+#: old key -> (group, key in the group).
+DEPRECATED_GEOMETRY_KEYS: dict[str, tuple[str, str]] = {
+    "min_registered_views": ("sfm", "min_registered_views"),
+    "min_registered_fraction": ("sfm", "min_registered_fraction"),
+    "min_sparse_points": ("sfm", "min_sparse_points"),
+    "sift_max_features": ("sfm", "sift_max_features"),
+    "sift_peak_threshold": ("sfm", "sift_peak_threshold"),
+    "sift_affine_shape": ("sfm", "sift_affine_shape"),
+    "sift_upsample": ("sfm", "sift_upsample"),
+    "sift_equalize": ("sfm", "sift_equalize"),
+    "exhaustive_matching_max_views": ("sfm", "exhaustive_matching_max_views"),
+    "sequential_matching_overlap": ("sfm", "sequential_matching_overlap"),
+    "sfm_init_min_inliers": ("sfm", "init_min_inliers"),
+    "sfm_register_min_inliers": ("sfm", "register_min_inliers"),
+    "sfm_max_reprojection_error": ("sfm", "max_reprojection_error"),
+    "sfm_shared_intrinsics": ("sfm", "shared_intrinsics"),
+    "sfm_seed": ("sfm", "seed"),
+    "visibility_min_cos": ("visibility", "min_cos"),
+    "visibility_rel_tol": ("visibility", "rel_tol"),
+    "subdivision_max_area_px": ("subdivision", "max_area_px"),
+    "subdivision_max_rounds": ("subdivision", "max_rounds"),
+    "subdivision_max_vertices": ("subdivision", "max_vertices"),
+    "subdivision_min_visible_corners": ("subdivision", "min_visible_corners"),
+    "mvs_backend": ("mvs", "backend"),
+    "mvs_scale": ("mvs", "scale"),
+    "mvs_colour": ("mvs", "colour"),
+    "mvs_neighbours": ("mvs", "neighbours"),
+    "mvs_top_k": ("mvs", "top_k"),
+    "mvs_planes": ("mvs", "planes"),
+    "mvs_window": ("mvs", "window"),
+    "mvs_min_score": ("mvs", "min_score"),
+    "mvs_min_angle_deg": ("mvs", "min_angle_deg"),
+    "mvs_max_angle_deg": ("mvs", "max_angle_deg"),
+    "mvs_depth_margin": ("mvs", "depth_margin"),
+    "mvs_consistency_px": ("mvs", "consistency_px"),
+    "mvs_consistency_depth": ("mvs", "consistency_depth"),
+    "mvs_min_consistent": ("mvs", "min_consistent"),
+    "mvs_voxel": ("mvs", "voxel"),
+    "mvs_min_points": ("mvs", "min_points"),
+    "mvs_min_consistent_fraction": ("mvs", "min_consistent_fraction"),
+    "surface_poisson_depth": ("surface", "poisson_depth"),
+    "surface_poisson_voxel_px": ("surface", "poisson_voxel_px"),
+    "surface_trim_density_quantile": ("surface", "trim_density_quantile"),
+    "surface_trim_distance": ("surface", "trim_distance"),
+    "surface_target_faces": ("surface", "target_faces"),
+    "surface_min_angle_deg": ("surface", "min_angle_deg"),
+    "surface_split_factor": ("surface", "split_factor"),
+}
+
+
+class GeometryOptions(_Options):
+    """Initial geometry (pipeline stage 2, paper section 4.2), one group per step, each passed whole to it.
+
+    The flat keys of earlier releases (``mvs_planes``, ``surface_poisson_depth``, ...; see
+    :data:`DEPRECATED_GEOMETRY_KEYS`) are still accepted, with a DeprecationWarning, and mapped to
+    their group (``mvs.planes``, ``surface.poisson_depth``).
+    """
+
+    sfm: SfmOptions = Field(default_factory=SfmOptions, description="Poses and sparse points.")
+    mvs: MvsOptions = Field(default_factory=MvsOptions, description="Dense multi-view stereo.")
+    surface: SurfaceOptions = Field(default_factory=SurfaceOptions, description="The initial surface.")
+    visibility: VisibilityOptions = Field(
+        default_factory=VisibilityOptions, description="Per-vertex visibility."
+    )
+    subdivision: SubdivisionOptions = Field(
+        default_factory=SubdivisionOptions, description="sqrt(3) subdivision of the initial surface."
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _map_deprecated_keys(cls, data: Any) -> Any:
+        """Move the old flat keys into their groups, with a DeprecationWarning naming the new key."""
+        if not isinstance(data, dict):
+            return data
+        old = [k for k in data if k in DEPRECATED_GEOMETRY_KEYS]
+        if not old:
+            return data
+        warnings.warn(
+            "flat geometry options are deprecated and will be removed in the next release: "
+            + ", ".join(f"{k} -> {'.'.join(DEPRECATED_GEOMETRY_KEYS[k])}" for k in old),
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        out = {k: v for k, v in data.items() if k not in DEPRECATED_GEOMETRY_KEYS}
+        for key in old:
+            group, name = DEPRECATED_GEOMETRY_KEYS[key]
+            section = out.get(group, {})
+            if not isinstance(section, dict):  # a model instance: the flat key updates a copy of it
+                section = (
+                    section.model_dump(exclude_unset=True) if isinstance(section, BaseModel) else section
+                )
+            section = dict(section)
+            if name in section:
+                raise ValueError(f"geometry.{key} and geometry.{group}.{name} are the same option; give one")
+            section[name] = data[key]
+            out[group] = section
+        return out
 
 
 class RefineOptions(_Options):

@@ -211,7 +211,7 @@ def _refine_stage(
     ]
     masks = [cap.read_mask(i) for i in registered]
     visibility_fn = make_visibility_fn(
-        cameras, masks, min_cos=config.geometry.visibility_min_cos, rel_tol=config.geometry.visibility_rel_tol
+        cameras, masks, min_cos=config.geometry.visibility.min_cos, rel_tol=config.geometry.visibility.rel_tol
     )
     refined = refine_surface(
         geometry.vertices,

@@ -63,6 +63,13 @@ RESULT_FILES: tuple[ResultFile, ...] = (
     ResultFile("illumination.json", "refine", "application/json", "per-frame SH lighting (pmvir-sh9)"),
     ResultFile("initial.ply", "geometry", "application/octet-stream", "the initial surface"),
     ResultFile("poses/", "geometry", "application/zip", "the cameras used, a COLMAP model"),
+    ResultFile(
+        "images/", "geometry", "application/zip", "the viewable I_int images (8-bit sRGB PNG) poses/ names"
+    ),
+    ResultFile(
+        "sparse.ply", "geometry", "application/octet-stream", "the sparse points (SfM / triangulation)"
+    ),
+    ResultFile("dense.ply", "geometry", "application/octet-stream", "the fused dense stereo points"),
     ResultFile("report.json", "report", "application/json", "timings, counts, parameters, energies"),
     ResultFile("decoded/", "decode", "application/zip", "decoded frames and previews (decode-only runs)"),
     ResultFile("previews/", "decode", "application/zip", "per view: I_int, DoP and AoP previews (PNG, small)"),

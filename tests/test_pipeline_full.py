@@ -25,7 +25,7 @@ def result(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, list[t
     capture = synthesize(root / "cap", shape="blob", views=24, size=(256, 216), material="plastic", seed=3)
     config = PipelineConfig.model_validate(
         {
-            "geometry": {"subdivision_max_area_px": 8.0},
+            "geometry": {"subdivision": {"max_area_px": 8.0}},
             "refine": {"max_iterations": 6},
         }
     )

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -61,7 +63,13 @@ def build_config(args: argparse.Namespace) -> PipelineConfig:
         if value is not None:
             _set_path(tree, list(path), value)
     try:
-        return PipelineConfig.model_validate(tree)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", DeprecationWarning)
+            config = PipelineConfig.model_validate(tree)
+        for w in caught:  # shown on the terminal: the default filters hide DeprecationWarnings
+            print(f"pmvir: warning: {w.message}", file=sys.stderr)
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        return config
     except ValidationError as exc:
         problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
         raise ConfigError(f"invalid options: {problems}") from exc

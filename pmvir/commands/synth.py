@@ -40,6 +40,7 @@ _FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
     ("--roughness", "roughness", {"type": float, "metavar": "R"}),
     ("--mesh-up", "mesh_up", {"choices": ["x", "y", "z"]}),
     ("--focal-factor", "focal_factor", {"type": float, "metavar": "F"}),
+    ("--rig", "rig", {"choices": ["rings", "turntable"]}),
 )
 
 

@@ -234,7 +234,12 @@ def select_neighbours(
 
 
 def view_depth_range(
-    camera: Camera, points: np.ndarray, mask: np.ndarray | None = None, *, margin: float = 0.1
+    camera: Camera,
+    points: np.ndarray,
+    mask: np.ndarray | None = None,
+    *,
+    margin: float = 0.1,
+    min_points: int = 3,
 ) -> tuple[float, float] | None:
     """Depth range of a view from sparse points.
 
@@ -244,18 +249,21 @@ def view_depth_range(
         mask: optional bool mask on the camera's grid; points outside it are ignored.
         margin: the 1st..99th percentile range is widened by this fraction of its far
             depth on both sides.
+        min_points: fewer points in the view than this give None.
 
     Returns:
-        (near, far) world units with 0 < near < far, or None when fewer than 3 points
-        project into the view.
+        (near, far) world units with 0 < near < far, or None when fewer than ``min_points``
+        (at least 3) points project into the view.
     """
+    if len(points) < max(min_points, 3):
+        return None
     uv, z = project_points(camera, points)
     ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
     if mask is not None:
         r = np.clip(uv[:, 1].astype(np.int64), 0, camera.height - 1)
         c = np.clip(uv[:, 0].astype(np.int64), 0, camera.width - 1)
         ok &= np.asarray(mask, dtype=bool)[r, c]
-    if ok.sum() < 3:
+    if ok.sum() < max(min_points, 3):
         return None
     lo, hi = np.percentile(z[ok], [1.0, 99.0])
     pad = margin * hi

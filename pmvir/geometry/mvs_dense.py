@@ -1,6 +1,6 @@
 """Dense reconstruction of the registered views: depth maps, consistency filter, fusion.
 
-:func:`dense_stereo` chooses the backend (``GeometryOptions.mvs_backend``):
+:func:`dense_stereo` chooses the backend (``geometry.mvs.backend``):
 
 * ``cpu``: :mod:`pmvir.geometry.mvs` plane sweep per registered view on a
   grid scaled by ``mvs_scale``, then :mod:`pmvir.geometry.mvs_fusion`
@@ -11,8 +11,12 @@
 * ``auto``: ``colmap-cuda`` when ``pycolmap.has_cuda``, else ``cpu``.
 
 Both use pmvir's view selection (:func:`~pmvir.geometry.mvs.select_neighbours`)
-and per-view depth ranges from the sparse points. Fewer fused points than
-``mvs_min_points`` raise :class:`~pmvir.errors.ReconstructionError` naming the
+and per-view depth ranges (:func:`depth_range`): the known cameras' visual hull
+(:mod:`pmvir.geometry.hull`; without masks their common frustum) bounds each
+view's depth search, and sparse points, where a view sees enough of them, only
+tighten it; with few or no sparse points the hull's surface cells choose the
+neighbours, so known poses never need sparse points. Fewer fused points than
+``mvs.min_points`` raise :class:`~pmvir.errors.ReconstructionError` naming the
 views that gave no consistent depth (a textureless object, or views that do
 not overlap), instead of producing an empty mesh.
 """
@@ -27,8 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from pmvir.camera import Camera
-from pmvir.config import GeometryOptions
+from pmvir.config import MvsOptions
 from pmvir.errors import ConfigError, ReconstructionError, ShapeError
+from pmvir.geometry.hull import Hull, carve_hull
 from pmvir.geometry.mvs import (
     DepthMap,
     StereoView,
@@ -39,6 +44,10 @@ from pmvir.geometry.mvs import (
 )
 from pmvir.geometry.mvs_fusion import DensePoints, estimate_normals, filter_and_fuse, voxel_thin
 from pmvir.progress import Progress
+
+#: Sparse points choose stereo neighbours and tighten depth ranges when there are at least this many
+#: (in all, and in a view); otherwise the known cameras' visual hull does both alone.
+_MIN_SUPPORT_POINTS = 20
 
 
 @dataclass(frozen=True)
@@ -69,7 +78,7 @@ class DenseResult:
 
 
 def resolve_backend(backend: str) -> str:
-    """'cpu' or 'colmap-cuda' for an ``mvs_backend`` option value.
+    """'cpu' or 'colmap-cuda' for a ``geometry.mvs.backend`` value.
 
     Raises:
         ReconstructionError: 'colmap-cuda' requested but pycolmap has no CUDA.
@@ -80,7 +89,7 @@ def resolve_backend(backend: str) -> str:
         return "colmap-cuda" if pycolmap.has_cuda else "cpu"
     if backend == "colmap-cuda" and not pycolmap.has_cuda:
         raise ReconstructionError(
-            "mvs_backend 'colmap-cuda' needs pycolmap built with CUDA (pycolmap.has_cuda is False); "
+            "geometry.mvs.backend 'colmap-cuda' needs pycolmap built with CUDA (pycolmap.has_cuda is False); "
             "use 'cpu' or 'auto'"
         )
     return backend
@@ -93,7 +102,7 @@ def dense_stereo(
     sparse_points: np.ndarray,
     *,
     names: Sequence[str],
-    options: GeometryOptions,
+    options: MvsOptions,
     workdir: str | Path | None = None,
     progress: Progress | None = None,
 ) -> DenseResult:
@@ -103,9 +112,10 @@ def dense_stereo(
         images: per view (H, W, 3) float32 linear I_int.
         masks: per view a bool (H, W) object mask or None.
         cameras: per view its camera, None where the view is not registered.
-        sparse_points: (P, 3) world points from SfM / triangulation (view selection, depth ranges).
+        sparse_points: (P, 3) world points from SfM / triangulation (possibly none): they choose the
+            neighbours and tighten the hull's depth ranges when there are enough.
         names: per view a name for messages (the frame stem).
-        options: the geometry options (``mvs_*`` fields).
+        options: the ``geometry.mvs`` options.
         workdir: scratch folder (needed by the COLMAP backend).
         progress: reports per view and is polled for cancellation between views.
 
@@ -113,7 +123,8 @@ def dense_stereo(
         :class:`DenseResult`.
 
     Raises:
-        ReconstructionError: no usable view pair, or fewer than ``options.mvs_min_points`` points.
+        ReconstructionError: fewer than 2 registered views, masks that share no volume, or fewer
+            than ``options.min_points`` fused points (the message names the views).
         CanceledError: the progress object was asked to cancel.
     """
     progress = progress or Progress.none()
@@ -126,40 +137,90 @@ def dense_stereo(
     pts = np.asarray(sparse_points, np.float64).reshape(-1, 3)
     registered = [i for i in range(n) if cameras[i] is not None]
     if len(registered) < 2:
-        raise ReconstructionError(f"dense stereo needs at least 2 registered views, got {len(registered)}")
-    if len(pts) < 3:
-        raise ReconstructionError(f"dense stereo needs sparse points for depth ranges, got {len(pts)}")
-    backend = resolve_backend(options.mvs_backend)
-    reg_cams = [cam for cam in cameras if cam is not None]
+        raise ReconstructionError(
+            f"dense stereo needs at least 2 registered views, got {len(registered)}"
+            + (f" ({', '.join(names[i] for i in registered)})" if registered else "")
+        )
+    backend = resolve_backend(options.backend)
+    reg_cams = [_camera(cameras, i) for i in registered]
     reg_masks = [masks[i] for i in registered]
+    hull = carve_hull(reg_cams, reg_masks, names=[names[i] for i in registered])
+    support = pts if len(pts) >= _MIN_SUPPORT_POINTS else hull.surface
     nb_local = select_neighbours(
         reg_cams,
-        pts,
-        count=options.mvs_neighbours,
-        min_angle_deg=options.mvs_min_angle_deg,
-        max_angle_deg=options.mvs_max_angle_deg,
+        support,
+        count=options.neighbours,
+        min_angle_deg=options.min_angle_deg,
+        max_angle_deg=options.max_angle_deg,
         masks=reg_masks,
     )
     neighbours: list[list[int]] = [[] for _ in range(n)]
     for k, i in enumerate(registered):
         neighbours[i] = [registered[j] for j in nb_local[k]]
-    diag = float(np.linalg.norm(np.percentile(pts, 99, 0) - np.percentile(pts, 1, 0)))
+    if len(pts) >= _MIN_SUPPORT_POINTS:
+        diag = float(np.linalg.norm(np.percentile(pts, 99, 0) - np.percentile(pts, 1, 0)))
+    else:
+        diag = hull.diagonal
+    ranges: list[tuple[float, float] | None] = [None] * n
+    for i in registered:
+        ranges[i] = depth_range(_camera(cameras, i), hull, pts, masks[i], margin=options.depth_margin)
     if backend == "colmap-cuda":
         return _dense_colmap(
-            images, masks, cameras, pts, names, neighbours, registered, options, workdir, diag, progress
+            images,
+            masks,
+            cameras,
+            pts,
+            names,
+            neighbours,
+            registered,
+            ranges,
+            options,
+            workdir,
+            diag,
+            progress,
         )
-    return _dense_cpu(images, masks, cameras, pts, names, neighbours, registered, options, diag, progress)
+    return _dense_cpu(images, masks, cameras, names, neighbours, registered, ranges, options, diag, progress)
+
+
+def grid_scale(image: np.ndarray, options: MvsOptions) -> float:
+    """The CPU stereo grid's scale of one view: ``options.scale``, raised so that the longer side keeps
+    ``options.min_grid_px`` pixels (at most 1)."""
+    longer = max(image.shape[:2])
+    return float(min(1.0, max(options.scale, options.min_grid_px / max(longer, 1))))
+
+
+def depth_range(
+    camera: Camera, hull: Hull, points: np.ndarray, mask: np.ndarray | None, *, margin: float
+) -> tuple[float, float] | None:
+    """A view's depth search range: the hull's, tightened by the sparse points it sees when there are enough.
+
+    Args:
+        camera: the view (full resolution).
+        hull: the known cameras' visual hull (or common frustum).
+        points: (P, 3) sparse points (possibly none).
+        mask: the view's object mask or None.
+        margin: widening of the sparse points' range, a fraction of its far depth.
+
+    Returns:
+        (near, far), or None when neither the hull nor the points reach into the view.
+    """
+    outer = hull.depth_range(camera)
+    inner = view_depth_range(camera, points, mask, margin=margin, min_points=_MIN_SUPPORT_POINTS)
+    if outer is None or inner is None:
+        return outer or inner
+    near, far = max(outer[0], inner[0]), min(outer[1], inner[1])
+    return (near, far) if near < far else outer
 
 
 def _dense_cpu(
     images: Sequence[np.ndarray],
     masks: Sequence[np.ndarray | None],
     cameras: Sequence[Camera | None],
-    pts: np.ndarray,
     names: Sequence[str],
     neighbours: list[list[int]],
     registered: list[int],
-    options: GeometryOptions,
+    ranges: list[tuple[float, float] | None],
+    options: MvsOptions,
     diag: float,
     progress: Progress,
 ) -> DenseResult:
@@ -169,7 +230,7 @@ def _dense_cpu(
     for i in registered:
         if neighbours[i] or any(i in neighbours[j] for j in registered):
             views[i] = prepare_view(
-                images[i], masks[i], _camera(cameras, i), scale=options.mvs_scale, colour=options.mvs_colour
+                images[i], masks[i], _camera(cameras, i), scale=grid_scale(images[i], options), colour=options.colour
             )
     depth_maps: list[DepthMap | None] = [None] * n
     valid = [-1] * n
@@ -178,7 +239,7 @@ def _dense_cpu(
         ref = views[i]
         if ref is None or not neighbours[i]:
             continue
-        rng = view_depth_range(ref.camera, pts, ref.mask, margin=options.mvs_depth_margin)
+        rng = ranges[i]
         if rng is None:
             continue
         sources = [v for v in (views[j] for j in neighbours[i]) if v is not None]  # all prepared above
@@ -186,10 +247,10 @@ def _dense_cpu(
             ref,
             sources,
             *rng,
-            planes=options.mvs_planes,
-            window=options.mvs_window,
-            top_k=options.mvs_top_k,
-            min_score=options.mvs_min_score,
+            planes=options.planes,
+            window=options.window,
+            top_k=options.top_k,
+            min_score=options.min_score,
         )
         valid[i] = int(depth.valid.sum())
     t1 = time.perf_counter()
@@ -197,9 +258,9 @@ def _dense_cpu(
     pts_f, views_f, counts_f = filter_and_fuse(
         depth_maps,
         neighbours,
-        max_reproj_px=options.mvs_consistency_px,
-        max_rel_depth=options.mvs_consistency_depth,
-        min_consistent=options.mvs_min_consistent,
+        max_reproj_px=options.consistency_px,
+        max_rel_depth=options.consistency_depth,
+        min_consistent=1 if len(registered) <= options.sparse_rig_views else options.min_consistent,
     )
     consistent = np.bincount(views_f, minlength=n)
     fraction = [-1.0] * n
@@ -207,8 +268,8 @@ def _dense_cpu(
         if view is not None:  # of the object's pixels; without a mask, of the depths found
             base = int(view.mask.sum()) if masks[i] is not None else max(valid[i], 0)
             fraction[i] = float(consistent[i] / max(base, 1))
-    if options.mvs_voxel > 0:
-        keep = voxel_thin(pts_f, options.mvs_voxel * diag)
+    if options.voxel > 0:
+        keep = voxel_thin(pts_f, options.voxel * diag)
         pts_f, views_f, counts_f = pts_f[keep], views_f[keep], counts_f[keep]
     dense = DensePoints(
         points=pts_f, normals=estimate_normals(pts_f, views_f, cameras), views=views_f, consistent=counts_f
@@ -235,7 +296,8 @@ def _dense_colmap(
     names: Sequence[str],
     neighbours: list[list[int]],
     registered: list[int],
-    options: GeometryOptions,
+    ranges: list[tuple[float, float] | None],
+    options: MvsOptions,
     workdir: str | Path | None,
     diag: float,
     progress: Progress,
@@ -256,25 +318,21 @@ def _dense_colmap(
         [[local[j] for j in neighbours[i]] for i in registered],
         pts,
     )
-    view_ranges = [
-        view_depth_range(_camera(cameras, i), pts, masks[i], margin=options.mvs_depth_margin)
-        for i in registered
-    ]
-    ranges = [r for r in view_ranges if r is not None]
-    if not ranges:
-        raise ReconstructionError("no registered view sees the sparse points: cannot bound the depth range")
+    known = [r for r in ranges if r is not None]
+    if not known:
+        raise ReconstructionError("no registered view sees the object's volume: cannot bound the depth range")
     progress.update(0.0, "COLMAP PatchMatch stereo (CUDA)")
-    colmap_patch_match(root, depth_range=(min(r[0] for r in ranges), max(r[1] for r in ranges)))
+    colmap_patch_match(root, depth_range=(min(r[0] for r in known), max(r[1] for r in known)))
     t1 = time.perf_counter()
     progress.update(1.0, "COLMAP stereo fusion")
     points, normals = colmap_fusion(
         root,
-        max_reproj_error=2.0 * options.mvs_consistency_px / options.mvs_scale,
-        max_depth_error=options.mvs_consistency_depth,
+        max_reproj_error=2.0 * options.consistency_px / options.scale,
+        max_depth_error=options.consistency_depth,
     )
     views = _nearest_view(points, normals, cameras, registered)
-    if options.mvs_voxel > 0:
-        keep = voxel_thin(points, options.mvs_voxel * diag)
+    if options.voxel > 0:
+        keep = voxel_thin(points, options.voxel * diag)
         points, normals, views = points[keep], normals[keep], views[keep]
     dense = DensePoints(
         points=points, normals=normals, views=views, consistent=np.zeros(len(points), np.int64)
@@ -321,21 +379,19 @@ def _nearest_view(
 
 
 def _check_enough(
-    result: DenseResult, names: Sequence[str], registered: list[int], options: GeometryOptions
+    result: DenseResult, names: Sequence[str], registered: list[int], options: MvsOptions
 ) -> None:
     """ReconstructionError when too few points were fused, or too few depths passed the consistency filter."""
     count = len(result.points)
     fractions = [result.consistent_fraction[i] for i in registered if result.consistent_fraction[i] >= 0]
     overall = float(np.mean(fractions)) if fractions else None
-    if count >= options.mvs_min_points and (
-        overall is None or overall >= options.mvs_min_consistent_fraction
-    ):
+    if count >= options.min_points and (overall is None or overall >= options.min_consistent_fraction):
         return
     weak = [
         names[i]
         for i in registered
         if result.fused_per_view[i] == 0
-        or 0 <= result.consistent_fraction[i] < options.mvs_min_consistent_fraction
+        or 0 <= result.consistent_fraction[i] < options.min_consistent_fraction
     ]
     no_nb = [names[i] for i in registered if not result.neighbours[i]]
     detail = f"; views without a neighbour sharing sparse points: {', '.join(no_nb)}" if no_nb else ""
@@ -344,12 +400,12 @@ def _check_enough(
         if overall is None
         else (
             f"; on average {100 * overall:.1f}% of a view's object pixels got a consistent depth "
-            f"(mvs_min_consistent_fraction: {100 * options.mvs_min_consistent_fraction:.1f}%)"
+            f"(mvs.min_consistent_fraction: {100 * options.min_consistent_fraction:.1f}%)"
         )
     )
     raise ReconstructionError(
-        f"dense stereo fused {count} points from {len(registered)} registered views (mvs_min_points: "
-        f"{options.mvs_min_points}){share}; views with (almost) no consistent depth: "
+        f"dense stereo fused {count} points from {len(registered)} registered views (mvs.min_points: "
+        f"{options.min_points}){share}; views with (almost) no consistent depth: "
         f"{', '.join(weak) if weak else 'none'}{detail}. The object may be textureless, or the views may "
         "not overlap."
     )

@@ -13,7 +13,7 @@
   incremental mapping and a last robust bundle adjustment. Given intrinsics are
   held fixed (PINHOLE); missing ones are estimated as SIMPLE_PINHOLE (one focal
   length, principal point at the image centre), shared by the views of one
-  image size unless ``sfm_shared_intrinsics`` is off. The result lives in
+  image size unless ``sfm.shared_intrinsics`` is off. The result lives in
   SfM's own frame (known up to a similarity); of several disconnected models
   the one with most views is kept.
 
@@ -31,8 +31,10 @@ given, sparse points must also project into every view's mask (grown by
 Failures are :class:`~pmvir.errors.ReconstructionError` naming the views that
 failed with their feature and match counts: fewer views than
 ``min_registered_views`` (or than ``min_registered_fraction`` of them)
-registered, or fewer than ``min_sparse_points`` points seen in 3 or more views
-(a textureless object, or frames that do not overlap). COLMAP's own log lines
+registered, or (SfM only) fewer than ``min_sparse_points`` points seen in 3 or
+more views (a textureless object, or frames that do not overlap). Known poses
+never need sparse points: dense stereo bounds its depths by the known cameras'
+visual hull (:mod:`pmvir.geometry.hull`), and the points only tighten it. COLMAP's own log lines
 are silenced below FATAL while it runs.
 """
 
@@ -50,7 +52,7 @@ import numpy as np
 import pycolmap
 
 from pmvir.camera import Camera
-from pmvir.config import GeometryOptions
+from pmvir.config import SfmOptions
 from pmvir.errors import InputError, ReconstructionError, ShapeError
 from pmvir.geometry.sfm_colmap import Progress, fundamental_matrix, quiet_colmap, run_colmap, sampson_error
 from pmvir.io.colmap_text import image_from_camera, pinhole_from_camera, write_colmap_text_model
@@ -90,6 +92,8 @@ class SparseModel:
             (known poses) or "mapping" and "refinement" (SfM), and "total".
         names: the views' names, in capture order.
         num_features: SIFT features per view.
+        point_observations: per point a (k, 3) float64 array of its observations: view index,
+            x, y (pixels, COLMAP convention), or None.
     """
 
     cameras: list[Camera | None]
@@ -102,6 +106,7 @@ class SparseModel:
     timings: dict[str, float]
     names: list[str] = field(default_factory=list)
     num_features: list[int] = field(default_factory=list)
+    point_observations: list[np.ndarray] | None = None
 
     @property
     def num_registered(self) -> int:
@@ -163,7 +168,7 @@ def _check_inputs(
 
 
 def _write_inputs(
-    workdir: Path, images: Sequence[np.ndarray], masks: Sequence[np.ndarray | None] | None, options: GeometryOptions
+    workdir: Path, images: Sequence[np.ndarray], masks: Sequence[np.ndarray | None] | None, options: SfmOptions
 ) -> tuple[Path, Path | None, list[str]]:
     """SIFT images (and COLMAP masks: 0 = no features) under ``workdir``; returns dirs and file names."""
     image_dir, mask_dir = workdir / "images", workdir / "masks"
@@ -195,8 +200,8 @@ def _view_intrinsics(
 
 def _sparse_points(
     rec: pycolmap.Reconstruction, view_of_image: dict[int, int], images: Sequence[np.ndarray]
-) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
-    """Points, their colours and the views observing them.
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]:
+    """Points, their colours, the views observing them and the observations ((k, 3): view, x, y).
 
     A point's colour is the mean linear colour of the pixels holding its observations, with
     one exposure for all points (99.5th percentile of the brightest channel -> 1), sRGB 8-bit.
@@ -205,23 +210,26 @@ def _sparse_points(
     points = np.zeros((len(ids), 3), dtype=np.float64)
     linear = np.zeros((len(ids), 3), dtype=np.float64)
     views: list[np.ndarray] = []
+    observations: list[np.ndarray] = []
     for k, pid in enumerate(ids):
         p = rec.points3D[pid]
         points[k] = p.xyz
-        seen = []
+        seen, obs = [], []
         for el in p.track.elements:
             i = view_of_image[el.image_id]
             seen.append(i)
             im = images[i]
             x, y = rec.images[el.image_id].points2D[el.point2D_idx].xy
+            obs.append((i, x, y))
             row = min(max(int(y), 0), im.shape[0] - 1)
             col = min(max(int(x), 0), im.shape[1] - 1)
             linear[k] += im[row, col] if im.ndim == 3 else im[row, col, None]
         linear[k] /= len(seen)
         views.append(np.unique(seen).astype(np.int64))
+        observations.append(np.asarray(obs, np.float64).reshape(-1, 3))
     level = float(np.percentile(linear.max(axis=1), _EXPOSURE_PERCENTILE)) if len(ids) else 1.0
     colors = np.rint(srgb_encode(linear / max(level, 1e-12)) * 255.0).astype(np.uint8)
-    return points, colors, views
+    return points, colors, views, observations
 
 
 def _inside_masks(
@@ -265,7 +273,7 @@ def estimate_poses(
     cameras: Sequence[Camera | None] | None = None,
     intrinsics: Sequence[np.ndarray | None] | None = None,
     masks: Sequence[np.ndarray | None] | None = None,
-    options: GeometryOptions,
+    options: SfmOptions,
     workdir: str | Path,
     progress: Progress | None = None,
 ) -> SparseModel:
@@ -278,7 +286,7 @@ def estimate_poses(
         cameras: per view the known Camera or None; known-pose mode when every entry is given.
         intrinsics: per view a known (3, 3) K or None (SfM mode; a given camera's K counts too).
         masks: per view an (H, W) bool foreground mask or None; features only inside.
-        options: the geometry options (``min_registered_views``, ``sift_*``, ``sfm_*``, ...).
+        options: the ``geometry.sfm`` options.
         workdir: scratch folder (created; its images/, masks/, sparse/ and database.db are replaced).
         progress: called as ``progress(fraction, step)`` between steps; it may raise
             CanceledError to stop.
@@ -340,13 +348,15 @@ def estimate_poses(
             names, [i for i in range(n) if not registered[i]], features, partners,
         ))
     assert rec is not None
-    points, colors, views = _sparse_points(rec, view_of_image, images)
+    points, colors, views, observations = _sparse_points(rec, view_of_image, images)
     keep = _inside_masks(points, result_cameras, masks)
     if known:  # two-view points from chance matches in the epipolar band: mostly wrong (measured ~60 %)
         keep &= np.array([len(v) >= 3 for v in views], dtype=bool)
-    points, colors, views = points[keep], colors[keep], [v for v, k in zip(views, keep, strict=True) if k]
+    points, colors = points[keep], colors[keep]
+    views = [v for v, k in zip(views, keep, strict=True) if k]
+    observations = [o for o, k in zip(observations, keep, strict=True) if k]
     multi_view = sum(len(v) >= 3 for v in views)
-    if multi_view < options.min_sparse_points:
+    if not known and multi_view < options.min_sparse_points:  # known poses: the masks' hull bounds depth
         weakest = sorted(range(n), key=lambda i: (features[i], partners[i]))
         raise ReconstructionError(_failure_message(
             f"only {multi_view} 3D points were triangulated from 3 or more views ({len(points)} in all), at "
@@ -357,6 +367,7 @@ def estimate_poses(
     report(1.0, "poses done")
     return SparseModel(
         cameras=result_cameras, points=points, point_colors=colors, point_views=views,
+        point_observations=observations,
         mean_reprojection_error=float(rec.compute_mean_reprojection_error()), registered=registered,
         known_poses=known, timings=timings, names=list(names), num_features=features,
     )

@@ -24,7 +24,7 @@ import numpy as np
 import pycolmap
 
 from pmvir.camera import Camera
-from pmvir.config import GeometryOptions
+from pmvir.config import SfmOptions
 
 Progress = Callable[[float, str], None]
 
@@ -63,7 +63,7 @@ def run_colmap(
     sizes: list[tuple[int, int]],
     Ks: list[np.ndarray | None],
     known_cameras: list[Camera] | None,
-    options: GeometryOptions,
+    options: SfmOptions,
     timings: dict[str, float],
     report: Progress,
 ) -> tuple[pycolmap.Reconstruction | None, list[int], list[int]]:
@@ -100,14 +100,19 @@ def run_colmap(
             clear_points=True, options=_pipeline_options(options, set(), min_matches=_KNOWN_POSE_MIN_MATCHES),
             refine_intrinsics=False,
         )
-        if options.sfm_max_reprojection_error > 0:
-            filter_observations(rec, options.sfm_max_reprojection_error)
+        if options.max_reprojection_error > 0:
+            filter_observations(rec, options.max_reprojection_error)
             rec.update_point_3d_errors()
         timings["triangulation"] = time.perf_counter() - t0
         return rec, features, partners
-    report(0.6, "incremental SfM")
+    report(0.6, f"{options.mapper} SfM")
     constant = _known_camera_ids(database, files, Ks)
-    models = pycolmap.incremental_mapping(database, image_dir, sparse_dir, options=_pipeline_options(options, constant))
+    if options.mapper == "global":
+        models = pycolmap.global_mapping(database, image_dir, sparse_dir, options=_global_options(options, constant))
+    else:
+        models = pycolmap.incremental_mapping(
+            database, image_dir, sparse_dir, options=_pipeline_options(options, constant)
+        )
     best = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
     timings["mapping"] = time.perf_counter() - t0
     if best is not None:
@@ -125,14 +130,14 @@ def _extract_features(
     files: list[str],
     sizes: list[tuple[int, int]],
     Ks: list[np.ndarray | None],
-    options: GeometryOptions,
+    options: SfmOptions,
 ) -> None:
     """SIFT into the database, one extraction per camera group (same K, or same size when estimated)."""
     groups: dict[tuple, list[int]] = {}
     for i, (K, (h, w)) in enumerate(zip(Ks, sizes, strict=True)):
         if K is not None:
             key: tuple = ("known", w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
-        elif options.sfm_shared_intrinsics:
+        elif options.shared_intrinsics:
             key = ("estimated", w, h)
         else:
             key = ("estimated", w, h, i)
@@ -157,11 +162,12 @@ def _extract_features(
         )
 
 
-def _match(database: Path, n: int, options: GeometryOptions) -> None:
+def _match(database: Path, n: int, options: SfmOptions) -> None:
     """SIFT matching (exhaustive or sequential, module docstring) with RANSAC verification."""
     verification = pycolmap.TwoViewGeometryOptions()
-    verification.ransac.random_seed = options.sfm_seed
+    verification.ransac.random_seed = options.seed
     matching = pycolmap.FeatureMatchingOptions()
+    matching.guided_matching = options.guided_matching
     if n <= options.exhaustive_matching_max_views:
         pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verification)
     else:
@@ -270,17 +276,31 @@ def sampson_error(x1: np.ndarray, x2: np.ndarray, F: np.ndarray) -> np.ndarray:
 
 
 def _pipeline_options(
-    options: GeometryOptions, constant_cameras: set[int], *, min_matches: int = 15
+    options: SfmOptions, constant_cameras: set[int], *, min_matches: int = 15
 ) -> pycolmap.IncrementalPipelineOptions:
     po = pycolmap.IncrementalPipelineOptions()
     po.min_num_matches = min_matches
-    po.random_seed = options.sfm_seed
+    po.random_seed = options.seed
     po.min_model_size = options.min_registered_views
     po.ba_refine_principal_point = False
     po.ba_refine_extra_params = False
     po.constant_cameras = constant_cameras
-    po.mapper.init_min_num_inliers = options.sfm_init_min_inliers
-    po.mapper.abs_pose_min_num_inliers = options.sfm_register_min_inliers
+    po.mapper.init_min_num_inliers = options.init_min_inliers
+    po.mapper.abs_pose_min_num_inliers = options.register_min_inliers
+    return po
+
+
+def _global_options(options: SfmOptions, constant_cameras: set[int]) -> pycolmap.GlobalPipelineOptions:
+    """GLOMAP options: seeded, CPU, given intrinsics held fixed (focal lengths refined only when estimated)."""
+    po = pycolmap.GlobalPipelineOptions()
+    po.random_seed = options.seed
+    po.min_model_size = options.min_registered_views
+    po.mapper.random_seed = options.seed
+    po.mapper.global_positioning.use_gpu = False
+    po.mapper.global_positioning.random_seed = options.seed
+    po.mapper.bundle_adjustment.refine_principal_point = False
+    po.mapper.bundle_adjustment.refine_extra_params = False
+    po.mapper.bundle_adjustment.refine_focal_length = not constant_cameras
     return po
 
 
@@ -340,16 +360,16 @@ def filter_observations(rec: pycolmap.Reconstruction, max_error: float) -> int:
     return removed
 
 
-def _refine_sfm(rec: pycolmap.Reconstruction, options: GeometryOptions, constant_cameras: set[int]) -> None:
+def _refine_sfm(rec: pycolmap.Reconstruction, options: SfmOptions, constant_cameras: set[int]) -> None:
     """Final robust bundle adjustment (Cauchy loss, 1 px scale) between two outlier filters.
 
     Poses, points and the focal lengths of estimated cameras are refined; given intrinsics
     stay constant. (Uses the bundle adjuster directly: ``pycolmap.bundle_adjustment`` resets
     COLMAP's log level.)
     """
-    if options.sfm_max_reprojection_error <= 0:
+    if options.max_reprojection_error <= 0:
         return
-    filter_observations(rec, options.sfm_max_reprojection_error)
+    filter_observations(rec, options.max_reprojection_error)
     ba = pycolmap.BundleAdjustmentOptions()
     ba.refine_principal_point = False
     ba.refine_extra_params = False
@@ -363,7 +383,7 @@ def _refine_sfm(rec: pycolmap.Reconstruction, options: GeometryOptions, constant
         config.set_constant_cam_intrinsics(camera_id)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     pycolmap.create_default_bundle_adjuster(ba, config, rec).solve()
-    filter_observations(rec, options.sfm_max_reprojection_error)
+    filter_observations(rec, options.max_reprojection_error)
     rec.update_point_3d_errors()
 
 

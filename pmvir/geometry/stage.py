@@ -11,11 +11,12 @@
 4. ``visibility``: :func:`pmvir.geometry.visibility.vertex_visibility`;
 5. ``subdivision``: :func:`pmvir.geometry.subdivision.subdivide_until`
    (sqrt(3) steps until every visible triangle is below
-   ``subdivision_max_area_px`` pixels^2).
+   ``subdivision.max_area_px`` pixels^2).
 
 :func:`write_geometry` writes a result folder's ``initial.ply`` (the subdivided
-initial surface) and ``poses/`` (COLMAP text model of the registered views,
-images named by their frame file), and :func:`geometry_report` gives the
+initial surface), ``poses/`` (a COLMAP model, binary and text, of the registered
+views and the sparse points with their tracks), ``images/`` (the viewable I_int
+images the model names), ``sparse.ply`` and ``dense.ply`` (the fused points), and :func:`geometry_report` gives the
 JSON-ready counts and timings for ``report.json`` (spec section 3).
 """
 
@@ -33,12 +34,19 @@ from pmvir.camera import Camera
 from pmvir.capture import Capture
 from pmvir.config import GeometryOptions
 from pmvir.errors import ReconstructionError, ShapeError
+from pmvir.geometry.export import (
+    colmap_reconstruction,
+    colours_at,
+    viewable_images,
+    write_colmap_model,
+    write_images,
+    write_points_ply,
+)
 from pmvir.geometry.mvs_dense import DenseResult, dense_stereo
 from pmvir.geometry.sfm import SparseModel, estimate_poses
 from pmvir.geometry.subdivision import subdivide_until
 from pmvir.geometry.surface import SurfaceResult, initial_surface
 from pmvir.geometry.visibility import vertex_visibility
-from pmvir.io.colmap_text import image_from_camera, pinhole_from_camera, write_colmap_text_model
 from pmvir.io.ply import Mesh, vertex_normals
 from pmvir.polarization.stokes import PolarizationImages
 from pmvir.progress import Progress
@@ -66,6 +74,7 @@ class GeometryResult:
         subdivision_max_area_px: largest projected visible triangle area at the end, pixels^2.
         subdivision_converged: the area threshold was reached (not a round/vertex limit).
         timings: seconds per step: poses, depth_maps, fusion, surface, visibility, subdivision, total.
+        previews: per frame (H, W, 3) uint8 sRGB I_int with one exposure for all frames (``images/``).
     """
 
     names: list[str]
@@ -81,6 +90,7 @@ class GeometryResult:
     subdivision_max_area_px: float
     subdivision_converged: bool
     timings: dict[str, float] = field(default_factory=dict)
+    previews: list[np.ndarray] = field(default_factory=list)
 
     @property
     def registered(self) -> list[bool]:
@@ -130,12 +140,12 @@ def run_geometry(
         known = capture.has_all_poses
         intrinsics = [None if f.intrinsics is None else _k_matrix(f.intrinsics) for f in capture.frames]
         sparse = estimate_poses(
-            images,
+            images if options.sfm.grey == "int" else [np.asarray(v.i_min, np.float32) for v in views],
             names,
             cameras=[f.camera for f in capture.frames] if known else None,
             intrinsics=intrinsics if any(k is not None for k in intrinsics) else None,
             masks=masks,
-            options=options,
+            options=options.sfm,
             workdir=workdir / "sfm",
             progress=p.update,
         )
@@ -145,7 +155,14 @@ def run_geometry(
 
     with progress.step("dense", _STEP_WEIGHTS["dense"]) as p:
         dense = dense_stereo(
-            images, masks, cameras, sparse.points, names=names, options=options, workdir=workdir, progress=p
+            images,
+            masks,
+            cameras,
+            sparse.points,
+            names=names,
+            options=options.mvs,
+            workdir=workdir,
+            progress=p,
         )
 
     with progress.step("surface", _STEP_WEIGHTS["surface"]):
@@ -154,13 +171,8 @@ def run_geometry(
             dense.points.normals,
             cameras=reg_cams,
             masks=[masks[i] for i in reg],
-            poisson_depth=options.surface_poisson_depth,
-            poisson_voxel_px=options.surface_poisson_voxel_px,
-            trim_density_quantile=options.surface_trim_density_quantile,
-            trim_distance=options.surface_trim_distance,
-            target_faces=options.surface_target_faces,
-            min_angle_deg=options.surface_min_angle_deg,
-            max_area_px=options.surface_split_factor * options.subdivision_max_area_px,
+            options=options.surface,
+            max_area_px=options.surface.split_factor * options.subdivision.max_area_px,
         )
 
     with progress.step("visibility", _STEP_WEIGHTS["visibility"]):
@@ -169,8 +181,7 @@ def run_geometry(
             surface.faces,
             reg_cams,
             [masks[i] for i in reg],
-            min_cos=options.visibility_min_cos,
-            rel_tol=options.visibility_rel_tol,
+            **options.visibility.model_dump(),
         )
         if not vis.any():
             raise ReconstructionError("no vertex of the initial surface is visible in any registered view")
@@ -181,10 +192,7 @@ def run_geometry(
             surface.faces,
             vis,
             reg_cams,
-            max_area_px=options.subdivision_max_area_px,
-            max_rounds=options.subdivision_max_rounds,
-            max_vertices=options.subdivision_max_vertices,
-            min_visible_corners=options.subdivision_min_visible_corners,
+            **options.subdivision.model_dump(),
         )
     full_vis = np.zeros((len(sub.vertices), n), bool)
     full_vis[:, reg] = sub.visibility
@@ -204,6 +212,7 @@ def run_geometry(
         subdivision_max_area_px=sub.max_area_px,
         subdivision_converged=sub.converged,
         timings=timings,
+        previews=viewable_images(images, masks),
     )
 
 
@@ -212,21 +221,31 @@ def _k_matrix(intr: Any) -> np.ndarray:
 
 
 def write_poses(directory: str | Path, result: GeometryResult) -> None:
-    """``directory/cameras.txt, images.txt, points3D.txt`` of the registered views (a PINHOLE camera each)."""
-    cams, imgs = [], []
-    for i, cam in enumerate(result.cameras):
-        if cam is None:
-            continue
-        cams.append(pinhole_from_camera(i + 1, cam))
-        imgs.append(image_from_camera(i + 1, i + 1, result.files[i], cam))
-    write_colmap_text_model(directory, cams, imgs)
+    """``directory``: the COLMAP model (binary and text) of the registered views and the sparse points
+    with their tracks (:mod:`pmvir.geometry.export`); images are named as in ``images/``."""
+    sparse = result.sparse
+    rec = colmap_reconstruction(
+        result.cameras, result.names, sparse.points, sparse.point_colors, sparse.point_observations
+    )
+    write_colmap_model(directory, rec)
 
 
 def write_geometry(result: ResultFolder, geometry: GeometryResult) -> None:
-    """Write ``initial.ply`` (the subdivided initial surface, spec PLY) and ``poses/`` into the result."""
+    """Write ``initial.ply`` (the subdivided initial surface, spec PLY), ``poses/`` (a COLMAP model),
+    ``images/`` (the viewable I_int images it names), ``sparse.ply`` and ``dense.ply`` into the result."""
     mesh = Mesh(geometry.vertices, geometry.faces, normals=vertex_normals(geometry.vertices, geometry.faces))
     result.write_mesh("initial.ply", mesh)
     result.write_folder("poses", lambda folder: write_poses(folder, geometry))
+    if geometry.previews:
+        result.write_folder("images", lambda folder: write_images(folder, geometry.names, geometry.previews))
+    sparse, dense = geometry.sparse, geometry.dense.points
+    result.write_file("sparse.ply", lambda path: write_points_ply(path, sparse.points, sparse.point_colors))
+    colours = (
+        colours_at(dense.points, dense.views, geometry.cameras, geometry.previews)
+        if geometry.previews
+        else None
+    )
+    result.write_file("dense.ply", lambda path: write_points_ply(path, dense.points, colours, dense.normals))
 
 
 def geometry_report(result: GeometryResult) -> dict[str, Any]:
@@ -249,7 +268,8 @@ def geometry_report(result: GeometryResult) -> dict[str, Any]:
             "valid_depths_per_view": dict(zip(result.names, dense.valid_depths, strict=True)),
             "fused_points_per_view": dict(zip(result.names, dense.fused_per_view, strict=True)),
         },
-        "surface": {k: int(v) for k, v in result.surface.counts.items()},
+        "surface": {k: int(v) for k, v in result.surface.counts.items()}
+        | {"components": [dict(c) for c in result.surface.components]},
         "subdivision": {
             "rounds": int(result.subdivision_rounds),
             "max_area_px": float(result.subdivision_max_area_px),

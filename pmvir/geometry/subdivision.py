@@ -314,7 +314,7 @@ def densify_for_views(
     """Paper section 4.2 after surface reconstruction: visibility, then sqrt(3) subdivision.
 
     :func:`vertex_visibility` of the input mesh, then :func:`subdivide_until`,
-    both with the ``visibility_*`` and ``subdivision_*`` fields of ``options``.
+    with the ``visibility`` and ``subdivision`` groups of ``options``.
 
     Args:
         vertices: (N, 3) float positions.
@@ -331,18 +331,14 @@ def densify_for_views(
         faces,
         cameras,
         masks,
-        min_cos=options.visibility_min_cos,
-        rel_tol=options.visibility_rel_tol,
+        **options.visibility.model_dump(),
     )
     return subdivide_until(
         vertices,
         faces,
         vis,
         cameras,
-        max_area_px=options.subdivision_max_area_px,
-        max_rounds=options.subdivision_max_rounds,
-        max_vertices=options.subdivision_max_vertices,
-        min_visible_corners=options.subdivision_min_visible_corners,
+        **options.subdivision.model_dump(),
     )
 
 

@@ -36,12 +36,17 @@ import cv2
 import numpy as np
 
 from pmvir.camera import Camera
+from pmvir.config import SurfaceOptions
 from pmvir.errors import ReconstructionError
 from pmvir.geometry.mesh_ops import edge_topology
 from pmvir.geometry.mvs import project_points
 from pmvir.geometry.surface_clean import clean_mesh, mesh_arrays, o3d_mesh, orient_outward, split_large_faces
 
 _EPS = 1e-12
+
+#: Poisson vertices are trimmed beyond the larger of ``trim_distance`` and this many typical point
+#: spacings (the median distance to a point's 4th nearest neighbour) from every dense point.
+_TRIM_SPACINGS = 2.5
 
 
 @dataclass(frozen=True)
@@ -54,11 +59,14 @@ class SurfaceResult:
         counts: the dense point count, vertices / faces after each step (``poisson_*``,
             ``trimmed_*``, ``simplified_*``, ``clean_*``, ``split_*``), the number of collapsed
             slivers and of boundary edges at the end.
+        components: per connected component of the cleaned surface (largest first), its faces,
+            the fused points nearest to it, whether it was kept and why.
     """
 
     vertices: np.ndarray
     faces: np.ndarray
     counts: dict[str, int] = field(default_factory=dict)
+    components: list[dict[str, object]] = field(default_factory=list)
 
 
 def poisson_surface(
@@ -147,12 +155,7 @@ def initial_surface(
     *,
     cameras: Sequence[Camera] | None = None,
     masks: Sequence[np.ndarray | None] | None = None,
-    poisson_depth: int | None = None,
-    poisson_voxel_px: float = 3.0,
-    trim_density_quantile: float = 0.0,
-    trim_distance: float = 0.01,
-    target_faces: int = 150_000,
-    min_angle_deg: float = 2.0,
+    options: SurfaceOptions | None = None,
     max_area_px: float | None = None,
 ) -> SurfaceResult:
     """Screened Poisson, trimming, simplification and cleaning (module docstring).
@@ -160,13 +163,11 @@ def initial_surface(
     Args:
         points: (P, 3) float dense points. normals: (P, 3) unit normals facing the cameras.
         cameras, masks: views and their object masks, for silhouette trimming (optional).
-        poisson_depth: octree depth; None: :func:`auto_poisson_depth` (needs ``cameras``, else 8).
-        poisson_voxel_px: the automatic depth's cell size in pixels.
-        trim_density_quantile: vertices below this quantile of Poisson density are removed.
-        trim_distance: vertices farther than this fraction of the points' bounding-box
-            diagonal from every point are removed.
-        target_faces: most faces after simplification.
-        min_angle_deg: sliver threshold of :func:`~pmvir.geometry.surface_clean.clean_mesh`.
+        options: the ``geometry.surface`` group (default ``SurfaceOptions()``): ``poisson_depth``
+            (None: :func:`auto_poisson_depth` with ``poisson_voxel_px``; needs ``cameras``, else 8),
+            ``trim_density_quantile``, ``trim_distance`` (a fraction of the points' bounding-box
+            diagonal), ``target_faces``, ``min_angle_deg`` (sliver threshold of
+            :func:`~pmvir.geometry.surface_clean.clean_mesh`).
         max_area_px: with ``cameras``, faces projecting larger than this (pixels^2, in a view
             they face) are bisected afterwards (:func:`split_large_faces`).
 
@@ -178,20 +179,25 @@ def initial_surface(
     """
     from scipy.spatial import cKDTree
 
+    opts = options or SurfaceOptions()
     pts = np.asarray(points, np.float64)
     if len(pts) < 100:
         raise ReconstructionError(
             f"the dense point cloud has {len(pts)} points; at least 100 are needed for a surface"
         )
     counts: dict[str, int] = {"points": len(pts)}
+    poisson_depth = opts.poisson_depth
     if poisson_depth is None:
-        poisson_depth = auto_poisson_depth(pts, cameras, voxel_px=poisson_voxel_px) if cameras else 8
+        poisson_depth = auto_poisson_depth(pts, cameras, voxel_px=opts.poisson_voxel_px) if cameras else 8
     v, f, density = poisson_surface(pts, normals, depth=poisson_depth)
     counts.update(poisson_depth=int(poisson_depth), poisson_vertices=len(v), poisson_faces=len(f))
-    keep = density >= np.quantile(density, trim_density_quantile)
+    keep = density >= np.quantile(density, opts.trim_density_quantile)
     diag = float(np.linalg.norm(pts.max(0) - pts.min(0)))
-    dist, _ = cKDTree(pts).query(v, k=1)
-    keep &= dist <= trim_distance * diag
+    tree = cKDTree(pts)
+    dist, _ = tree.query(v, k=1)
+    spacing = float(np.median(tree.query(pts[:: max(1, len(pts) // 5000)], k=5)[0][:, -1]))
+    trim = max(opts.trim_distance * diag, _TRIM_SPACINGS * spacing)  # sparse points: no holes between them
+    keep &= dist <= trim
     if cameras is not None and masks is not None:
         keep &= ~off_silhouette(v, cameras, masks)
     v, f = _keep_vertices(v, f, keep)
@@ -200,15 +206,23 @@ def initial_surface(
         raise ReconstructionError(
             "trimming removed the whole Poisson surface: the dense points do not form a surface"
         )
-    if len(f) > target_faces:
-        mesh = o3d_mesh(v, f).simplify_quadric_decimation(target_number_of_triangles=int(target_faces))
+    if len(f) > opts.target_faces:
+        mesh = o3d_mesh(v, f).simplify_quadric_decimation(target_number_of_triangles=int(opts.target_faces))
         v, f = mesh_arrays(mesh)
     counts.update(simplified_vertices=len(v), simplified_faces=len(f))
-    v, f, slivers = clean_mesh(v, f, min_angle_deg=min_angle_deg)
+    components: list[dict[str, object]] = []
+    v, f, slivers = clean_mesh(
+        v,
+        f,
+        min_angle_deg=opts.min_angle_deg,
+        support=pts,
+        min_support=opts.min_component_points,
+        components=components,
+    )
     f = orient_outward(v, f, pts, np.asarray(normals, np.float64))
     counts.update(clean_vertices=len(v), clean_faces=len(f), slivers_collapsed=slivers)
     if cameras is not None and max_area_px is not None:
         v, f = split_large_faces(v, f, cameras, max_area_px=max_area_px)
         counts.update(split_vertices=len(v), split_faces=len(f))
     counts.update(boundary_edges=int(edge_topology(f, len(v)).boundary.sum()))
-    return SurfaceResult(vertices=v, faces=f, counts=counts)
+    return SurfaceResult(vertices=v, faces=f, counts=counts, components=components)

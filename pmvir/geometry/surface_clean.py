@@ -1,8 +1,9 @@
 """Cleaning and evening out triangle meshes: one manifold component, no slivers, bounded face sizes.
 
 * :func:`clean_mesh`: degenerate and duplicated faces, non-manifold edges and
-  vertices and inconsistently oriented edges are removed and only the largest
-  connected component kept (:func:`clean_topology`); then slivers (a smallest
+  vertices and inconsistently oriented edges are removed, and of the connected
+  components the largest and every one that enough dense points support are kept
+  (:func:`clean_topology`); then slivers (a smallest
   interior angle below a threshold) are repaired by :func:`remove_slivers`:
   a *cap* (an angle of at least 120 degrees) by flipping its longest edge, a
   *needle* by collapsing its shortest edge to the midpoint. Both operations
@@ -49,14 +50,43 @@ def mesh_arrays(mesh) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.vertices, np.float64).copy(), np.asarray(mesh.triangles, np.int64).copy()
 
 
-def _largest_component(mesh) -> None:
+def _keep_components(mesh, support: np.ndarray | None, min_support: int) -> list[dict[str, object]]:
+    """Remove components in place: without ``support`` all but the largest; with it, those that fewer
+    than ``min_support`` of the support points lie nearest to (the largest is always kept).
+
+    Returns:
+        Per component (largest first): faces, supporting points, kept, and why.
+    """
     clusters, counts, _ = mesh.cluster_connected_triangles()
-    clusters = np.asarray(clusters)
+    clusters, counts = np.asarray(clusters), np.asarray(counts)
     if len(clusters) == 0:
-        return
-    largest = int(np.argmax(np.asarray(counts)))
-    mesh.remove_triangles_by_mask(clusters != largest)
+        return []
+    largest = int(np.argmax(counts))
+    votes = np.zeros(len(counts), np.int64)
+    if support is not None and len(support):
+        from scipy.spatial import cKDTree
+
+        tri = np.asarray(mesh.triangles)
+        vertex_cluster = np.full(len(mesh.vertices), -1, np.int64)
+        vertex_cluster[tri.ravel()] = np.repeat(clusters, 3)
+        used = np.flatnonzero(vertex_cluster >= 0)
+        _, nearest = cKDTree(np.asarray(mesh.vertices)[used]).query(support, k=1)
+        votes = np.bincount(vertex_cluster[used[nearest]], minlength=len(counts))
+    report = []
+    keep = np.zeros(len(counts), bool)
+    for c in np.argsort(-counts):
+        if c == largest:
+            ok, why = True, "largest component"
+        elif support is None:
+            ok, why = False, "not the largest (no support points given)"
+        else:
+            ok = bool(votes[c] >= min_support)
+            why = f"{votes[c]} fused points {'>=' if ok else '<'} min_component_points {min_support}"
+        keep[c] = ok
+        report.append({"faces": int(counts[c]), "points": int(votes[c]), "kept": ok, "why": why})
+    mesh.remove_triangles_by_mask(~keep[clusters])
     mesh.remove_unreferenced_vertices()
+    return report
 
 
 def corner_angles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -250,13 +280,23 @@ def remove_slivers(
 
 
 def clean_topology(
-    vertices: np.ndarray, faces: np.ndarray, *, max_passes: int = 6
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    *,
+    max_passes: int = 6,
+    support: np.ndarray | None = None,
+    min_support: int = 0,
+    components: list[dict[str, object]] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Largest connected component, edge- and vertex-manifold and consistently oriented.
+    """Supported connected components, edge- and vertex-manifold and consistently oriented.
 
     Each pass removes degenerate and duplicated faces, faces on non-manifold or
-    inconsistently oriented edges, faces around non-manifold vertices and every
-    component but the largest; passes repeat until nothing changes.
+    inconsistently oriented edges, faces around non-manifold vertices and the
+    components that are not kept: without ``support`` every one but the largest; with
+    ``support`` ((P, 3) points, e.g. the fused dense points), those nearest to fewer
+    than ``min_support`` of them (the largest always stays). Passes repeat until
+    nothing changes. ``components``, when given, receives the last pass's per-component
+    report (faces, supporting points, kept, why).
 
     Raises:
         ReconstructionError: nothing is left.
@@ -277,7 +317,9 @@ def clean_topology(
             bad_e = ~topo.interior & ~topo.boundary  # two faces in the same direction, or more than two
             if bad_e.any():
                 mesh.remove_triangles_by_mask(bad_e[topo.face_edges].any(1))
-        _largest_component(mesh)
+        report = _keep_components(mesh, support, min_support)
+        if components is not None:
+            components[:] = report
         mesh.remove_unreferenced_vertices()
         v2, f2 = mesh_arrays(mesh)
         if len(f2) == 0:
@@ -294,7 +336,14 @@ def clean_topology(
 
 
 def clean_mesh(
-    vertices: np.ndarray, faces: np.ndarray, *, min_angle_deg: float = 2.0, max_rounds: int = 3
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    *,
+    min_angle_deg: float = 2.0,
+    max_rounds: int = 3,
+    support: np.ndarray | None = None,
+    min_support: int = 0,
+    components: list[dict[str, object]] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """One manifold component without slivers (module docstring).
 
@@ -303,6 +352,8 @@ def clean_mesh(
         min_angle_deg: sliver threshold, degrees (0: slivers are kept).
         max_rounds: most rounds of topology cleaning, sliver repair and deletion of the
             slivers left.
+        support, min_support, components: which components are kept, and the report of them
+            (:func:`clean_topology`).
 
     Returns:
         vertices (N', 3) float64, faces (F', 3) int64, number of slivers repaired or deleted.
@@ -310,7 +361,8 @@ def clean_mesh(
     Raises:
         ReconstructionError: nothing is left.
     """
-    v, f = clean_topology(vertices, faces)
+    keep = {"support": support, "min_support": min_support, "components": components}
+    v, f = clean_topology(vertices, faces, **keep)  # type: ignore[arg-type]
     count = 0
     for _ in range(max_rounds):
         if min_angle_deg <= 0:
@@ -321,7 +373,7 @@ def clean_mesh(
         if not left.any():
             break
         count += int(left.sum())
-        v, f = clean_topology(v, f[~left])
+        v, f = clean_topology(v, f[~left], **keep)  # type: ignore[arg-type]
     return v, f, count
 
 

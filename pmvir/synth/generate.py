@@ -5,6 +5,7 @@ Output layout::
     capture.json            IMX250MYR 12-bit, shared intrinsics, a cam_from_world per frame
     frames/000.png ...      raw mosaics (16-bit PNG containers, values 0..4095)
     masks/000.png ...       8-bit, 255 = object (pixel-centre ray hits the mesh)
+                            (``rig="turntable"``: the object turns before a still, textured backdrop)
     gt/mesh.ply             the normalized mesh with its true per-vertex albedo
     gt/illumination.json    per-frame true lighting (SH9 shading; for envmap its projection)
     gt/views/000.npz ...    per-view ground truth (pmvir extension; see below)
@@ -59,7 +60,7 @@ from pmvir.synth.builtin_renderer import render_geometry, render_view
 from pmvir.synth.lighting import EnvLight, ViewLight, env_lights, sh_lights
 from pmvir.synth.options import SynthOptions, synth_options
 from pmvir.synth.raycast import MeshScene
-from pmvir.synth.rig import ring_cameras
+from pmvir.synth.rig import rig_cameras
 from pmvir.synth.sensor import SensorModel, capture_mosaic
 from pmvir.synth.shapes import builtin_shape, load_mesh
 from pmvir.synth.texture import procedural_albedo, uniform_albedo
@@ -164,6 +165,27 @@ def _auto_gain(stokes: np.ndarray, mask: np.ndarray) -> float:
     return AUTO_EXPOSURE_TARGET / level if level > 1e-9 else 1.0
 
 
+def backdrop_texture(width: int, height: int, *, seed: int) -> np.ndarray:
+    """A turntable's backdrop as the still camera sees it: (H, W, 3) float32 linear colour in [0.1, 1].
+
+    Value noise at four scales with hue variation: plenty of SIFT features, the same in every frame.
+    """
+    rng = np.random.default_rng([seed, 23])
+    out = np.zeros((height, width, 3), np.float32)
+    for cells, weight in ((6, 0.4), (16, 0.3), (40, 0.2), (100, 0.1)):
+        coarse = rng.uniform(0.0, 1.0, (max(2, cells * height // width), cells, 3)).astype(np.float32)
+        out += weight * cv2.resize(coarse, (width, height), interpolation=cv2.INTER_CUBIC)
+    return np.clip(0.1 + 0.9 * out, 0.1, 1.0)
+
+
+def _with_backdrop(stokes: np.ndarray, mask: np.ndarray, backdrop: np.ndarray, *, level: float) -> np.ndarray:
+    """Stokes (H, W, 3 colours, 3) with an unpolarized backdrop of radiance ``level * backdrop`` off the object."""
+    out = stokes.copy()
+    out[~mask, :, 0] = level * 2.0 * backdrop[~mask]
+    out[~mask, :, 1:] = 0.0
+    return out
+
+
 def _mitsuba_view(mesh: Mesh, camera: Camera, light: ViewLight, opts: SynthOptions, index: int) -> np.ndarray:
     """Stokes image from the optional Mitsuba renderer (imported only here)."""
     from pmvir.synth import mitsuba_renderer  # imports Mitsuba itself only when rendering
@@ -259,9 +281,10 @@ def synthesize(
     truth = Mesh(geometry.vertices, geometry.faces, albedo=albedo, normals=geometry.normals)
     scene = MeshScene.from_mesh(truth)
     radius = float(np.linalg.norm(truth.vertices[np.unique(truth.faces)], axis=1).max())
-    cameras = ring_cameras(
-        opts.views, opts.width, opts.height, object_radius=radius, focal_factor=opts.focal_factor
+    cameras = rig_cameras(
+        opts.rig, opts.views, opts.width, opts.height, object_radius=radius, focal_factor=opts.focal_factor
     )
+    backdrop = backdrop_texture(opts.width, opts.height, seed=opts.seed) if opts.rig == "turntable" else None
     lights, light_info = _lights(opts)
     sensor = SensorModel(black_level=opts.black_level, full_well=opts.full_well, read_noise=opts.noise)
     _prepare_output(out, overwrite)
@@ -289,6 +312,8 @@ def synthesize(
         t_render = time.perf_counter() - t0
         if gain is None:
             gain = _auto_gain(stokes, geom.mask)
+        if backdrop is not None:
+            stokes = _with_backdrop(stokes, geom.mask, backdrop, level=0.6 / (2.0 * gain))
         stem = f"{i:03d}"
         samples = capture_mosaic(
             stokes, gain=gain, sensor=sensor, rng=np.random.default_rng([opts.seed, 17, i])

@@ -19,6 +19,12 @@ class SynthOptions(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     views: int = Field(default=36, ge=1, le=2000, description="Number of views (cameras on rings).")
+    rig: Literal["rings", "turntable"] = Field(
+        default="rings",
+        description="rings: cameras on three rings around the object; turntable: one still camera, the "
+        "object turning on a table by 360/views degrees per frame before a textured backdrop that looks "
+        "the same in every frame (poses are given in the object's frame).",
+    )
     size: tuple[int, int] = Field(
         default=(612, 512), description="Image width and height in pixels (multiples of 4), e.g. 612x512."
     )

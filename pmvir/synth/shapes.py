@@ -7,8 +7,14 @@ always means the same surface:
 * ``sphere``: a geodesic sphere (tests: normals and azimuths are known exactly).
 * ``blob``: a sphere with a broad deformation and 140 bumps of several sizes.
 * ``dented``: a blob with deep round dents (concavities that occlude themselves).
-* ``knot``: a tube along a (2, 3) torus knot (a non-star-shaped surface with
-  strong self-occlusion).
+* ``knot``: a tube along a (2, 3) torus knot (genus 1, a non-star-shaped surface
+  with strong self-occlusion: the tube passes in front of itself three times).
+* ``gear``: a flat ring with a bore and 14 rounded teeth (genus 1; the bore is
+  seen only from above and below).
+* ``mug``: a rounded cup-shaped body with a thin handle (a tube of 0.05 of the
+  diagonal; genus 1 as seen from outside). Body and handle are two closed
+  components; the handle's capped ends lie 0.4 tube radii inside the body
+  (hidden: about 1 % of the ground truth's area cannot be seen).
 
 :func:`normalize_mesh` centres a mesh on its bounding-box centre and scales it
 to a bounding-box diagonal of 1 (the unit of the spec's metrics).
@@ -25,7 +31,7 @@ import numpy as np
 from pmvir.errors import ConfigError, MeshError
 from pmvir.io.ply import Mesh, read_mesh, vertex_normals
 
-SHAPES: tuple[str, ...] = ("sphere", "blob", "dented", "knot")
+SHAPES: tuple[str, ...] = ("sphere", "blob", "dented", "knot", "gear", "mug")
 UpAxis = Literal["x", "y", "z"]
 
 
@@ -169,6 +175,92 @@ def _torus_knot(p: int = 2, q: int = 3, n_t: int = 480, n_v: int = 48) -> tuple[
     return verts, _orient_outward(verts, faces)
 
 
+def _periodic_grid_faces(n_u: int, n_v: int) -> np.ndarray:
+    """Faces of an (n_u, n_v) vertex grid periodic in both directions (a torus), (2 n_u n_v, 3)."""
+    i, j = np.meshgrid(np.arange(n_u), np.arange(n_v), indexing="ij")
+    a = i * n_v + j
+    b = ((i + 1) % n_u) * n_v + j
+    c = ((i + 1) % n_u) * n_v + (j + 1) % n_v
+    d = i * n_v + (j + 1) % n_v
+    return np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+
+
+def _superellipse(t: np.ndarray, exponent: float) -> tuple[np.ndarray, np.ndarray]:
+    """(cos-like, sin-like) of a superellipse |x|^e + |y|^e = 1 at parameter angles t."""
+    c, s = np.cos(t), np.sin(t)
+    return np.sign(c) * np.abs(c) ** (2.0 / exponent), np.sign(s) * np.abs(s) ** (2.0 / exponent)
+
+
+def _gear(teeth: int = 14, n_u: int = 448, n_v: int = 52) -> tuple[np.ndarray, np.ndarray]:
+    """A ring of rounded-rectangle section (bore radius 0.55, outer 1.0, height 0.36) with teeth."""
+    u = np.linspace(0.0, 2.0 * np.pi, n_u, endpoint=False)
+    v = np.linspace(0.0, 2.0 * np.pi, n_v, endpoint=False)
+    cu, cv = np.meshgrid(u, v, indexing="ij")
+    x, y = _superellipse(cv, 4.0)
+    tooth = np.clip(1.6 * np.sin(teeth * cu), -1.0, 1.0) * 0.5 + 0.5  # flat-topped teeth
+    outward = np.clip(x, 0.0, 1.0) ** 2  # teeth grow on the outer wall only
+    r = 0.775 + 0.225 * x + 0.14 * tooth * outward
+    z = 0.18 * y
+    verts = np.stack([r * np.cos(cu), r * np.sin(cu), z], -1).reshape(-1, 3)
+    return verts, _orient_outward(verts, _periodic_grid_faces(n_u, n_v))
+
+
+def _mug(n_u: int = 160, n_v: int = 120, n_t: int = 160, n_s: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """A rounded cup-shaped body (superellipse of revolution) and a thin handle tube on its side."""
+    a, b = 0.5, 0.6  # body radius and half-height
+    u = np.linspace(0.0, 2.0 * np.pi, n_u, endpoint=False)
+    v = np.linspace(0.0, np.pi, n_v)[1:-1]  # poles added separately
+    cu, cv = np.meshgrid(u, v, indexing="ij")
+    r, z = a * np.abs(np.sin(cv)) ** 0.5, b * np.sign(np.cos(cv)) * np.abs(np.cos(cv)) ** 0.5
+    body = np.stack([r * np.cos(cu), r * np.sin(cu), z], -1).reshape(-1, 3)
+    body = np.concatenate([body, [[0.0, 0.0, b], [0.0, 0.0, -b]]])
+    m = n_v - 2
+    faces: list[tuple[int, int, int]] = []
+    for i in range(n_u):
+        i2 = (i + 1) % n_u
+        for j in range(m - 1):
+            a0, b0, c0, d0 = i * m + j, i2 * m + j, i2 * m + j + 1, i * m + j + 1
+            faces += [(a0, b0, c0), (a0, c0, d0)]
+        faces += [(len(body) - 2, i2 * m, i * m), (len(body) - 1, i * m + m - 1, i2 * m + m - 1)]
+    body_faces = _orient_outward(body, np.asarray(faces, np.int64))
+    # handle: a tube of radius tau along an arc of radius rho centred on the body's wall (x = a)
+    rho, tau = 0.36, 0.065
+    reach = np.arcsin(min(0.99, 0.4 * tau / rho))  # the ends sink 0.4 tube radii into the wall
+    t = np.linspace(-np.pi / 2 - reach, np.pi / 2 + reach, n_t)
+    centre = np.stack([a + rho * np.cos(t), np.zeros_like(t), rho * np.sin(t)], 1)
+    tangent = np.stack([-np.sin(t), np.zeros_like(t), np.cos(t)], 1)
+    normal = np.stack([np.cos(t), np.zeros_like(t), np.sin(t)], 1)
+    binormal = np.cross(tangent, normal)
+    w = np.linspace(0.0, 2.0 * np.pi, n_s, endpoint=False)
+    ring = np.cos(w)[None, :, None] * normal[:, None] + np.sin(w)[None, :, None] * binormal[:, None]
+    tube = (centre[:, None] + tau * ring).reshape(-1, 3)
+    ti, tj = np.meshgrid(np.arange(n_t - 1), np.arange(n_s), indexing="ij")
+    p, q = ti * n_s + tj, (ti + 1) * n_s + tj
+    rr, ss = (ti + 1) * n_s + (tj + 1) % n_s, ti * n_s + (tj + 1) % n_s
+    tube_faces = np.concatenate(
+        [np.stack([p, q, rr], -1).reshape(-1, 3), np.stack([p, rr, ss], -1).reshape(-1, 3)]
+    )
+    # outward: the faces must point away from the centre line (the first face's corners are on ring 0)
+    e1, e2 = tube[tube_faces[0, 1]] - tube[tube_faces[0, 0]], tube[tube_faces[0, 2]] - tube[tube_faces[0, 0]]
+    if float(np.cross(e1, e2) @ (tube[tube_faces[0, 0]] - centre[0])) < 0:
+        tube_faces = tube_faces[:, ::-1].copy()
+    # caps (fans round the end centres, inside the body) close the tube: two closed components
+    ends = len(tube) + np.arange(2)
+    first, last = np.arange(n_s), (n_t - 1) * n_s + np.arange(n_s)
+    nxt = np.roll(np.arange(n_s), -1)
+    caps = np.concatenate(
+        [
+            np.stack([np.full(n_s, ends[0]), first[nxt], first], 1),
+            np.stack([np.full(n_s, ends[1]), last, last[nxt]], 1),
+        ]
+    )
+    if float(np.cross(*(tube[caps[0, 1:]] - centre[0])) @ tangent[0]) > 0:  # cap 0 must face -tangent
+        caps = caps[:, ::-1].copy()
+    tube = np.concatenate([tube, centre[[0, -1]]])
+    tube_faces = np.concatenate([tube_faces, caps])
+    return np.concatenate([body, tube]), np.concatenate([body_faces, tube_faces + len(body)])
+
+
 def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     v0, v1, v2 = (vertices[faces[:, k]] for k in range(3))
     return float(np.einsum("ij,ij->i", v0, np.cross(v1, v2)).sum() / 6.0)
@@ -187,6 +279,10 @@ def _builtin(name: str) -> tuple[np.ndarray, np.ndarray]:
         return _radial_shape(dents=False)
     if name == "dented":
         return _radial_shape(dents=True)
+    if name == "gear":
+        return _gear()
+    if name == "mug":
+        return _mug()
     return _torus_knot()
 
 

@@ -121,6 +121,12 @@ def decode_all(path: Path) -> list[PolarizationImages]:
 
 
 @pytest.fixture(scope="session")
+def decode_capture() -> Callable[[Path], list[PolarizationImages]]:
+    """:func:`decode_all`, for tests that make their own capture."""
+    return decode_all
+
+
+@pytest.fixture(scope="session")
 def geometry_data(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tmp_path_factory.mktemp("geometry-data")
 
@@ -137,7 +143,7 @@ def blob_views(blob_capture: Path) -> list[PolarizationImages]:
 
 #: Options of the stage run on the blob: faster than the defaults where the tests do not need them
 #: (no affine-adapted SIFT: known poses need few features; 64 planes instead of 96).
-BLOB_OPTIONS = {"sift_affine_shape": False, "mvs_planes": 64}
+BLOB_OPTIONS = {"sfm": {"sift_affine_shape": False}, "mvs": {"planes": 64}}
 
 
 @pytest.fixture(scope="session")

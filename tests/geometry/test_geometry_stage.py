@@ -7,9 +7,12 @@ import json
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 import open3d as o3d
+import pycolmap
 import pytest
+from plyfile import PlyData
 
 from pmvir.capture import open_capture
 from pmvir.config import GeometryOptions
@@ -21,6 +24,7 @@ from pmvir.io.colmap_text import camera_from_colmap, read_colmap_text_model
 from pmvir.io.ply import Mesh, read_mesh
 from pmvir.progress import Progress
 from pmvir.result import ResultFolder
+from pmvir.synth.generate import synthesize
 
 
 def test_initial_surface_accuracy_and_completeness(blob_geometry, blob_capture: Path):
@@ -43,7 +47,7 @@ def test_initial_surface_is_one_manifold_component_seen_by_the_views(blob_geomet
     assert len(mesh.cluster_connected_triangles()[1]) == 1
     assert g.visibility.shape == (len(g.vertices), len(g.names))
     assert g.visibility.any(axis=1).mean() > 0.99
-    assert g.subdivision_converged and g.subdivision_max_area_px < GeometryOptions().subdivision_max_area_px
+    assert g.subdivision_converged and g.subdivision_max_area_px < GeometryOptions().subdivision.max_area_px
     assert g.surface.counts["slivers_collapsed"] >= 0 and g.surface.counts["clean_faces"] > 1000
 
 
@@ -51,18 +55,32 @@ def test_outputs_and_report(blob_geometry, blob_capture: Path, tmp_path: Path):
     g = blob_geometry
     result = ResultFolder(tmp_path)
     write_geometry(result, g)
-    assert result.present() == sorted(["initial.ply", "poses/cameras.txt", "poses/images.txt", "poses/points3D.txt"])
+    present = result.present()
+    model = [f"poses/{k}.{ext}" for k in ("cameras", "images", "points3D") for ext in ("bin", "txt")]
+    assert set(model) | {"initial.ply", "sparse.ply", "dense.ply"} <= set(present)
+    assert sum(p.startswith("images/") for p in present) == len(g.names)
     mesh = read_mesh(result.path("initial.ply"))
     np.testing.assert_allclose(mesh.vertices, g.vertices, atol=1e-6)  # float32 in the PLY
     np.testing.assert_array_equal(mesh.faces, g.faces)
-    cams, imgs = read_colmap_text_model(result.path("poses"))
-    assert sorted(m.name for m in imgs.values()) == sorted(g.files)
+    # a COLMAP model other tools read: points with tracks, image names that exist under images/
+    rec = pycolmap.Reconstruction(str(result.path("poses")))
+    assert rec.num_points3D() > 0 and rec.num_reg_images() == len(g.names)
+    assert rec.compute_mean_track_length() >= 3.0
+    for image in rec.images.values():
+        assert (result.path("images") / image.name).is_file(), image.name
+    first = cv2.imread(str(result.path("images") / rec.images[1].name), cv2.IMREAD_UNCHANGED)
+    assert first.dtype == np.uint8 and first.shape == (*g.previews[0].shape[:2], 3)
+    cams, imgs = read_colmap_text_model(result.path("poses"))  # pmvir's own reader (evaluate --align)
     with open_capture(blob_capture) as cap:
-        true = {f.file: f.camera for f in cap.frames}
+        true = {f.name: f.camera for f in cap.frames}
     for m in imgs.values():
         cam = camera_from_colmap(cams[m.camera_id], m)
-        np.testing.assert_allclose(cam.R, true[m.name].R, atol=1e-12)
-        np.testing.assert_allclose(cam.t, true[m.name].t, atol=1e-12)
+        np.testing.assert_allclose(cam.R, true[Path(m.name).stem].R, atol=1e-9)
+        np.testing.assert_allclose(cam.t, true[Path(m.name).stem].t, atol=1e-9)
+    sparse = PlyData.read(str(result.path("sparse.ply")))["vertex"]
+    dense = PlyData.read(str(result.path("dense.ply")))["vertex"]
+    assert len(sparse) == len(g.sparse.points) and len(dense) == len(g.dense.points)
+    assert {"red", "nx"} <= set(dense.data.dtype.names)
     report = json.loads(json.dumps(geometry_report(g)))  # JSON-ready
     assert report["poses"]["mode"] == "known" and report["poses"]["registered_views"] == 36
     assert report["dense"]["points"] == len(g.dense.points) and report["dense"]["backend"] == "cpu"
@@ -106,18 +124,42 @@ def test_too_few_views_raise(blob_capture: Path, blob_views, tmp_path: Path):
         run_geometry(cap, blob_views[:2], workdir=tmp_path / "work")
 
 
+#: Dense stereo asks two confirming views, as on captures of more than ``mvs.sparse_rig_views`` views
+#: (with one, the silhouettes of these convex objects make depths agree: see test_mvs.TWO_CONFIRMING).
+TWO_CONFIRMING = GeometryOptions(mvs={"sparse_rig_views": 0})
+
+
 def test_textureless_capture_raises(textureless_capture: Path, textureless_views, tmp_path: Path):
-    with open_capture(textureless_capture) as cap, pytest.raises(ReconstructionError, match="3D points"):
-        run_geometry(cap, textureless_views, workdir=tmp_path / "work")
+    """Known poses need no sparse points, so a textureless object now fails in dense stereo, naming views."""
+    with (
+        open_capture(textureless_capture) as cap,
+        pytest.raises(ReconstructionError, match="dense stereo fused") as info,
+    ):
+        run_geometry(cap, textureless_views, workdir=tmp_path / "work", options=TWO_CONFIRMING)
+    assert "no consistent depth: 0" in str(info.value) and "textureless" in str(info.value)
+
+
+@pytest.mark.parametrize("views", [8, 12])
+def test_few_low_resolution_views_with_known_poses_reconstruct(views: int, tmp_path: Path, decode_capture):
+    """8 and 12 views of 320 x 256 with known poses: too few sparse points in 3 views (measured 9 and 57)
+    used to fail; the masks' visual hull bounds the depths now. Measured accuracy 0.0063 (8 views) and
+    0.0029 (12), completeness 0.035 and 0.017."""
+    capture = synthesize(tmp_path / "cap", shape="blob", views=views, size=(320, 256), seed=5)
+    with open_capture(capture) as cap:
+        g = run_geometry(cap, decode_capture(capture), workdir=tmp_path / "work")
+    r = evaluate(Mesh(g.vertices, g.faces), read_mesh(capture / "gt" / "mesh.ply"), n_samples=100_000)
+    assert r.accuracy <= 1.0e-2, r.to_dict()
+    assert r.completeness <= 0.06, r.to_dict()
+    assert all(g.registered)
 
 
 def test_capture_whose_frames_do_not_overlap_raises(unrelated_capture: Path, unrelated_views, tmp_path: Path):
     with (
         open_capture(unrelated_capture) as cap,
-        pytest.raises(ReconstructionError, match="views that failed") as info,
+        pytest.raises(ReconstructionError, match="dense stereo fused") as info,
     ):
-        run_geometry(cap, unrelated_views, workdir=tmp_path / "work")
-    assert "000 (" in str(info.value) and "features" in str(info.value)  # names the views, with their counts
+        run_geometry(cap, unrelated_views, workdir=tmp_path / "work", options=TWO_CONFIRMING)
+    assert "no consistent depth: 0" in str(info.value) and "not overlap" in str(info.value)  # names the views
 
 
 def test_one_decoded_view_per_frame_is_required(blob_capture: Path, blob_views, tmp_path: Path):

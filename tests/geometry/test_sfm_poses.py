@@ -29,7 +29,7 @@ import pytest
 
 from pmvir.camera import Camera
 from pmvir.capture import open_capture
-from pmvir.config import GeometryOptions
+from pmvir.config import SfmOptions
 from pmvir.decode import decode_frame
 from pmvir.errors import ReconstructionError
 from pmvir.evaluate import SurfaceQuery
@@ -49,7 +49,7 @@ from pmvir.polarization.stokes import PolarizationImages
 #: The SfM crop of the blob's 432 x 360 frames: x0, y0, width, height (centred on the principal point).
 CROP = (44, 20, 344, 320)
 #: Known poses need few features: the stage's tests use the same (faster) setting.
-KNOWN_POSE_OPTIONS = GeometryOptions(sift_affine_shape=False)
+KNOWN_POSE_OPTIONS = SfmOptions(sift_affine_shape=False)
 
 
 def _load(path: Path, views: list[PolarizationImages] | None = None) -> dict:
@@ -118,7 +118,7 @@ def _centre_errors(model: SparseModel, true: list[Camera]) -> tuple[np.ndarray, 
 
 def test_sfm_recovers_camera_centres_and_focal_length(sfm_views: dict, tmp_path: Path) -> None:
     model = estimate_poses(
-        sfm_views["images"], sfm_views["names"], masks=sfm_views["masks"], options=GeometryOptions(),
+        sfm_views["images"], sfm_views["names"], masks=sfm_views["masks"], options=SfmOptions(),
         workdir=tmp_path,
     )
     true = sfm_views["cameras"]
@@ -143,7 +143,7 @@ def test_sfm_holds_given_intrinsics_fixed(sfm_views: dict, tmp_path: Path) -> No
     K = true[0].K.copy()
     model = estimate_poses(
         [sfm_views["images"][i] for i in ring], [sfm_views["names"][i] for i in ring],
-        intrinsics=[K] * len(ring), masks=[sfm_views["masks"][i] for i in ring], options=GeometryOptions(),
+        intrinsics=[K] * len(ring), masks=[sfm_views["masks"][i] for i in ring], options=SfmOptions(),
         workdir=tmp_path,
     )
     assert model.num_registered == len(ring)
@@ -231,39 +231,32 @@ def test_sift_image_is_exposure_invariant_8bit() -> None:
 
 def test_too_few_views_is_an_error(sfm_views: dict, tmp_path: Path) -> None:
     with pytest.raises(ReconstructionError, match="too few views: 2 given"):
-        estimate_poses(sfm_views["images"][:2], sfm_views["names"][:2], options=GeometryOptions(), workdir=tmp_path)
+        estimate_poses(sfm_views["images"][:2], sfm_views["names"][:2], options=SfmOptions(), workdir=tmp_path)
 
 
 def test_textureless_object_is_an_error_in_sfm(textureless_capture: Path, tmp_path: Path) -> None:
     data = _load(textureless_capture)
     with pytest.raises(ReconstructionError, match=r"registered 0 of 12 views.*textureless") as info:
-        estimate_poses(data["images"], data["names"], masks=data["masks"], options=GeometryOptions(), workdir=tmp_path)
+        estimate_poses(data["images"], data["names"], masks=data["masks"], options=SfmOptions(), workdir=tmp_path)
     assert "000 (" in str(info.value)  # names the views that failed, with their feature counts
 
 
-def test_textureless_object_is_an_error_with_known_poses(textureless_capture: Path, tmp_path: Path) -> None:
+def test_textureless_object_with_known_poses_needs_no_sparse_points(textureless_capture: Path, tmp_path: Path) -> None:
+    """Known poses never fail for want of sparse points: dense stereo bounds depths by the visual hull."""
     data = _load(textureless_capture)
-    with pytest.raises(ReconstructionError, match=r"3D points.*textureless"):
-        estimate_poses(
-            data["images"], data["names"], cameras=data["cameras"], masks=data["masks"], options=GeometryOptions(),
-            workdir=tmp_path,
-        )
+    model = estimate_poses(
+        data["images"], data["names"], cameras=data["cameras"], masks=data["masks"], options=SfmOptions(),
+        workdir=tmp_path,
+    )
+    assert all(model.registered) and len(model.points) < SfmOptions().min_sparse_points
+    assert model.cameras == data["cameras"]
 
 
 def test_non_overlapping_frames_are_an_error_in_sfm(unrelated_capture: Path, tmp_path: Path) -> None:
     data = _load(unrelated_capture)
     with pytest.raises(ReconstructionError, match=r"registered 0 of 8 views.*overlap") as info:
-        estimate_poses(data["images"], data["names"], masks=data["masks"], options=GeometryOptions(), workdir=tmp_path)
+        estimate_poses(data["images"], data["names"], masks=data["masks"], options=SfmOptions(), workdir=tmp_path)
     assert all(f"{name} (" in str(info.value) for name in data["names"])
-
-
-def test_non_overlapping_frames_are_an_error_with_known_poses(unrelated_capture: Path, tmp_path: Path) -> None:
-    data = _load(unrelated_capture)
-    with pytest.raises(ReconstructionError, match=r"from 3 or more views.*overlap"):
-        estimate_poses(
-            data["images"], data["names"], cameras=data["cameras"], masks=data["masks"], options=GeometryOptions(),
-            workdir=tmp_path,
-        )
 
 
 def test_too_few_registered_views_is_an_error(sfm_views: dict, tmp_path: Path) -> None:
@@ -273,7 +266,7 @@ def test_too_few_registered_views_is_an_error(sfm_views: dict, tmp_path: Path) -
     with pytest.raises(ReconstructionError, match=r"SfM registered [0-4] of 8 views, at least 8 needed") as info:
         estimate_poses(
             [sfm_views["images"][i] for i in idx], [sfm_views["names"][i] for i in idx],
-            masks=[sfm_views["masks"][i] for i in idx], options=GeometryOptions(min_registered_fraction=1.0),
+            masks=[sfm_views["masks"][i] for i in idx], options=SfmOptions(min_registered_fraction=1.0),
             workdir=tmp_path,
         )
     text = str(info.value)
@@ -283,9 +276,9 @@ def test_too_few_registered_views_is_an_error(sfm_views: dict, tmp_path: Path) -
 def test_inconsistent_arguments_are_value_errors(sfm_views: dict, tmp_path: Path) -> None:
     images, names = sfm_views["images"][:3], sfm_views["names"][:3]
     with pytest.raises(ValueError, match="distinct names"):
-        estimate_poses(images, names[:2], options=GeometryOptions(), workdir=tmp_path)
+        estimate_poses(images, names[:2], options=SfmOptions(), workdir=tmp_path)
     with pytest.raises(ValueError, match="mask"):
-        estimate_poses(images, names, masks=[np.ones((4, 4), bool)] * 3, options=GeometryOptions(), workdir=tmp_path)
+        estimate_poses(images, names, masks=[np.ones((4, 4), bool)] * 3, options=SfmOptions(), workdir=tmp_path)
     skewed = np.array([[500.0, 1.0, 172.0], [0.0, 500.0, 160.0], [0.0, 0.0, 1.0]])
     with pytest.raises(ValueError, match="skew"):
-        estimate_poses(images, names, intrinsics=[skewed] * 3, options=GeometryOptions(), workdir=tmp_path)
+        estimate_poses(images, names, intrinsics=[skewed] * 3, options=SfmOptions(), workdir=tmp_path)

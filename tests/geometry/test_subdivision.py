@@ -324,17 +324,17 @@ def test_densify_for_views_follows_geometry_options():
     res = densify_for_views(v, f, cams, None, options)
     assert res.converged and res.max_area_px < 5.0 and res.rounds >= 2
     np.testing.assert_array_equal(res.visibility[: len(v)], vertex_visibility(v, f, cams))
-    capped = densify_for_views(v, f, cams, None, options.model_copy(update={"subdivision_max_rounds": 1}))
+    capped = densify_for_views(v, f, cams, None, options.model_copy(update={"subdivision": options.subdivision.model_copy(update={"max_rounds": 1})}))
     assert capped.rounds == 1 and not capped.converged
 
 
 def test_geometry_options_reject_bad_values():
     with pytest.raises(ValidationError):
-        GeometryOptions(subdivision_max_area_px=0.0)
+        GeometryOptions(subdivision={"max_area_px": 0.0})
     with pytest.raises(ValidationError):
-        GeometryOptions(subdivision_min_visible_corners=4)
+        GeometryOptions(subdivision={"min_visible_corners": 4})
     with pytest.raises(ValidationError):
-        GeometryOptions(visibility_rel_tol=0.0)
+        GeometryOptions(visibility={"rel_tol": 0.0})
     with pytest.raises(ValidationError):
         GeometryOptions(unknown_field=1)
 

@@ -7,6 +7,7 @@ import open3d as o3d
 import pytest
 
 from pmvir.camera import Camera, look_at
+from pmvir.config import SurfaceOptions
 from pmvir.errors import ReconstructionError
 from pmvir.geometry.mesh_ops import edge_topology, face_areas, face_normals, is_closed_manifold
 from pmvir.geometry.surface import auto_poisson_depth, initial_surface, off_silhouette
@@ -54,7 +55,7 @@ def _signed_volume(v: np.ndarray, f: np.ndarray) -> float:
 def test_poisson_of_a_sampled_sphere_is_the_sphere_closed_and_outward():
     pts, normals = _sphere_points(10_000)
     # 10k random points leave gaps of ~0.04 between them: trim only beyond 5 % of the diagonal
-    s = initial_surface(pts, normals, poisson_depth=6, trim_distance=0.05)
+    s = initial_surface(pts, normals, options=SurfaceOptions(poisson_depth=6, trim_distance=0.05))
     r = np.linalg.norm(s.vertices, axis=1)
     # Poisson at depth 6 over a 1.1-wide cube: cells of 0.017; measured |r - 0.5| mean 0.0007, max 0.004
     assert np.abs(r - 0.5).mean() < 3e-3
@@ -69,9 +70,9 @@ def test_poisson_of_a_sampled_sphere_is_the_sphere_closed_and_outward():
 
 
 def test_trimming_removes_the_unobserved_half():
-    pts, normals = _sphere_points(20_000)
+    pts, normals = _sphere_points(80_000)  # dense enough that trim_distance, not the point spacing, decides
     top = pts[:, 2] > 0.0
-    s = initial_surface(pts[top], normals[top], poisson_depth=6, trim_distance=0.02)
+    s = initial_surface(pts[top], normals[top], options=SurfaceOptions(poisson_depth=6, trim_distance=0.02))
     # Poisson closes the hemisphere; vertices farther than 2 % of the points' diagonal from every point go
     from scipy.spatial import cKDTree
 

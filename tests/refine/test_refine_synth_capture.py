@@ -30,7 +30,7 @@ OPTIONS = {"max_iterations": 10}
 def capture_run(tmp_path_factory: pytest.TempPathFactory):
     root = tmp_path_factory.mktemp("synth-refine")
     path = synthesize(root / "cap", shape="blob", views=24, size=(256, 216), material="plastic", seed=3)
-    gopts = GeometryOptions(subdivision_max_area_px=8.0)
+    gopts = GeometryOptions(subdivision={"max_area_px": 8.0})
     with open_capture(path) as cap:
         views = decode_views(cap, PipelineConfig())
         masks = [cap.read_mask(i) for i in range(len(cap.frames))]

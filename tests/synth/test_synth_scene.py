@@ -133,3 +133,29 @@ def test_envmap_shading_is_the_cosine_integral_and_its_sh_projection_is_close() 
 def _turn(d: np.ndarray, angle: float) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     return np.stack([c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1], d[:, 2]], axis=1)
+
+
+@pytest.mark.parametrize("name", ["knot", "gear"])
+def test_genus_one_shapes(name: str) -> None:
+    """The knot and the gear are closed surfaces of genus 1: V - E + F = 2 - 2g = 0."""
+    m = builtin_shape(name)
+    e = np.unique(np.sort(np.concatenate([m.faces[:, [0, 1]], m.faces[:, [1, 2]], m.faces[:, [2, 0]]]), axis=1), axis=0)
+    assert len(np.unique(m.faces)) - len(e) + len(m.faces) == 0
+
+
+def test_mug_has_a_thin_handle_with_a_hole() -> None:
+    """Two closed components (body and handle); a ray through the handle's loop passes free."""
+    m = builtin_shape("mug")
+    tm = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(m.vertices), o3d.utility.Vector3iVector(m.faces))
+    clusters, counts, _ = tm.cluster_connected_triangles()
+    assert len(counts) == 2
+    handle = np.unique(m.faces[np.asarray(clusters) == int(np.argmin(counts))])
+    hv = m.vertices[handle]
+    assert np.ptp(hv, axis=0)[1] < 0.1  # thin: the handle tube is under a tenth of the diagonal across
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(tm))
+    body = m.vertices[np.unique(m.faces[np.asarray(clusters) != int(np.argmin(counts))])]
+    inner = hv[:, 0].max() - np.ptp(hv[:, 1])  # the loop's inner edge: the outer edge less the tube's width
+    x_hole = 0.5 * (body[:, 0].max() + inner)  # between the body's wall and the loop
+    ray = o3d.core.Tensor([[x_hole, -2.0, 0.0, 0.0, 1.0, 0.0]], dtype=o3d.core.Dtype.Float32)
+    assert not np.isfinite(scene.cast_rays(ray)["t_hit"].numpy()[0])
