@@ -428,6 +428,47 @@ DEPRECATED_GEOMETRY_KEYS: dict[str, tuple[str, str]] = {
 }
 
 
+def nest_deprecated_geometry_keys(data: Any) -> Any:
+    """Geometry options with the flat keys of earlier releases moved into their groups.
+
+    Warns (DeprecationWarning) naming each old key and its new place; anything but a dict
+    passes through. Used by :class:`GeometryOptions` and wherever partial options are merged
+    before validation (the service's rerun).
+
+    >>> import warnings
+    >>> with warnings.catch_warnings():
+    ...     warnings.simplefilter("ignore")
+    ...     nest_deprecated_geometry_keys({"mvs_planes": 64, "mvs": {"window": 7}})
+    {'mvs': {'window': 7, 'planes': 64}}
+
+    Raises:
+        ValueError: an old key and its new place are both given.
+    """
+    if not isinstance(data, dict):
+        return data
+    old = [k for k in data if k in DEPRECATED_GEOMETRY_KEYS]
+    if not old:
+        return data
+    warnings.warn(
+        "flat geometry options are deprecated and will be removed in the next release: "
+        + ", ".join(f"{k} -> {'.'.join(DEPRECATED_GEOMETRY_KEYS[k])}" for k in old),
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    out = {k: v for k, v in data.items() if k not in DEPRECATED_GEOMETRY_KEYS}
+    for key in old:
+        group, name = DEPRECATED_GEOMETRY_KEYS[key]
+        section = out.get(group, {})
+        if not isinstance(section, dict):  # a model instance: the flat key updates a copy of it
+            section = section.model_dump(exclude_unset=True) if isinstance(section, BaseModel) else section
+        section = dict(section)
+        if name in section:
+            raise ValueError(f"geometry.{key} and geometry.{group}.{name} are the same option; give one")
+        section[name] = data[key]
+        out[group] = section
+    return out
+
+
 class GeometryOptions(_Options):
     """Initial geometry (pipeline stage 2, paper section 4.2), one group per step, each passed whole to it.
 
@@ -450,31 +491,7 @@ class GeometryOptions(_Options):
     @classmethod
     def _map_deprecated_keys(cls, data: Any) -> Any:
         """Move the old flat keys into their groups, with a DeprecationWarning naming the new key."""
-        if not isinstance(data, dict):
-            return data
-        old = [k for k in data if k in DEPRECATED_GEOMETRY_KEYS]
-        if not old:
-            return data
-        warnings.warn(
-            "flat geometry options are deprecated and will be removed in the next release: "
-            + ", ".join(f"{k} -> {'.'.join(DEPRECATED_GEOMETRY_KEYS[k])}" for k in old),
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        out = {k: v for k, v in data.items() if k not in DEPRECATED_GEOMETRY_KEYS}
-        for key in old:
-            group, name = DEPRECATED_GEOMETRY_KEYS[key]
-            section = out.get(group, {})
-            if not isinstance(section, dict):  # a model instance: the flat key updates a copy of it
-                section = (
-                    section.model_dump(exclude_unset=True) if isinstance(section, BaseModel) else section
-                )
-            section = dict(section)
-            if name in section:
-                raise ValueError(f"geometry.{key} and geometry.{group}.{name} are the same option; give one")
-            section[name] = data[key]
-            out[group] = section
-        return out
+        return nest_deprecated_geometry_keys(data)
 
 
 class RefineOptions(_Options):

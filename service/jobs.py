@@ -18,7 +18,7 @@ from pydantic import ValidationError
 
 from pmvir import stage_cache
 from pmvir.capture import open_capture, validate_capture
-from pmvir.config import PipelineConfig
+from pmvir.config import PipelineConfig, nest_deprecated_geometry_keys
 from pmvir.errors import CaptureError
 from pmvir.stages import Stage
 from service.deps import Services
@@ -219,7 +219,16 @@ def rerun_job(
             f"the source job is {source.status}; a rerun needs a job that was started and finished"
         )
     try:
-        config = PipelineConfig.model_validate(merge_options(source.options, changes))
+        merged = merge_options(_nested(source.options), _nested(changes))
+    except ValueError as exc:  # an old flat key and its new place both given
+        raise ApiError(
+            422,
+            "validation_error",
+            f"the options are invalid: {exc}",
+            errors=[ErrorItem(loc=["body", "options", "geometry"], msg=str(exc), type="value_error")],
+        ) from exc
+    try:
+        config = PipelineConfig.model_validate(merged)
     except ValidationError as exc:
         raise invalid(exc, ("body", "options"), "the merged options are invalid") from exc
     if from_stage.position > Stage(config.stop_after).position:
@@ -251,6 +260,12 @@ def rerun_job(
         _discard(svc, owner, job.id, None)
         raise
     return _get(svc, job.id)
+
+
+def _nested(options: dict[str, Any]) -> dict[str, Any]:
+    """Options with deprecated flat geometry keys moved into their groups, so a merge sees one key each."""
+    geometry = options.get("geometry")
+    return {**options, "geometry": nest_deprecated_geometry_keys(geometry)} if isinstance(geometry, dict) else options
 
 
 def merge_options(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:

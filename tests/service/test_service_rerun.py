@@ -56,7 +56,7 @@ def test_rerun_from_refine_reuses_the_capture_and_skips_geometry(
     assert rerun["source_job"] == geometry_job["id"] and rerun["resume_from"] == "refine"
     assert rerun["status"] in ("queued", "running")  # no upload, no start: queued at once
     assert {f["sha256"] for f in rerun["files"]} == {f["sha256"] for f in geometry_job["files"]}
-    assert rerun["options"]["geometry"]["subdivision_max_area_px"] == 16.0  # merged, not replaced
+    assert rerun["options"]["geometry"]["subdivision"]["max_area_px"] == 16.0  # merged, nested, not replaced
     done = wait_for(api, rerun["id"], finished, timeout=240)
     assert done["status"] == "succeeded", done
     before, after = geometry_job["stage_timings"], done["stage_timings"]
