@@ -41,7 +41,14 @@ from pmvir.config import RefineOptions
 from pmvir.errors import ConfigError, ReconstructionError
 from pmvir.progress import Progress
 from pmvir.refine.albedo import AlbedoSolver
-from pmvir.refine.energy import StageProblem, energy_terms, psm_weights, total_energy
+from pmvir.refine.energy import (
+    StageProblem,
+    energy_terms,
+    fresnel_transmittance,
+    pair_light,
+    psm_weights,
+    total_energy,
+)
 from pmvir.refine.lbfgs import LbfgsResult, minimize_lbfgs
 from pmvir.refine.mesh_ops import (
     GraphSmoother,
@@ -273,8 +280,8 @@ class _IterationLog:
     def __call__(self, it: int, value: float, gmax: float, named: dict[str, float]) -> None:
         self.energies.append(named)
         self.grad_max.append(gmax)
-        self.progress.update(min(it / self.max_iterations, 1.0), f"iteration {it}: E = {value:.6g}")
         self.progress.check_cancel(f"at iteration {it}")
+        self.progress.update(min(it / self.max_iterations, 1.0), f"iteration {it}: E = {value:.6g}")
 
 
 @dataclass(frozen=True)
@@ -404,7 +411,9 @@ def prepare_stage(
         sigma_chroma=opts.psm_sigma_chroma,
         sigma_log_intensity=opts.psm_sigma_log_intensity,
     )
-    problem = _stage_problem(setup, pairs, samples, psm_weight, t=weights.t)
+    robust = opts.pho_robust == "cauchy" and s > 0  # stage 1 starts from uniform lighting: no residuals yet
+    pho_weight = _robust_pho_weights(setup, state, pairs, samples) if robust else None
+    problem = _stage_problem(setup, pairs, samples, psm_weight, t=weights.t, pho_weight=pho_weight)
     stage = _Stage(
         index=s,
         weights=weights,
@@ -419,7 +428,13 @@ def prepare_stage(
 
 
 def _stage_problem(
-    setup: _Setup, pairs: PairSet, samples: PairSamples, psm_weight: np.ndarray, *, t: float
+    setup: _Setup,
+    pairs: PairSet,
+    samples: PairSamples,
+    psm_weight: np.ndarray,
+    *,
+    t: float,
+    pho_weight: torch.Tensor | None,
 ) -> StageProblem:
     """A stage's constants; E_pol's pair mask (DoP above ``dop_min``) and DoP weights are taken
     from the samples at the stage's start and stay fixed, like the pairs."""
@@ -440,7 +455,27 @@ def _stage_problem(
         k=opts.pol_k,
         t=t,
         units=opts.intensity_units,
+        pho_weight=pho_weight,
+        diffuse_fresnel_ior=opts.diffuse_fresnel_ior,
     )
+
+
+def _robust_pho_weights(
+    setup: _Setup, state: _Unknowns, pairs: PairSet, samples: PairSamples
+) -> torch.Tensor:
+    """(P,) Cauchy weights 1 / (1 + (r / s)^2) of each pair's E_pho residual r (RGB norm) at the
+    current unknowns, s = ``pho_robust_scale`` times the median residual (``pho_robust``)."""
+    with torch.no_grad():
+        normals = vertex_normals(state.vertices, setup.topo.faces)
+        light = pair_light(normals, state.sh, state.rgb_scale, pairs)
+        if setup.opts.diffuse_fresnel_ior > 0.0:
+            cos_o = -(samples.normal_cam * samples.ray_cam).sum(-1)
+            light = light * fresnel_transmittance(cos_o, setup.opts.diffuse_fresnel_ior)[:, None]
+        r = torch.linalg.vector_norm(
+            samples.intensity - state.albedo.index_select(0, pairs.vertex) * light, dim=1
+        )
+        scale = setup.opts.pho_robust_scale * r.median().clamp_min(1e-12)
+        return 1.0 / (1.0 + (r / scale) ** 2)
 
 
 def _minimize(

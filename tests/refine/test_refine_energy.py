@@ -16,6 +16,7 @@ from pmvir.refine.energy import (
     azimuth,
     azimuth_distance,
     energy_terms,
+    fresnel_transmittance,
     geometric_smoothness_term,
     pair_light,
     photometric_smoothness_term,
@@ -408,3 +409,43 @@ def test_dop_weighting_is_switchable(small_problem) -> None:
         polarimetric_term(smp.normal_cam, smp.ray_cam, smp.aop, None, smp.aop_defined, problem.pairs)
     )
     assert 0 < weighted < unweighted  # DoP < 1 everywhere
+
+
+# --- E_pho options for non-Lambertian reflectance --------------------------------------------------
+
+
+def test_fresnel_transmittance_against_brewster_and_the_synth_fresnel_code() -> None:
+    """1 at normal emission; at Brewster's angle R_p = 0 and R_s = ((n^2 - 1) / (n^2 + 1))^2 (closed
+    form); elsewhere equal to 1 - (R_s + R_p) / 2 from pmvir.synth.materials (complex-index code)."""
+    from pmvir.synth.materials import fresnel_reflectance
+
+    n = 1.5
+    assert float(fresnel_transmittance(torch.tensor(1.0, dtype=F64), n)) == pytest.approx(1.0, abs=1e-12)
+    brewster = math.cos(math.atan(n))
+    t0 = 1.0 - ((n - 1) / (n + 1)) ** 2
+    expected = (1.0 - 0.5 * ((n * n - 1) / (n * n + 1)) ** 2) / t0
+    assert float(fresnel_transmittance(torch.tensor(brewster, dtype=F64), n)) == pytest.approx(expected, rel=1e-9)
+    cos = np.linspace(0.05, 1.0, 50)
+    r_s, r_p = fresnel_reflectance(cos, n)
+    np.testing.assert_allclose(
+        fresnel_transmittance(torch.from_numpy(cos), n).numpy(), (1.0 - 0.5 * (r_s + r_p)) / t0, rtol=1e-9
+    )
+
+
+def _pho_options(problem, x, k, sh, sc):
+    """E_pho with the Fresnel-transmission diffuse factor and fixed per-pair weights."""
+    from dataclasses import replace
+
+    weight = torch.linspace(0.2, 1.0, problem.pairs.size, dtype=F64)
+    opt = replace(problem, diffuse_fresnel_ior=1.5, pho_weight=weight, polarimetric=False)
+    return energy_terms(x, k, sh, sc, opt)["pho"]
+
+
+def test_gradient_of_the_fresnel_weighted_photometric_term(small_problem) -> None:
+    problem, inputs = small_problem
+    value = float(_pho_options(problem, *inputs).detach())
+    plain = float(_pho(problem, *inputs).detach())
+    assert value > 0.0 and value != pytest.approx(plain)
+    assert torch.autograd.gradcheck(
+        lambda *a: _pho_options(problem, *a) / value, inputs, eps=1e-6, atol=1e-7, rtol=1e-4
+    )
