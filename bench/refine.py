@@ -74,6 +74,9 @@ VARIANTS: dict[str, dict] = {
     "full": {},
     "no_dop_weight": {"dop_weight": False},
     "i_int": {"intensity": "int"},
+    "least_squares": {"pho_robust": "none"},
+    "raw_dop_weight": {"dop_weight_normalized": False},
+    "previous": {"pho_robust": "none", "dop_weight_normalized": False},
 }
 LABELS = {
     "initial": "initial surface",
@@ -81,10 +84,13 @@ LABELS = {
     "full": "Polarimetric MVIR",
     "no_dop_weight": "no DoP weight",
     "i_int": "I_int instead of I_min",
+    "least_squares": "least-squares E_pho (pho_robust none)",
+    "raw_dop_weight": "DoP weight not normalized",
+    "previous": "previous defaults (both)",
 }
 ROWS = {
     "main": ("initial", "mvir", "full"),
-    "ablation": ("full", "no_dop_weight", "i_int", "mvir"),
+    "ablation": ("full", "no_dop_weight", "raw_dop_weight", "least_squares", "previous", "i_int", "mvir"),
     "materials": ("initial", "mvir", "full"),
 }
 TARGET_ACCURACY_PCT = 35.0

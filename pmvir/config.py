@@ -322,6 +322,12 @@ class RefineOptions(_Options):
         description="Weight each E_pol pair by its observed DoP rho, sampled at the stage's start and fixed for "
         "the stage (data: no gradient flows through it).",
     )
+    dop_weight_normalized: bool = Field(
+        default=True,
+        description="With dop_weight: divide the stage's DoP weights by their mean over E_pol's pairs, so the "
+        "weight ranks pairs by reliability without also scaling E_pol down by the capture's typical DoP. "
+        "Measured in the README.",
+    )
     dop_min: float = Field(
         default=0.035,
         ge=0.0,
@@ -417,7 +423,7 @@ class RefineOptions(_Options):
         "pplastic renders it: 0.95 at 60 degrees, 0.80 at 75 degrees for n = 1.5). Measured in the README.",
     )
     pho_robust: Literal["none", "cauchy"] = Field(
-        default="none",
+        default="cauchy",
         description="E_pho's loss. 'none': least squares (the paper's). 'cauchy': from stage 2 on, each pair's "
         "squared residual is weighted by the Cauchy weight 1 / (1 + (r / s)^2) of its residual r at the "
         "stage's start (s = pho_robust_scale times the median residual), fixed for the stage like the "
@@ -425,7 +431,7 @@ class RefineOptions(_Options):
         "README.",
     )
     pho_robust_scale: float = Field(
-        default=2.0,
+        default=0.5,
         gt=0.0,
         description="Scale s of the Cauchy weights of pho_robust, in multiples of the stage's median E_pho "
         "residual (RGB norm).",

@@ -441,6 +441,10 @@ def _stage_problem(
     opts, topo = setup.opts, setup.topo
     dop = samples.dop
     pol_mask = None if dop is None or opts.dop_min <= 0.0 else dop >= opts.dop_min
+    pol_weight = dop if opts.dop_weight and dop is not None else None
+    if pol_weight is not None and opts.dop_weight_normalized:
+        used = pol_weight if pol_mask is None else pol_weight[pol_mask]
+        pol_weight = pol_weight / (used.mean() if used.numel() else pol_weight.new_tensor(1.0)).clamp_min(1e-6)
     return StageProblem(
         faces=topo.faces,
         face_pairs=topo.face_pairs,
@@ -451,7 +455,7 @@ def _stage_problem(
         pairs=pairs,
         polarimetric=opts.polarimetric,
         pol_mask=pol_mask,
-        pol_weight=dop if opts.dop_weight and dop is not None else None,
+        pol_weight=pol_weight,
         k=opts.pol_k,
         t=t,
         units=opts.intensity_units,
