@@ -60,6 +60,7 @@ from pmvir.geometry.stage import run_geometry
 from pmvir.io.illumination import illumination_from_arrays, read_illumination
 from pmvir.io.ply import Mesh, read_mesh, write_mesh_ply
 from pmvir.pipeline import decode_views
+from pmvir.progress import Progress
 from pmvir.refine import make_visibility_fn, observation_from_decoded, refine_surface
 
 ROOT = Path(__file__).resolve().parent
@@ -155,7 +156,7 @@ class Case:
     def views(self) -> list:
         if self._views is None:
             with open_capture(self.capture) as cap:
-                self._views = decode_views(cap, PipelineConfig(), lambda f, m="": None)
+                self._views = decode_views(cap, PipelineConfig(), Progress.none())
                 self.masks = [cap.read_mask(i) for i in range(len(cap.frames))]
         return self._views
 

@@ -19,6 +19,7 @@ from pmvir.evaluate import evaluate
 from pmvir.geometry.stage import run_geometry
 from pmvir.io.ply import Mesh, read_mesh
 from pmvir.pipeline import decode_views
+from pmvir.progress import Progress
 from pmvir.refine import make_visibility_fn, observation_from_decoded, refine_surface
 from pmvir.synth import synthesize
 
@@ -32,7 +33,7 @@ def capture_run(tmp_path_factory: pytest.TempPathFactory):
     path = synthesize(root / "cap", shape="blob", views=24, size=(256, 216), material="plastic", seed=3)
     gopts = GeometryOptions(subdivision_max_area_px=8.0)
     with open_capture(path) as cap:
-        views = decode_views(cap, PipelineConfig(), lambda f, m="": None)
+        views = decode_views(cap, PipelineConfig(), Progress.none())
         masks = [cap.read_mask(i) for i in range(len(cap.frames))]
         geo = run_geometry(cap, [v.images for v in views], options=gopts, workdir=root / "work")
     reg = [i for i, c in enumerate(geo.cameras) if c is not None]
