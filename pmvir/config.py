@@ -505,7 +505,17 @@ class RefineOptions(_Options):
         default=True,
         description="Use the polarimetric term E_pol (False: the MVIR baseline, --no-polarimetric).",
     )
-    dop_weight: bool = Field(default=True, description="Weight each E_pol pair by its observed DoP rho.")
+    dop_weight: bool = Field(
+        default=True,
+        description="Weight each E_pol pair by its observed DoP rho, sampled at the stage's start and fixed for "
+        "the stage (data: no gradient flows through it).",
+    )
+    dop_weight_normalized: bool = Field(
+        default=True,
+        description="With dop_weight: divide the stage's DoP weights by their mean over E_pol's pairs, so the "
+        "weight ranks pairs by reliability without also scaling E_pol down by the capture's typical DoP. "
+        "Measured in the README.",
+    )
     dop_min: float = Field(
         default=0.035,
         ge=0.0,
@@ -592,6 +602,28 @@ class RefineOptions(_Options):
         "assume but the paper's units do not fix. 32 is measured: on the Stanford models (plastic, 36 views) "
         "it beat 64 on accuracy and completeness (bunny 46% -> 52% and 12% -> 15%, dragon 34% -> 38% and "
         "13% -> 15%); 255 (8-bit units) leaves E_pol a tie-breaker.",
+    )
+    diffuse_fresnel_ior: float = Field(
+        default=0.0,
+        ge=0.0,
+        description="E_pho's diffuse model. 0: Lambertian (the paper's). n > 1: the rendered colour of each "
+        "(vertex, view) pair is multiplied by the unpolarized Fresnel transmittance toward the camera of a "
+        "dielectric of index n, relative to normal emission (a smooth plastic's diffuse lobe, as Mitsuba's "
+        "pplastic renders it: 0.95 at 60 degrees, 0.80 at 75 degrees for n = 1.5). Measured in the README.",
+    )
+    pho_robust: Literal["none", "cauchy"] = Field(
+        default="cauchy",
+        description="E_pho's loss. 'none': least squares (the paper's). 'cauchy': from stage 2 on, each pair's "
+        "squared residual is weighted by the Cauchy weight 1 / (1 + (r / s)^2) of its residual r at the "
+        "stage's start (s = pho_robust_scale times the median residual), fixed for the stage like the "
+        "pairs: specular residue, cast shadows and misregistered samples lose their pull. Measured in the "
+        "README.",
+    )
+    pho_robust_scale: float = Field(
+        default=0.5,
+        gt=0.0,
+        description="Scale s of the Cauchy weights of pho_robust, in multiples of the stage's median E_pho "
+        "residual (RGB norm).",
     )
     psm_sigma_chroma: float = Field(
         default=0.05,

@@ -35,7 +35,7 @@ _FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
     ("--black-level", "black_level", {"type": int, "metavar": "DN"}),
     ("--exposure", "exposure", {"type": float, "metavar": "GAIN"}),
     ("--supersample", "supersample", {"type": int, "metavar": "N"}),
-    ("--aop-frame", "aop_frame", {"choices": ["normal", "ray"]}),
+    ("--aop-frame", "aop_frame", {"choices": ["ray", "normal"]}),
     ("--spp", "spp", {"type": int, "metavar": "N"}),
     ("--roughness", "roughness", {"type": float, "metavar": "R"}),
     ("--mesh-up", "mesh_up", {"choices": ["x", "y", "z"]}),

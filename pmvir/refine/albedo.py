@@ -34,6 +34,7 @@ class AlbedoSolver:
             vertices without observations and without observed neighbours determined.
         tol: relative residual at which CG stops; max_iter: most CG iterations.
         ridge: the ridge relative to the mean diagonal.
+        pair_weight: (P,) E_pho's per-pair factor on 1/|V(i)| (``StageProblem.pho_weight``); None: 1.
 
     Attributes:
         current: (N, 3) the last solution, in the dtype of ``initial``.
@@ -51,6 +52,7 @@ class AlbedoSolver:
         tol: float = 1e-5,
         max_iter: int = 500,
         ridge: float = 1e-6,
+        pair_weight: torch.Tensor | None = None,
     ):
         n = initial.shape[0]
         device = initial.device
@@ -70,12 +72,14 @@ class AlbedoSolver:
         )[:, None]
         self.adjacency = adjacency_csr(edges, w, n, device=device, dtype=torch.float64)
         self.iterations = 0
+        w_pair = pairs.weight if pair_weight is None else pairs.weight * pair_weight
+        self._pair_weight = w_pair.detach().to(torch.float64)[:, None]
 
     def __call__(self, observed: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
         """K* for the pairs' observed colours (P, 3) and lights (P, 3); returns (N, 3), no gradient."""
         with torch.no_grad():
             pv = self.pairs.vertex
-            wgt = self.pairs.weight.to(torch.float64)[:, None]
+            wgt = self._pair_weight
             a = light.to(torch.float64)
             diag = torch.zeros_like(self._x).index_add_(0, pv, wgt * a * a)
             rhs = torch.zeros_like(self._x).index_add_(0, pv, wgt * a * observed.to(torch.float64))

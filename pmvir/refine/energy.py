@@ -4,8 +4,9 @@
 
 All functions are pure, vectorized over every (vertex, view) pair / face /
 edge, and differentiable with autograd. Intensities and albedos are in the
-capture's normalized units times ``units`` (default 255: the paper's weights
-were tuned for 8-bit pixel values; see :class:`pmvir.config.RefineOptions`).
+capture's normalized units times ``units`` (the configured default is 32,
+``RefineOptions.intensity_units``: the paper's weights assume an intensity scale
+its text does not fix, and 32 measured best; see :class:`pmvir.config.RefineOptions`).
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from pmvir.errors import ConfigError
+from pmvir.polarization.azimuth import perspective_azimuth
 from pmvir.refine.mesh_ops import face_normals, normalize, vertex_normals
 from pmvir.refine.sampling import PairSamples, PairSet, ViewStack, sample_pairs
 from pmvir.sh import sh9_basis
@@ -24,19 +27,17 @@ from pmvir.sh import sh9_basis
 #: Offsets o of the paper's Eq. (eta): eta = min_o |alpha - phi + o|, for alpha in [0, 2 pi), phi in [0, pi).
 ETA_OFFSETS = (-2.0 * math.pi, -1.5 * math.pi, -math.pi, -0.5 * math.pi, 0.0, 0.5 * math.pi, math.pi)
 
-#: Squared length below which a camera-frame normal is taken as pointing along the optical axis
-#: (its image-plane azimuth is undefined and the pair drops out of E_pol).
-AZIMUTH_EPS = 1e-12
 
+def azimuth(normal_cam: torch.Tensor, ray_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Perspective-exact azimuth of camera-frame normals seen along their rays (spec section 2).
 
-def azimuth(normal_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Image-plane azimuth of camera-frame normals, in the capture's AoP (ccw) sense.
-
-    alpha = atan2(-n_y, n_x) (capture spec, section 2), wrapped to [0, 2 pi) as in
-    the paper (section 3.2: the azimuth ranges over [0, 2 pi)).
+    alpha = atan2(e . r1, e . r0) in the ray's reference axes, wrapped to [0, 2 pi) as in
+    the paper (section 3.2: the azimuth ranges over [0, 2 pi)); see
+    :func:`pmvir.polarization.azimuth.perspective_azimuth`, the one implementation.
 
     Args:
-        normal_cam: (..., 2) or (..., 3) normals in OpenCV camera axes (x, y used).
+        normal_cam: (..., 3) unit normals in OpenCV camera axes.
+        ray_cam: (..., 3) unit directions from the camera centre to the points, camera axes.
 
     Returns:
         alpha (...) in [0, 2 pi) and a bool mask (...) of where it is defined.
@@ -45,15 +46,12 @@ def azimuth(normal_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         Seen on the optical axis, a normal along camera +x has azimuth 0, one along image up
         (camera -y) 90 degrees, and one facing the camera has none:
 
-        >>> alpha, defined = azimuth(torch.tensor([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]]))
+        >>> normals = torch.tensor([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+        >>> alpha, defined = azimuth(normals, torch.tensor([0.0, 0.0, 1.0]).expand(3, 3))
         >>> bool(alpha[0] == 0), round(math.degrees(alpha[1]), 4), defined.tolist()
         (True, 90.0, [True, True, False])
     """
-    nx, ny = normal_cam[..., 0], normal_cam[..., 1]
-    defined = nx * nx + ny * ny > AZIMUTH_EPS
-    nx_safe = torch.where(defined, nx, torch.ones_like(nx))
-    alpha = torch.remainder(torch.atan2(-ny, nx_safe), 2.0 * math.pi)
-    return alpha, defined
+    return perspective_azimuth(normal_cam, ray_cam)
 
 
 def azimuth_distance(alpha: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
@@ -104,8 +102,39 @@ def pair_light(
     return shading[:, None] * rgb_scale.index_select(0, pairs.view)
 
 
+def fresnel_transmittance(cos_o: torch.Tensor, ior: float) -> torch.Tensor:
+    """Unpolarized Fresnel transmittance ``1 - (R_s + R_p) / 2`` of a dielectric of index ``ior``
+    for light leaving it at emission angle acos(cos_o), divided by its value at normal emission.
+
+    The diffuse lobe of a smooth dielectric (Mitsuba's ``pplastic``, Wolff's diffuse model) is
+    scattered inside and leaves through the interface, so it is darker toward grazing emission
+    than a Lambertian surface: this factor is 1 at normal emission and falls to about 0.95 at 60
+    degrees and 0.80 at 75 degrees for ior 1.5.
+
+    Args:
+        cos_o: (...) cosine between the normal and the direction to the camera (clamped to [0, 1]).
+        ior: refractive index > 1.
+
+    Returns:
+        (...) factor in (0, 1], differentiable in ``cos_o``.
+    """
+    c = cos_o.clamp(1e-6, 1.0)
+    sin2_t = (1.0 - c * c) / (ior * ior)
+    cos_t = torch.sqrt((1.0 - sin2_t).clamp_min(1e-12))
+    r_s = ((c - ior * cos_t) / (c + ior * cos_t)) ** 2
+    r_p = ((ior * c - cos_t) / (ior * c + cos_t)) ** 2
+    t0 = 1.0 - ((ior - 1.0) / (ior + 1.0)) ** 2
+    return (1.0 - 0.5 * (r_s + r_p)) / t0
+
+
 def photometric_term(
-    observed: torch.Tensor, light: torch.Tensor, albedo: torch.Tensor, pairs: PairSet, *, units: float = 255.0
+    observed: torch.Tensor,
+    light: torch.Tensor,
+    albedo: torch.Tensor,
+    pairs: PairSet,
+    *,
+    units: float = 255.0,
+    weight: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """E_pho = sum_i sum_{c in V(i)} ||I_ic - K_i S(N_i, L_c) L_scale,c||^2 / |V(i)|.
 
@@ -115,44 +144,48 @@ def photometric_term(
         albedo: (N, 3) RGB albedo K.
         pairs: the stage's pairs.
         units: intensities and albedos are multiplied by this before squaring.
+        weight: (P,) optional per-pair factor on 1/|V(i)|, data fixed for the stage (e.g. 0 for
+            pairs rejected as specular); None: 1.
 
     Returns:
         scalar tensor.
     """
     rendered = albedo.index_select(0, pairs.vertex) * light
     r = (observed - rendered) * units
-    return ((r * r).sum(-1) * pairs.weight).sum()
+    w = pairs.weight if weight is None else pairs.weight * weight
+    return ((r * r).sum(-1) * w).sum()
 
 
 def polarimetric_term(
     normal_cam: torch.Tensor,
+    ray_cam: torch.Tensor,
     aop: torch.Tensor,
-    dop: torch.Tensor,
+    weight: torch.Tensor | None,
     aop_defined: torch.Tensor,
     pairs: PairSet,
     *,
     k: float = 0.5,
-    dop_weight: bool = True,
 ) -> torch.Tensor:
     """E_pol = sum_i sum_{c in V(i)} rho_ic ((e^{-k theta_ic} - e^{-k}) / (1 - e^{-k}))^2 / |V(i)|.
 
     Args:
-        normal_cam: (P, 2) or (P, 3) vertex normals in each pair's camera frame (x, y used).
+        normal_cam: (P, 3) vertex normals in each pair's camera frame.
+        ray_cam: (P, 3) unit directions from each pair's camera centre to its vertex (camera frame).
         aop: (P,) observed AoP phi_ic in [0, pi).
-        dop: (P,) observed DoP rho_ic (the weight; replaced by 1 when ``dop_weight`` is False).
+        weight: (P,) the DoP weight rho_ic, data (no gradient flows into it; the schedule fixes it
+            per stage from the DoP sampled at the stage's start), or None for no weighting.
         aop_defined: (P,) bool; pairs where the sampled AoP is undefined contribute nothing.
         pairs: the stage's pairs.
         k: narrowness of the cost's concave shape (paper: 0.5).
-        dop_weight: weight each pair by its DoP.
 
     Returns:
         scalar tensor.
     """
-    alpha, defined = azimuth(normal_cam)
+    alpha, defined = azimuth(normal_cam, ray_cam)
     cost = polarimetric_cost(azimuth_distance(alpha, aop), k=k)
     w = pairs.weight * (defined & aop_defined).to(cost.dtype)
-    if dop_weight:
-        w = w * dop
+    if weight is not None:
+        w = w * weight.detach()
     return (cost * w).sum()
 
 
@@ -245,7 +278,11 @@ class StageProblem:
         pairs: the stage's (vertex, view) pairs.
         polarimetric: whether E_pol is evaluated.
         pol_mask: (P,) bool pairs used by E_pol (None: all), e.g. DoP above the noise floor at the stage start.
-        k, dop_weight, t, units: term parameters.
+        pol_weight: (P,) E_pol's per-pair DoP weight, fixed for the stage (None: unweighted).
+        pho_weight: (P,) E_pho's per-pair factor, fixed for the stage (None: 1).
+        diffuse_fresnel_ior: > 0: the rendered colour of each pair is multiplied by the Fresnel
+            transmittance toward its camera (:func:`fresnel_transmittance`); 0: Lambertian.
+        k, t, units: term parameters.
     """
 
     faces: torch.Tensor
@@ -257,10 +294,12 @@ class StageProblem:
     pairs: PairSet
     polarimetric: bool
     pol_mask: torch.Tensor | None
+    pol_weight: torch.Tensor | None
     k: float
-    dop_weight: bool
     t: float
     units: float
+    pho_weight: torch.Tensor | None = None
+    diffuse_fresnel_ior: float = 0.0
 
 
 def energy_terms(
@@ -282,20 +321,27 @@ def energy_terms(
     normals = vertex_normals(vertices, problem.faces)
     samples: PairSamples = sample_pairs(vertices, normals, problem.views, problem.pairs)
     light = pair_light(normals, sh, rgb_scale, problem.pairs)
+    if problem.diffuse_fresnel_ior > 0.0:
+        cos_o = -(samples.normal_cam * samples.ray_cam).sum(-1)
+        light = light * fresnel_transmittance(cos_o, problem.diffuse_fresnel_ior)[:, None]
     if callable(albedo):
         albedo = albedo(samples.intensity.detach(), light.detach())
-    terms = {"pho": photometric_term(samples.intensity, light, albedo, problem.pairs, units=problem.units)}
+    terms = {
+        "pho": photometric_term(
+            samples.intensity, light, albedo, problem.pairs, units=problem.units, weight=problem.pho_weight
+        )
+    }
     if problem.polarimetric:
-        aop, dop, defined = samples.aop, samples.dop, samples.aop_defined
-        assert aop is not None and dop is not None and defined is not None  # polarimetric views sample them
+        if samples.aop is None or samples.aop_defined is None:
+            raise ConfigError("E_pol needs a view stack built with polarization (polarimetric=True)")
         terms["pol"] = polarimetric_term(
             samples.normal_cam,
-            aop,
-            dop,
-            defined if problem.pol_mask is None else defined & problem.pol_mask,
+            samples.ray_cam,
+            samples.aop,
+            problem.pol_weight,
+            samples.aop_defined if problem.pol_mask is None else samples.aop_defined & problem.pol_mask,
             problem.pairs,
             k=problem.k,
-            dop_weight=problem.dop_weight,
         )
     terms["gsm"] = geometric_smoothness_term(
         face_normals(vertices, problem.faces), problem.face_pairs, problem.has_neighbour, t=problem.t

@@ -6,8 +6,9 @@ renderer lives in :mod:`pmvir.synth`). For every pixel the ray hits the mesh
 barycentrically from the vertices (smooth shading):
 
 * unpolarized part ``I_min = K * S(N, L_basis) * L_scale`` (the pmvir model, exactly);
-* AoP from the normal's image-plane azimuth alpha = atan2(-n_y, n_x) of the
-  camera-frame normal (spec section 2): diffuse-dominant pixels phi = alpha mod pi,
+* AoP from the normal's perspective-exact azimuth alpha seen along the pixel's ray
+  (spec section 2, :func:`pmvir.polarization.azimuth.perspective_azimuth`):
+  diffuse-dominant pixels phi = alpha mod pi,
   specular-dominant pixels (the half vector of the view and one of
   ``specular_dirs`` within ``specular_cos`` of N) phi = alpha + pi/2 mod pi;
 * DoP from the Fresnel formulas (diffuse or specular, refractive index ``eta``),
@@ -26,6 +27,7 @@ import numpy as np
 
 from pmvir.camera import Camera
 from pmvir.io.ply import vertex_normals
+from pmvir.polarization.azimuth import perspective_azimuth
 from pmvir.sh import sh9_shading
 
 
@@ -113,8 +115,7 @@ def render_decoded(
         alb = np.einsum("pk,pkj->pj", bary, k[tri])
         view_dir = -d[mask]
         i_min = alb * np.maximum(sh9_shading(nrm, sh[c]), 0.0)[:, None] * rgb_scale[c][None, :]
-        ncam = nrm @ cam.R.T
-        alpha = np.arctan2(-ncam[:, 1], ncam[:, 0])
+        alpha, _ = perspective_azimuth(nrm @ cam.R.T, d[mask] @ cam.R.T)
         cosz = np.clip((nrm * view_dir).sum(1), 0.0, 1.0)
         spec = np.zeros(len(nrm), dtype=bool)
         if specular_dirs is not None:

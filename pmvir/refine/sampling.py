@@ -297,7 +297,8 @@ class PairSamples:
 
     Attributes:
         intensity: (P, 3) observed RGB I_{i,c}(X).
-        normal_cam: (P, 2) x and y components of the vertex normal in camera c's frame (R_c @ N_i).
+        normal_cam: (P, 3) the vertex normal in camera c's frame (R_c @ N_i).
+        ray_cam: (P, 3) unit direction from camera c's centre to the vertex, camera c's frame.
         aop: (P,) observed AoP phi_{i,c}(X) in [0, pi) (None without polarization).
         dop: (P,) observed DoP rho_{i,c}(X) (None without polarization).
         aop_defined: (P,) bool, False where the interpolated (cos, sin) 2phi vector vanished.
@@ -305,6 +306,7 @@ class PairSamples:
 
     intensity: torch.Tensor
     normal_cam: torch.Tensor
+    ray_cam: torch.Tensor
     aop: torch.Tensor | None
     dop: torch.Tensor | None
     aop_defined: torch.Tensor | None
@@ -369,7 +371,8 @@ def sample_pairs(
     ns = torch.split(normals.index_select(0, pairs.vertex), sizes)
     rot, trans = views.rotation, views.translation
     pc = torch.cat([x @ rot[c].T + trans[c] for c, x in enumerate(xs)])
-    normal_cam = torch.cat([n @ rot[c, :2].T for c, n in enumerate(ns)])
+    normal_cam = torch.cat([n @ rot[c].T for c, n in enumerate(ns)])
+    ray_cam = pc / torch.linalg.vector_norm(pc, dim=1, keepdim=True).clamp_min(1e-12)
     intr = views.intrinsics.index_select(0, pairs.view)
     inv_z = 1.0 / pc[:, 2].clamp_min(1e-9)
     xn, yn = pc[:, 0] * inv_z, pc[:, 1] * inv_z
@@ -384,9 +387,9 @@ def sample_pairs(
         views.height.index_select(0, pairs.view),
     )
     if not views.polarimetric:
-        return PairSamples(smp[:, :3], normal_cam, None, None, None)
+        return PairSamples(smp[:, :3], normal_cam, ray_cam, None, None, None)
     cos2, sin2 = smp[:, 3], smp[:, 4]
     defined = cos2 * cos2 + sin2 * sin2 > 1e-12
     cos_safe = torch.where(defined, cos2, torch.ones_like(cos2))
     phi = torch.remainder(0.5 * torch.atan2(sin2, cos_safe), torch.pi)
-    return PairSamples(smp[:, :3], normal_cam, phi, smp[:, 5], defined)
+    return PairSamples(smp[:, :3], normal_cam, ray_cam, phi, smp[:, 5], defined)

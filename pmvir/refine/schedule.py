@@ -22,15 +22,16 @@ per-view SH coefficients L_basis (9) and RGB scales L_scale (3).
 * Preconditioning: L-BFGS's initial inverse Hessian is a graph smoother on the
   vertex-motion block (:class:`pmvir.refine.mesh_ops.GraphSmoother`); SH and scale
   unknowns of view c are scaled by 1/sqrt(sum of the pair weights 1/|V(i)| of the view).
-* Between stages the pairs (visibility), E_psm weights, E_pol's DoP mask, n0 and h
-  are recomputed at the refined geometry.
+* Stages: :func:`prepare_stage` fixes a stage's data at the current geometry (visibility,
+  pairs, E_psm weights, E_pol's DoP mask and DoP weights, n0 and h), :func:`solve_stage`
+  minimizes its cost; :func:`refine_surface` is the loop over the two.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -40,8 +41,15 @@ from pmvir.config import RefineOptions
 from pmvir.errors import ConfigError, ReconstructionError
 from pmvir.progress import Progress
 from pmvir.refine.albedo import AlbedoSolver
-from pmvir.refine.energy import StageProblem, energy_terms, psm_weights, total_energy
-from pmvir.refine.lbfgs import minimize_lbfgs
+from pmvir.refine.energy import (
+    StageProblem,
+    energy_terms,
+    fresnel_transmittance,
+    pair_light,
+    psm_weights,
+    total_energy,
+)
+from pmvir.refine.lbfgs import LbfgsResult, minimize_lbfgs
 from pmvir.refine.mesh_ops import (
     GraphSmoother,
     check_mesh,
@@ -52,6 +60,7 @@ from pmvir.refine.mesh_ops import (
 )
 from pmvir.refine.sampling import (
     Observation,
+    PairSamples,
     PairSet,
     ViewStack,
     build_view_stack,
@@ -154,16 +163,55 @@ class _Unknowns:
     rgb_scale: torch.Tensor  # (V, 3)
 
 
-class _Parametrization:
-    """Flat, preconditioned unknowns z of one stage <-> (X, K, L_basis, L_scale).
+@dataclass(frozen=True)
+class _Blocks:
+    """Where each named block of unknowns lives in the flat vector z of a stage.
 
-    Blocks of z: vertex motion (N for "normal", 3N for "free"), albedo (3N, only when
-    ``joint_albedo``),
-    SH L1..L8 per view (8V), RGB scale of views 1..V-1 (3(V-1)).
+    Attributes:
+        motion: vertex motion, N values ("normal") or 3N ("free", row-major (N, 3)).
+        albedo: RGB albedo (3N, row-major (N, 3)); empty unless the albedo is a joint unknown.
+        sh: SH coefficients L1..L8 of every view (8V, row-major (V, 8)); L0 is the gauge.
+        scale: RGB scales of views 1..V-1 (3(V-1)); view 0's is the gauge.
+        size: length of z.
+    """
+
+    motion: slice
+    albedo: slice
+    sh: slice
+    scale: slice
+    size: int
+
+    @classmethod
+    def layout(cls, *, n_vertices: int, n_views: int, motion: str, joint_albedo: bool) -> _Blocks:
+        sizes = {
+            "motion": n_vertices if motion == "normal" else 3 * n_vertices,
+            "albedo": 3 * n_vertices if joint_albedo else 0,
+            "sh": 8 * n_views,
+            "scale": 3 * (n_views - 1),
+        }
+        slices, start = {}, 0
+        for name, size in sizes.items():
+            slices[name] = slice(start, start + size)
+            start += size
+        return cls(**slices, size=start)
+
+
+class _Parametrization:
+    """Flat, preconditioned unknowns z of one stage <-> (X, K, L_basis, L_scale) (blocks: :class:`_Blocks`).
+
+    Vertex motion is in units of the mean edge length h; SH and scale unknowns of view c are
+    scaled by 1/sqrt(sum of the pair weights of view c) (see the module docstring).
     """
 
     def __init__(
-        self, start: _Unknowns, pairs: PairSet, faces: torch.Tensor, h: float, motion: str, joint_albedo: bool
+        self,
+        start: _Unknowns,
+        *,
+        pairs: PairSet,
+        faces: torch.Tensor,
+        h: float,
+        motion: str,
+        joint_albedo: bool,
     ):
         n, v = start.vertices.shape[0], start.sh.shape[0]
         self.start, self.h, self.motion, self.n, self.v = start, h, motion, n, v
@@ -172,122 +220,68 @@ class _Parametrization:
         per_view = torch.zeros(v, dtype=start.sh.dtype, device=start.sh.device)
         per_view.index_add_(0, pairs.view, pairs.weight)
         self.precond = per_view.clamp_min(1.0).rsqrt()
-        n_geo = n if motion == "normal" else 3 * n
-        sizes = [n_geo, 3 * n if joint_albedo else 0, 8 * v, 3 * (v - 1)]
-        self.bounds = np.cumsum([0] + sizes).tolist()
+        self.blocks = _Blocks.layout(n_vertices=n, n_views=v, motion=motion, joint_albedo=joint_albedo)
 
     def initial(self) -> torch.Tensor:
-        z = torch.zeros(self.bounds[-1], dtype=self.start.albedo.dtype, device=self.start.albedo.device)
-        b = self.bounds
+        z = torch.zeros(self.blocks.size, dtype=self.start.albedo.dtype, device=self.start.albedo.device)
         if self.joint_albedo:
-            z[b[1] : b[2]] = self.start.albedo.reshape(-1)
+            z[self.blocks.albedo] = self.start.albedo.reshape(-1)
         return z
 
     def preconditioner(self, smoother: GraphSmoother) -> Callable[[torch.Tensor], torch.Tensor]:
         """The L-BFGS preconditioner: ``smoother`` on the vertex-motion block, identity elsewhere."""
-        b, n = self.bounds, self.n
+        motion, n = self.blocks.motion, self.n
 
         def apply(z: torch.Tensor) -> torch.Tensor:
-            geo = z[b[0] : b[1]]
+            geo = z[motion]
             geo = smoother(geo if self.motion == "normal" else geo.view(n, 3)).reshape(-1)
-            return torch.cat([geo, z[b[1] :]])
+            return torch.cat([geo, z[motion.stop :]])
 
         return apply
 
     def unpack(self, z: torch.Tensor) -> _Unknowns:
         """Unknowns at z; without ``joint_albedo`` the albedo is the stage's start value (a placeholder)."""
-        b, n, v, s = self.bounds, self.n, self.v, self.start
-        geo = z[b[0] : b[1]]
+        blocks, s = self.blocks, self.start
+        motion = z[blocks.motion]
         if self.motion == "normal":
-            vertices = s.vertices + self.h * geo[:, None] * self.normal0
+            vertices = s.vertices + self.h * motion[:, None] * self.normal0
         else:
-            vertices = s.vertices + self.h * geo.view(n, 3)
-        albedo = z[b[1] : b[2]].view(n, 3) if self.joint_albedo else s.albedo
-        sh_rest = s.sh[:, 1:] + z[b[2] : b[3]].view(v, 8) * self.precond[:, None]
+            vertices = s.vertices + self.h * motion.view(self.n, 3)
+        albedo = z[blocks.albedo].view(self.n, 3) if self.joint_albedo else s.albedo
+        sh_rest = s.sh[:, 1:] + z[blocks.sh].view(self.v, 8) * self.precond[:, None]
         sh = torch.cat([torch.ones_like(s.sh[:, :1]), sh_rest], dim=1)
-        scale_rest = s.rgb_scale[1:] + z[b[3] : b[4]].view(v - 1, 3) * self.precond[1:, None]
+        scale_rest = s.rgb_scale[1:] + z[blocks.scale].view(self.v - 1, 3) * self.precond[1:, None]
         rgb_scale = torch.cat([s.rgb_scale[:1], scale_rest], dim=0)
         return _Unknowns(vertices, albedo, sh, rgb_scale)
 
 
 def _stage_observations(
-    vertices: torch.Tensor, faces: torch.Tensor, views, pairs: PairSet
-) -> tuple[np.ndarray, np.ndarray, torch.Tensor | None]:
+    vertices: torch.Tensor, faces: torch.Tensor, views: ViewStack, pairs: PairSet
+) -> tuple[np.ndarray, np.ndarray, PairSamples]:
     """At the stage's start: (N, 3) mean observed RGB of each vertex over its pairs, (N,) bool
-    'has a pair', and the (P,) DoP of every pair (None without polarization)."""
+    'has a pair', and the samples of every pair there (their DoP fixes E_pol's masks and weights)."""
     with torch.no_grad():
         normals = vertex_normals(vertices, faces)
         smp = sample_pairs(vertices, normals, views, pairs)
         total = torch.zeros_like(vertices).index_add_(0, pairs.vertex, smp.intensity)
     count = pairs.count
     mean = total.cpu().numpy().astype(np.float64) / np.maximum(count, 1)[:, None]
-    return mean, count > 0, smp.dop
+    return mean, count > 0, smp
 
 
 class _IterationLog:
-    """Collects the per-iteration energies of a stage and reports progress / polls cancellation."""
+    """Collects the per-iteration energies of a stage and reports them through the stage's progress."""
 
-    def __init__(self, max_iterations: int, stage: int, n_stages: int, report, check_cancel):
-        self.max_iterations, self.stage, self.n_stages = max_iterations, stage, n_stages
-        self.report, self.check_cancel = report, check_cancel
+    def __init__(self, *, max_iterations: int, progress: Progress):
+        self.max_iterations, self.progress = max_iterations, progress
         self.energies: list[dict[str, float]] = []
         self.grad_max: list[float] = []
 
     def __call__(self, it: int, value: float, gmax: float, named: dict[str, float]) -> None:
         self.energies.append(named)
         self.grad_max.append(gmax)
-        s, n = self.stage, self.n_stages
-        frac = min(it / self.max_iterations, 1.0)
-        self.report((s + frac) / n, f"refine stage {s + 1}/{n} iteration {it}: E = {value:.6g}")
-        self.check_cancel(f"at stage {s + 1} iteration {it}")
-
-
-def _minimize(
-    param: _Parametrization,
-    problem: StageProblem,
-    solver: AlbedoSolver | None,
-    tau: tuple[float, float, float],
-    smoother: GraphSmoother,
-    opts: RefineOptions,
-    log: _IterationLog,
-    max_iterations: int,
-):
-    """L-BFGS on one parametrization of a stage's cost."""
-
-    def fun(z: torch.Tensor):
-        z = z.detach().requires_grad_(True)
-        u = param.unpack(z)
-        albedo = u.albedo if solver is None else solver
-        terms = energy_terms(u.vertices, albedo, u.sh, u.rgb_scale, problem)
-        total = total_energy(terms, tau_pol=tau[0], tau_gsm=tau[1], tau_psm=tau[2])
-        (grad,) = torch.autograd.grad(total, z)
-        named = {k: float(v.detach()) for k, v in terms.items()}
-        named["total"] = float(total.detach())
-        return named["total"], grad, named
-
-    return minimize_lbfgs(
-        fun,
-        param.initial(),
-        precondition=param.preconditioner(smoother),
-        first_step=0.1,
-        max_iterations=max_iterations,
-        history_size=opts.history_size,
-        rel_tolerance=opts.rel_tolerance,
-        grad_tolerance=opts.grad_tolerance,
-        on_iteration=log,
-    )
-
-
-def _accepted(
-    param: _Parametrization, problem: StageProblem, solver: AlbedoSolver | None, z: torch.Tensor
-) -> _Unknowns:
-    """The unknowns at the accepted point z (with the projected albedo solved there)."""
-    with torch.no_grad():
-        u = param.unpack(z)
-        if solver is not None:
-            energy_terms(u.vertices, solver, u.sh, u.rgb_scale, problem)
-            u.albedo = solver.current
-    return _Unknowns(u.vertices.detach(), u.albedo.detach(), u.sh.detach(), u.rgb_scale.detach())
+        self.progress.check_cancel(f"at iteration {it}")
+        self.progress.update(min(it / self.max_iterations, 1.0), f"iteration {it}: E = {value:.6g}")
 
 
 @dataclass(frozen=True)
@@ -314,43 +308,333 @@ class _Topology:
         )
 
 
-def _stage_problem(
-    topo: _Topology,
-    views: ViewStack,
-    pairs: PairSet,
-    colour: np.ndarray,
-    observed: np.ndarray,
-    opts: RefineOptions,
-    *,
-    polarimetric: bool,
-    pol_mask: torch.Tensor | None,
-    t: float,
-) -> tuple[StageProblem, np.ndarray]:
-    """A stage's constants and its E_psm weights (from the observed colours at its start)."""
-    w = psm_weights(
+@dataclass(frozen=True)
+class _Setup:
+    """What every stage shares: the inputs as tensors, the mesh's connectivity and the options."""
+
+    faces_np: np.ndarray
+    topo: _Topology
+    cameras: Sequence[Camera]
+    observations: Sequence[Observation]
+    views: ViewStack
+    smoother: GraphSmoother
+    visibility_fn: VisibilityFn | None
+    opts: RefineOptions
+    device: torch.device
+    dtype: torch.dtype
+
+
+@dataclass(frozen=True)
+class StageWeights:
+    """One stage's weights of the cost ``E_pho + tau_pol E_pol + tau_gsm E_gsm + tau_psm E_psm``.
+
+    Attributes:
+        tau_pol: tau1 (0 without E_pol); tau_gsm: tau2; tau_psm: tau3; t: E_gsm's exponent.
+    """
+
+    tau_pol: float
+    tau_gsm: float
+    tau_psm: float
+    t: float
+
+    @classmethod
+    def of_stage(cls, opts: RefineOptions, s: int) -> StageWeights:
+        return cls(
+            tau_pol=opts.tau_pol[s] if opts.polarimetric else 0.0,
+            tau_gsm=opts.tau_gsm[s],
+            tau_psm=opts.tau_psm[s],
+            t=opts.gsm_exponent[s],
+        )
+
+
+@dataclass(frozen=True)
+class _Stage:
+    """A stage's fixed data, chosen at its start (see :func:`prepare_stage`)."""
+
+    index: int
+    weights: StageWeights
+    visibility: np.ndarray
+    pairs: PairSet
+    problem: StageProblem
+    psm_weight: np.ndarray
+    n_observed: int
+    h: float
+
+
+def prepare_stage(
+    setup: _Setup, state: _Unknowns, visibility: np.ndarray, s: int
+) -> tuple[_Stage, _Unknowns]:
+    """Fix stage ``s``'s data at the current geometry: visibility, pairs, E_pol's DoP mask and
+    weights, E_psm's weights, the motion scale h; on the first stage also the initial albedo.
+
+    Returns:
+        the stage and the unknowns to start it from.
+
+    Raises:
+        ConfigError: ``visibility_fn`` returned the wrong shape.
+        ReconstructionError: no usable pair.
+    """
+    opts, faces_np = setup.opts, setup.faces_np
+    cur_np = state.vertices.detach().cpu().numpy().astype(np.float64)
+    n, n_views = len(cur_np), len(setup.cameras)
+    if s > 0 and opts.refresh_visibility and setup.visibility_fn is not None:
+        visibility = np.asarray(setup.visibility_fn(cur_np, faces_np))
+        if visibility.shape != (n, n_views):
+            raise ConfigError(f"visibility_fn returned shape {visibility.shape}, expected ({n}, {n_views})")
+    with torch.no_grad():
+        normals_np = vertex_normals(state.vertices, setup.topo.faces).cpu().numpy().astype(np.float64)
+    pairs = select_pairs(
+        cur_np,
+        visibility,
+        setup.cameras,
+        setup.observations,
+        device=setup.device,
+        dtype=setup.dtype,
+        normals=normals_np,
+        min_cos=opts.min_view_cos,
+        keep_best=opts.min_view_pairs,
+    )
+    if pairs.size == 0:
+        raise ReconstructionError(
+            f"stage {s + 1}: no vertex projects onto valid pixels of a view that sees it"
+        )
+    colour, observed, samples = _stage_observations(state.vertices, setup.topo.faces, setup.views, pairs)
+    if s == 0:
+        fill = colour[observed].mean(axis=0)
+        init = np.where(observed[:, None], colour, fill[None, :])
+        state = replace(state, albedo=torch.from_numpy(init).to(device=setup.device, dtype=setup.dtype))
+    weights = StageWeights.of_stage(opts, s)
+    psm_weight = psm_weights(
         colour,
         observed,
-        topo.edges_np,
+        setup.topo.edges_np,
         sigma_chroma=opts.psm_sigma_chroma,
         sigma_log_intensity=opts.psm_sigma_log_intensity,
     )
-    device, dtype = views.table.device, views.table.dtype
-    problem = StageProblem(
+    robust = opts.pho_robust == "cauchy" and s > 0  # stage 1 starts from uniform lighting: no residuals yet
+    pho_weight = _robust_pho_weights(setup, state, pairs, samples) if robust else None
+    problem = _stage_problem(setup, pairs, samples, psm_weight, t=weights.t, pho_weight=pho_weight)
+    stage = _Stage(
+        index=s,
+        weights=weights,
+        visibility=visibility,
+        pairs=pairs,
+        problem=problem,
+        psm_weight=psm_weight,
+        n_observed=int(observed.sum()),
+        h=mean_edge_length(cur_np, setup.topo.edges_np),
+    )
+    return stage, state
+
+
+def _stage_problem(
+    setup: _Setup,
+    pairs: PairSet,
+    samples: PairSamples,
+    psm_weight: np.ndarray,
+    *,
+    t: float,
+    pho_weight: torch.Tensor | None,
+) -> StageProblem:
+    """A stage's constants; E_pol's pair mask (DoP above ``dop_min``) and DoP weights are taken
+    from the samples at the stage's start and stay fixed, like the pairs."""
+    opts, topo = setup.opts, setup.topo
+    dop = samples.dop
+    pol_mask = None if dop is None or opts.dop_min <= 0.0 else dop >= opts.dop_min
+    pol_weight = dop if opts.dop_weight and dop is not None else None
+    if pol_weight is not None and opts.dop_weight_normalized:
+        used = pol_weight if pol_mask is None else pol_weight[pol_mask]
+        pol_weight = pol_weight / (used.mean() if used.numel() else pol_weight.new_tensor(1.0)).clamp_min(1e-6)
+    return StageProblem(
         faces=topo.faces,
         face_pairs=topo.face_pairs,
         has_neighbour=topo.has_neighbour,
         edges=topo.edges,
-        psm_weight=torch.from_numpy(w).to(device=device, dtype=dtype),
-        views=views,
+        psm_weight=torch.from_numpy(psm_weight).to(device=setup.device, dtype=setup.dtype),
+        views=setup.views,
         pairs=pairs,
-        polarimetric=polarimetric,
+        polarimetric=opts.polarimetric,
         pol_mask=pol_mask,
+        pol_weight=pol_weight,
         k=opts.pol_k,
-        dop_weight=opts.dop_weight,
         t=t,
         units=opts.intensity_units,
+        pho_weight=pho_weight,
+        diffuse_fresnel_ior=opts.diffuse_fresnel_ior,
     )
-    return problem, w
+
+
+def _robust_pho_weights(
+    setup: _Setup, state: _Unknowns, pairs: PairSet, samples: PairSamples
+) -> torch.Tensor:
+    """(P,) Cauchy weights 1 / (1 + (r / s)^2) of each pair's E_pho residual r (RGB norm) at the
+    current unknowns, s = ``pho_robust_scale`` times the median residual (``pho_robust``)."""
+    with torch.no_grad():
+        normals = vertex_normals(state.vertices, setup.topo.faces)
+        light = pair_light(normals, state.sh, state.rgb_scale, pairs)
+        if setup.opts.diffuse_fresnel_ior > 0.0:
+            cos_o = -(samples.normal_cam * samples.ray_cam).sum(-1)
+            light = light * fresnel_transmittance(cos_o, setup.opts.diffuse_fresnel_ior)[:, None]
+        r = torch.linalg.vector_norm(
+            samples.intensity - state.albedo.index_select(0, pairs.vertex) * light, dim=1
+        )
+        scale = setup.opts.pho_robust_scale * r.median().clamp_min(1e-12)
+        return 1.0 / (1.0 + (r / scale) ** 2)
+
+
+def _minimize(
+    param: _Parametrization,
+    *,
+    problem: StageProblem,
+    solver: AlbedoSolver | None,
+    weights: StageWeights,
+    smoother: GraphSmoother,
+    opts: RefineOptions,
+    log: _IterationLog,
+) -> LbfgsResult:
+    """L-BFGS on one parametrization of a stage's cost."""
+
+    def fun(z: torch.Tensor) -> tuple[float, torch.Tensor, dict[str, float]]:
+        z = z.detach().requires_grad_(True)
+        u = param.unpack(z)
+        albedo = u.albedo if solver is None else solver
+        terms = energy_terms(u.vertices, albedo, u.sh, u.rgb_scale, problem)
+        total = total_energy(terms, tau_pol=weights.tau_pol, tau_gsm=weights.tau_gsm, tau_psm=weights.tau_psm)
+        (grad,) = torch.autograd.grad(total, z)
+        named = {k: float(v.detach()) for k, v in terms.items()}
+        named["total"] = float(total.detach())
+        return named["total"], grad, named
+
+    return minimize_lbfgs(
+        fun,
+        param.initial(),
+        precondition=param.preconditioner(smoother),
+        first_step=0.1,
+        max_iterations=opts.max_iterations,
+        history_size=opts.history_size,
+        rel_tolerance=opts.rel_tolerance,
+        grad_tolerance=opts.grad_tolerance,
+        on_iteration=log,
+    )
+
+
+def _accepted(
+    param: _Parametrization, problem: StageProblem, solver: AlbedoSolver | None, z: torch.Tensor
+) -> _Unknowns:
+    """The unknowns at the accepted point z (with the projected albedo solved there)."""
+    with torch.no_grad():
+        u = param.unpack(z)
+        if solver is not None:
+            energy_terms(u.vertices, solver, u.sh, u.rgb_scale, problem)
+            u.albedo = solver.current
+    return _Unknowns(u.vertices.detach(), u.albedo.detach(), u.sh.detach(), u.rgb_scale.detach())
+
+
+def solve_stage(
+    setup: _Setup, stage: _Stage, state: _Unknowns, *, progress: Progress
+) -> tuple[_Unknowns, StageLog]:
+    """Minimize one stage's cost from ``state`` (L-BFGS; the albedo projected or joint).
+
+    Returns:
+        the unknowns at the accepted point and the stage's log.
+    """
+    t0 = time.perf_counter()
+    opts = setup.opts
+    joint = opts.albedo_solve == "joint"
+    param = _Parametrization(
+        state,
+        pairs=stage.pairs,
+        faces=setup.topo.faces,
+        h=stage.h,
+        motion=opts.vertex_motion,
+        joint_albedo=joint,
+    )
+    solver = (
+        None
+        if joint
+        else AlbedoSolver(
+            stage.pairs, setup.topo.edges_np, stage.psm_weight, stage.weights.tau_psm, state.albedo
+        )
+    )
+    log = _IterationLog(max_iterations=opts.max_iterations, progress=progress)
+    res = _minimize(
+        param,
+        problem=stage.problem,
+        solver=solver,
+        weights=stage.weights,
+        smoother=setup.smoother,
+        opts=opts,
+        log=log,
+    )
+    w = stage.weights
+    stage_log = StageLog(
+        index=stage.index,
+        tau_pol=w.tau_pol,
+        tau_gsm=w.tau_gsm,
+        tau_psm=w.tau_psm,
+        t=w.t,
+        k=opts.pol_k,
+        n_pairs=stage.pairs.size,
+        n_observed=stage.n_observed,
+        energies=log.energies,
+        grad_max=log.grad_max,
+        evaluations=res.evaluations,
+        stop_reason=res.reason,
+        seconds=time.perf_counter() - t0,
+    )
+    return _accepted(param, stage.problem, solver, res.x), stage_log
+
+
+def _setup(
+    faces_np: np.ndarray,
+    n_vertices: int,
+    cameras: Sequence[Camera],
+    observations: Sequence[Observation],
+    *,
+    opts: RefineOptions,
+    visibility_fn: VisibilityFn | None,
+) -> _Setup:
+    device = resolve_device(opts.device)
+    dtype = torch.float32 if opts.dtype == "float32" else torch.float64
+    views = build_view_stack(
+        cameras, observations, polarimetric=opts.polarimetric, device=device, dtype=dtype
+    )
+    topo = _Topology.of(faces_np, device)
+    smoother = GraphSmoother(
+        topo.edges_np,
+        n_vertices,
+        lam=opts.precondition_lambda,
+        iterations=opts.precondition_iterations,
+        device=device,
+        dtype=dtype,
+    )
+    return _Setup(
+        faces_np=faces_np,
+        topo=topo,
+        cameras=cameras,
+        observations=observations,
+        views=views,
+        smoother=smoother,
+        visibility_fn=visibility_fn,
+        opts=opts,
+        device=device,
+        dtype=dtype,
+    )
+
+
+def _initial_unknowns(
+    vertices: np.ndarray, n_views: int, *, device: torch.device, dtype: torch.dtype
+) -> _Unknowns:
+    """The paper's start (section 5.1): SH = [1, 0, ..., 0], scale = [1, 1, 1]; the albedo is set by stage 1."""
+    n = len(vertices)
+    sh = torch.zeros((n_views, 9), dtype=dtype, device=device)
+    sh[:, 0] = 1.0
+    return _Unknowns(
+        vertices=torch.from_numpy(vertices).to(device=device, dtype=dtype),
+        albedo=torch.zeros((n, 3), dtype=dtype, device=device),
+        sh=sh,
+        rgb_scale=torch.ones((n_views, 3), dtype=dtype, device=device),
+    )
 
 
 def refine_surface(
@@ -376,7 +660,7 @@ def refine_surface(
         options: the stage's options (default :class:`pmvir.config.RefineOptions`).
         visibility_fn: recomputes visibility from (vertices, faces) between stages (e.g.
             :func:`make_visibility_fn`); without it the initial visibility is kept.
-        progress: reports stage and iteration boundaries and is polled there for cancellation.
+        progress: one step ``stage s`` per stage, reporting its iterations; polled there for cancellation.
 
     Returns:
         :class:`RefineResult`.
@@ -388,120 +672,31 @@ def refine_surface(
     """
     t_start = time.perf_counter()
     opts = options if options is not None else RefineOptions()
+    progress = progress or Progress.none()
     verts_np, faces_np = check_mesh(vertices, faces)
     n, n_views = len(verts_np), len(cameras)
-    device = resolve_device(opts.device)
-    dtype = torch.float32 if opts.dtype == "float32" else torch.float64
-    views = build_view_stack(
-        cameras, observations, polarimetric=opts.polarimetric, device=device, dtype=dtype
-    )
+    setup = _setup(faces_np, n, cameras, observations, opts=opts, visibility_fn=visibility_fn)
     vis = np.asarray(visibility)
     if vis.shape != (n, n_views):
         raise ConfigError(f"expected ({n}, {n_views}) visibility, got {vis.shape}")
-
-    progress = progress or Progress.none()
-    report, check_cancel = progress.update, progress.check_cancel
-
-    topo = _Topology.of(faces_np, device)
-    faces_t, edges_np = topo.faces, topo.edges_np
-    smoother = GraphSmoother(
-        edges_np,
-        n,
-        lam=opts.precondition_lambda,
-        iterations=opts.precondition_iterations,
-        device=device,
-        dtype=dtype,
-    )
-    state = _Unknowns(
-        vertices=torch.from_numpy(verts_np).to(device=device, dtype=dtype),
-        albedo=torch.zeros((n, 3), dtype=dtype, device=device),
-        sh=torch.zeros((n_views, 9), dtype=dtype, device=device),
-        rgb_scale=torch.ones((n_views, 3), dtype=dtype, device=device),
-    )
-    state.sh[:, 0] = 1.0
+    state = _initial_unknowns(verts_np, n_views, device=setup.device, dtype=setup.dtype)
     timings = {"setup": time.perf_counter() - t_start}
     logs: list[StageLog] = []
-    n_stages = opts.n_stages
-
-    for s in range(n_stages):
-        check_cancel(f"before stage {s + 1}")
+    for s in range(opts.n_stages):
         t_stage = time.perf_counter()
-        report(s / n_stages, f"refine stage {s + 1}/{n_stages}: visibility and pairs")
-        cur_np = state.vertices.detach().cpu().numpy().astype(np.float64)
-        if s > 0 and opts.refresh_visibility and visibility_fn is not None:
-            vis = np.asarray(visibility_fn(cur_np, faces_np))
-            if vis.shape != (n, n_views):
-                raise ConfigError(f"visibility_fn returned shape {vis.shape}, expected ({n}, {n_views})")
-        with torch.no_grad():
-            normals_np = vertex_normals(state.vertices, faces_t).cpu().numpy().astype(np.float64)
-        pairs = select_pairs(
-            cur_np,
-            vis,
-            cameras,
-            observations,
-            device=device,
-            dtype=dtype,
-            normals=normals_np,
-            min_cos=opts.min_view_cos,
-            keep_best=opts.min_view_pairs,
-        )
-        if pairs.size == 0:
-            raise ReconstructionError(
-                f"stage {s + 1}: no vertex projects onto valid pixels of a view that sees it"
-            )
-        colour, observed, dop = _stage_observations(state.vertices, faces_t, views, pairs)
-        if s == 0:
-            fill = colour[observed].mean(axis=0)
-            init = np.where(observed[:, None], colour, fill[None, :])
-            state.albedo = torch.from_numpy(init).to(device=device, dtype=dtype)
-        tau_pol = opts.tau_pol[s] if opts.polarimetric else 0.0
-        tau_gsm, tau_psm, t_exp = opts.tau_gsm[s], opts.tau_psm[s], opts.gsm_exponent[s]
-        problem, w = _stage_problem(
-            topo,
-            views,
-            pairs,
-            colour,
-            observed,
-            opts,
-            polarimetric=opts.polarimetric,
-            pol_mask=None if dop is None or opts.dop_min <= 0.0 else dop >= opts.dop_min,
-            t=t_exp,
-        )
-        h = mean_edge_length(cur_np, edges_np)
-        joint = opts.albedo_solve == "joint"
-        tau = (tau_pol, tau_gsm, tau_psm)
-        log = _IterationLog(opts.max_iterations, s, n_stages, report, check_cancel)
-        param = _Parametrization(state, pairs, faces_t, h, opts.vertex_motion, joint)
-        solver = None if joint else AlbedoSolver(pairs, edges_np, w, tau_psm, state.albedo)
-        res = _minimize(param, problem, solver, tau, smoother, opts, log, opts.max_iterations)
-        state = _accepted(param, problem, solver, res.x)
-        seconds = time.perf_counter() - t_stage
-        timings[f"stage_{s + 1}"] = seconds
-        logs.append(
-            StageLog(
-                index=s,
-                tau_pol=tau_pol,
-                tau_gsm=tau_gsm,
-                tau_psm=tau_psm,
-                t=t_exp,
-                k=opts.pol_k,
-                n_pairs=pairs.size,
-                n_observed=int(observed.sum()),
-                energies=log.energies,
-                grad_max=log.grad_max,
-                evaluations=res.evaluations,
-                stop_reason=res.reason,
-                seconds=seconds,
-            )
-        )
+        with progress.step(f"stage {s + 1}", weight=1.0 / opts.n_stages) as p:
+            p.update(0.0, f"of {opts.n_stages}: visibility and pairs")
+            stage, state = prepare_stage(setup, state, vis, s)
+            vis = stage.visibility
+            state, log = solve_stage(setup, stage, state, progress=p)
+        logs.append(log)
+        timings[f"stage_{s + 1}"] = time.perf_counter() - t_stage
 
-    out_vertices = state.vertices.cpu().numpy().astype(np.float64)
     with torch.no_grad():
-        normals = vertex_normals(state.vertices, faces_t).cpu().numpy().astype(np.float32)
+        normals = vertex_normals(state.vertices, setup.topo.faces).cpu().numpy().astype(np.float32)
     timings["total"] = time.perf_counter() - t_start
-    report(1.0, "refine done")
     return RefineResult(
-        vertices=out_vertices,
+        vertices=state.vertices.cpu().numpy().astype(np.float64),
         normals=normals,
         albedo=state.albedo.cpu().numpy().astype(np.float32),
         sh=state.sh.cpu().numpy().astype(np.float32),

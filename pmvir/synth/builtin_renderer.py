@@ -14,13 +14,14 @@ normals and the mask stay those of the pixel-centre ray.
 
 Angle of polarization reference (``aop_frame``):
 
-* ``"normal"`` (default): the plane of incidence is oriented in the image by the
-  camera-frame normal's azimuth ``alpha = atan2(-n_y, n_x)`` (spec section 2), so
-  diffuse light has phi = alpha and specular light phi = alpha + pi/2 exactly.
-* ``"ray"``: the perspective-exact orientation: the direction of the p-polarized
-  field, ``n - (n.d) d`` for the unit ray d, projected onto the sensor plane. It
-  differs from ``"normal"`` off the optical axis by up to a few degrees (zero on a
-  sphere centred on the axis).
+* ``"ray"`` (default): perspective-exact, as the spec (section 2) requires: the
+  plane of incidence of each ray oriented in the ray's reference axes,
+  ``alpha = atan2(e . r1, e . r0)`` with ``e = n - (n . d) d``
+  (:func:`pmvir.polarization.azimuth.perspective_azimuth`, the frame Mitsuba 3
+  reports in), so diffuse light has phi = alpha and specular light phi = alpha + pi/2.
+* ``"normal"``: a legacy switch, kept only to reproduce captures of earlier versions:
+  the orthographic ``alpha = atan2(-n_y, n_x)`` of the camera-frame normal, exact only
+  on the optical axis; off it the AoP is wrong by up to about 14 degrees (spec section 2).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ import numpy as np
 
 from pmvir.camera import Camera
 from pmvir.errors import ConfigError
+from pmvir.polarization.azimuth import orthographic_azimuth, perspective_azimuth
 from pmvir.synth.lighting import ViewLight
 from pmvir.synth.materials import Material, material_stokes
 from pmvir.synth.raycast import Hits, MeshScene, pixel_directions, rotate_rows, trace
@@ -93,11 +95,9 @@ def _shade(
     n_c = rotate_rows(camera.R, n_w)
     cos_z = np.clip((n_w * v_w).sum(1), 0.0, 1.0)
     if aop_frame == "ray":
-        dc = d_cam[h]
-        e = n_c - (n_c * dc).sum(1, keepdims=True) * dc
-        azimuth = np.arctan2(-e[:, 1], e[:, 0])
+        azimuth, _ = perspective_azimuth(n_c.astype(np.float64), d_cam[h].astype(np.float64))
     else:
-        azimuth = np.arctan2(-n_c[:, 1], n_c[:, 0])
+        azimuth = orthographic_azimuth(n_c)
     diffuse = light.diffuse(n_w)
     if material == "lambert":
         mirror = np.zeros_like(diffuse)
@@ -167,7 +167,7 @@ def render_view(
     extinction: float = 1.0,
     specular: float = 1.0,
     supersample: int = 2,
-    aop_frame: AopFrame = "normal",
+    aop_frame: AopFrame = "ray",
 ) -> ViewRender:
     """Render one view as a linear Stokes image.
 
@@ -180,7 +180,7 @@ def render_view(
         extinction: imaginary part of the conductor's index, >= 0.
         specular: plastic specular scale (1 = physical), >= 0.
         supersample: sub-pixel grid size for edge pixels (1 = no anti-aliasing).
-        aop_frame: "normal" or "ray" (see the module docstring).
+        aop_frame: "ray" (perspective-exact, default) or "normal" (legacy; see the module docstring).
 
     Returns:
         The Stokes image (H, W, 3, 3) float32 and the geometry.

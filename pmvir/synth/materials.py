@@ -108,8 +108,8 @@ def material_stokes(
         mirror_radiance: (N, 3) environment radiance L in the mirror direction, >= 0
             (unused for ``lambert``).
         cos_zenith: (N,) cosine of the angle between the normal and the direction to the camera.
-        azimuth: (N,) azimuth alpha of the plane of incidence in the image, radians, in the
-            spec's sense (``atan2(-n_y, n_x)`` of the camera-frame normal).
+        azimuth: (N,) azimuth alpha of the plane of incidence, radians, in the spec's sense
+            (section 2: perspective-exact, :func:`pmvir.polarization.azimuth.perspective_azimuth`).
         ior: real refractive index (plastic), or real part of the complex index (conductor).
         extinction: imaginary part k of the conductor's complex index.
         specular: scale of the plastic's specular reflection (1 = physical Fresnel).

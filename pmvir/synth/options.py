@@ -77,10 +77,11 @@ class SynthOptions(BaseModel):
     supersample: int = Field(
         default=2, ge=1, le=8, description="Builtin: NxN rays in each silhouette/depth-edge pixel (1: none)."
     )
-    aop_frame: Literal["normal", "ray"] = Field(
-        default="normal",
-        description="Builtin: orient polarization by the camera-frame normal's azimuth (spec convention) "
-        "or perspective-exactly per ray.",
+    aop_frame: Literal["ray", "normal"] = Field(
+        default="ray",
+        description="Builtin: 'ray' orients polarization perspective-exactly per viewing ray (spec section 2, "
+        "the default); 'normal' is a legacy switch reproducing earlier captures with the orthographic "
+        "atan2(-ny, nx) rule, up to about 14 degrees off away from the image centre.",
     )
     spp: int = Field(default=64, ge=1, description="Mitsuba: samples per pixel.")
     roughness: float = Field(default=0.05, gt=0.0, description="Mitsuba: plastic's Beckmann roughness.")

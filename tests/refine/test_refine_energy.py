@@ -16,6 +16,7 @@ from pmvir.refine.energy import (
     azimuth,
     azimuth_distance,
     energy_terms,
+    fresnel_transmittance,
     geometric_smoothness_term,
     pair_light,
     photometric_smoothness_term,
@@ -71,22 +72,41 @@ def test_polarimetric_cost_reproduces_paper_figure() -> None:
     # local maxima of the sampled curve sit exactly halfway between the zeros
     interior = (c[1:-1] > c[:-2]) & (c[1:-1] >= c[2:])
     np.testing.assert_allclose(deg[1:-1][interior], [75.0, 165.0, 255.0, 345.0])
-    # concave between the zeros (k > 0): above the straight-line-in-theta value (4 eta/pi)^2 ... at mid-slope
-    eta = math.radians(22.5)
-    f = (math.exp(-0.5 * (1 - 4 * eta / math.pi)) - math.exp(-0.5)) / (1 - math.exp(-0.5))
-    assert float(polarimetric_cost(torch.tensor(eta, dtype=F64), k=0.5)) == pytest.approx(f * f)
+
+
+def test_polarimetric_cost_against_values_known_without_the_formula() -> None:
+    """Independent facts about the cost f(eta)^2, not a re-implementation of it.
+
+    * k = ln 4 at eta = pi/8 (theta = 1/2): e^{-k theta} = 1/2 and e^{-k} = 1/4, so
+      f = (1/2 - 1/4) / (3/4) = 1/3 and the cost is exactly 1/9.
+    * As k -> 0 the cost tends to the quadratic (4 eta / pi)^2 (f -> 1 - theta).
+    * f is convex in eta for k > 0 (an exponential of a linear function), so it lies
+      *below* its chord 4 eta / pi: a larger k gives a flatter valley floor around
+      each candidate azimuth (more tolerant of small AoP noise) and a steeper climb near
+      the midpoint, with the cost strictly decreasing in k at any interior eta.
+    """
+    eighth = torch.tensor(math.pi / 8, dtype=F64)
+    assert float(polarimetric_cost(eighth, k=math.log(4.0))) == pytest.approx(1.0 / 9.0, rel=1e-12)
+    eta = torch.linspace(0.0, math.pi / 4, 41, dtype=F64)
+    np.testing.assert_allclose(
+        polarimetric_cost(eta, k=1e-7).numpy(), ((4 * eta / math.pi) ** 2).numpy(), atol=1e-6
+    )
+    costs = [polarimetric_cost(eta[1:-1], k=k).numpy() for k in (1e-7, 0.5, 2.0)]
+    assert np.all(costs[1] < costs[0]) and np.all(costs[2] < costs[1])
 
 
 def test_polarimetric_term_matches_figure_through_camera_normals() -> None:
     """The same curve through polarimetric_term: camera-frame normals with azimuth alpha, DoP 1."""
     alpha = torch.deg2rad(torch.tensor([30.0, 75.0, 120.0, 165.0, 210.0, 255.0, 300.0, 345.0], dtype=F64))
     normal_cam = torch.stack([torch.cos(alpha), -torch.sin(alpha), -torch.ones_like(alpha)], dim=1)
+    ray = torch.tensor([[0.0, 0.0, 1.0]], dtype=F64).expand(len(alpha), 3)  # on the optical axis
     phi = torch.full_like(alpha, math.radians(120.0))
     n = len(alpha)
     per_pair = [
         float(
             polarimetric_term(
                 normal_cam[i : i + 1],
+                ray[:1],
                 phi[:1],
                 torch.ones(1, dtype=F64),
                 torch.ones(1, dtype=torch.bool),
@@ -100,10 +120,8 @@ def test_polarimetric_term_matches_figure_through_camera_normals() -> None:
     # DoP weighting scales it; switching it off ignores the DoP
     dop = torch.full((n,), 0.25, dtype=F64)
     defined = torch.ones(n, dtype=torch.bool)
-    assert float(polarimetric_term(normal_cam, phi, dop, defined, _pairs(n))) == pytest.approx(4 * 0.25)
-    assert float(
-        polarimetric_term(normal_cam, phi, dop, defined, _pairs(n), dop_weight=False)
-    ) == pytest.approx(4)
+    assert float(polarimetric_term(normal_cam, ray, phi, dop, defined, _pairs(n))) == pytest.approx(4 * 0.25)
+    assert float(polarimetric_term(normal_cam, ray, phi, None, defined, _pairs(n))) == pytest.approx(4)
 
 
 def test_eta_is_at_most_quarter_pi_over_the_whole_range() -> None:
@@ -123,16 +141,16 @@ def test_eta_offsets_need_alpha_wrapped_to_0_2pi() -> None:
     literal = min(abs(alpha_raw - phi + o) for o in ETA_OFFSETS)
     assert literal > math.pi / 4
     normal_cam = torch.tensor([[math.cos(alpha_raw), -math.sin(alpha_raw), -1.0]], dtype=F64)
-    alpha, defined = azimuth(normal_cam)
+    alpha, defined = azimuth(normal_cam, torch.tensor([[0.0, 0.0, 1.0]], dtype=F64))
     assert bool(defined[0]) and 0.0 <= float(alpha[0]) < 2 * math.pi
     assert float(alpha[0]) == pytest.approx(alpha_raw + 2 * math.pi)
     assert float(azimuth_distance(alpha, torch.tensor([phi], dtype=F64))[0]) <= math.pi / 4
 
 
 def test_azimuth_is_counter_clockwise_on_screen() -> None:
-    """Spec section 2: alpha = atan2(-ny, nx): image right is 0, image up (-y) is pi/2."""
+    """Spec section 2, on the optical axis: alpha = atan2(-ny, nx): image right is 0, image up (-y) is pi/2."""
     n = torch.tensor([[1.0, 0, -1], [0, -1.0, -1], [-1.0, 0, -1], [0, 1.0, -1], [0, 0, -1.0]], dtype=F64)
-    alpha, defined = azimuth(n)
+    alpha, defined = azimuth(n, torch.tensor([0.0, 0.0, 1.0], dtype=F64))
     np.testing.assert_allclose(alpha[:4].numpy(), [0, np.pi / 2, np.pi, 1.5 * np.pi], atol=1e-12)
     assert defined.tolist() == [True, True, True, True, False]
 
@@ -301,6 +319,8 @@ def make_small_problem():
     assert pairs.size > 30
     edges = unique_edges(tf)
     fp = face_adjacency(tf)
+    x0 = torch.from_numpy(v0)
+    dop0 = sample_pairs(x0, vertex_normals(x0, torch.from_numpy(tf)), views, pairs).dop  # data, fixed
     problem = StageProblem(
         faces=torch.from_numpy(tf),
         face_pairs=torch.from_numpy(fp),
@@ -311,8 +331,8 @@ def make_small_problem():
         pairs=pairs,
         polarimetric=True,
         pol_mask=None,
+        pol_weight=dop0,
         k=0.5,
-        dop_weight=True,
         t=2.2,
         units=255.0,
     )
@@ -335,7 +355,9 @@ def _pho(problem, x, k, sh, sc):
 def _pol(problem, x):
     n = vertex_normals(x, problem.faces)
     smp = sample_pairs(x, n, problem.views, problem.pairs)
-    return polarimetric_term(smp.normal_cam, smp.aop, smp.dop, smp.aop_defined, problem.pairs, k=0.5)
+    return polarimetric_term(
+        smp.normal_cam, smp.ray_cam, smp.aop, problem.pol_weight, smp.aop_defined, problem.pairs, k=0.5
+    )
 
 
 def _gsm(problem, x):
@@ -380,7 +402,50 @@ def test_dop_weighting_is_switchable(small_problem) -> None:
     x = inputs[0].detach()
     n = vertex_normals(x, problem.faces)
     smp = sample_pairs(x, n, problem.views, problem.pairs)
-    args = (smp.normal_cam, smp.aop, smp.dop, smp.aop_defined, problem.pairs)
-    weighted = float(polarimetric_term(*args, dop_weight=True))
-    unweighted = float(polarimetric_term(*args, dop_weight=False))
+    weighted = float(
+        polarimetric_term(smp.normal_cam, smp.ray_cam, smp.aop, smp.dop, smp.aop_defined, problem.pairs)
+    )
+    unweighted = float(
+        polarimetric_term(smp.normal_cam, smp.ray_cam, smp.aop, None, smp.aop_defined, problem.pairs)
+    )
     assert 0 < weighted < unweighted  # DoP < 1 everywhere
+
+
+# --- E_pho options for non-Lambertian reflectance --------------------------------------------------
+
+
+def test_fresnel_transmittance_against_brewster_and_the_synth_fresnel_code() -> None:
+    """1 at normal emission; at Brewster's angle R_p = 0 and R_s = ((n^2 - 1) / (n^2 + 1))^2 (closed
+    form); elsewhere equal to 1 - (R_s + R_p) / 2 from pmvir.synth.materials (complex-index code)."""
+    from pmvir.synth.materials import fresnel_reflectance
+
+    n = 1.5
+    assert float(fresnel_transmittance(torch.tensor(1.0, dtype=F64), n)) == pytest.approx(1.0, abs=1e-12)
+    brewster = math.cos(math.atan(n))
+    t0 = 1.0 - ((n - 1) / (n + 1)) ** 2
+    expected = (1.0 - 0.5 * ((n * n - 1) / (n * n + 1)) ** 2) / t0
+    assert float(fresnel_transmittance(torch.tensor(brewster, dtype=F64), n)) == pytest.approx(expected, rel=1e-9)
+    cos = np.linspace(0.05, 1.0, 50)
+    r_s, r_p = fresnel_reflectance(cos, n)
+    np.testing.assert_allclose(
+        fresnel_transmittance(torch.from_numpy(cos), n).numpy(), (1.0 - 0.5 * (r_s + r_p)) / t0, rtol=1e-9
+    )
+
+
+def _pho_options(problem, x, k, sh, sc):
+    """E_pho with the Fresnel-transmission diffuse factor and fixed per-pair weights."""
+    from dataclasses import replace
+
+    weight = torch.linspace(0.2, 1.0, problem.pairs.size, dtype=F64)
+    opt = replace(problem, diffuse_fresnel_ior=1.5, pho_weight=weight, polarimetric=False)
+    return energy_terms(x, k, sh, sc, opt)["pho"]
+
+
+def test_gradient_of_the_fresnel_weighted_photometric_term(small_problem) -> None:
+    problem, inputs = small_problem
+    value = float(_pho_options(problem, *inputs).detach())
+    plain = float(_pho(problem, *inputs).detach())
+    assert value > 0.0 and value != pytest.approx(plain)
+    assert torch.autograd.gradcheck(
+        lambda *a: _pho_options(problem, *a) / value, inputs, eps=1e-6, atol=1e-7, rtol=1e-4
+    )
