@@ -59,6 +59,14 @@ _CREATE_BODY = {
                         "description": "JSON of the pipeline options (PipelineConfig), as in JobCreate.",
                     },
                     "label": {"type": "string", "maxLength": 200},
+                    "callback_url": {
+                        "type": "string",
+                        "description": "As in JobCreate: the webhook URL told of every terminal state.",
+                    },
+                    "result_ttl": {
+                        "type": "string",
+                        "description": "As in JobCreate: seconds after it finished that the job is deleted.",
+                    },
                 },
             }
         },
@@ -123,7 +131,7 @@ async def _create_from_zip(
 
     form_request = StarletteRequest(request.scope, receive=limited_receive)
     try:
-        form = await form_request.form(max_files=1, max_fields=4, max_part_size=1 << 20)
+        form = await form_request.form(max_files=1, max_fields=6, max_part_size=1 << 20)
     except ClientDisconnect as exc:
         raise ApiError(400, "client_disconnected", "the client went away mid-upload") from exc
     except ApiError:
@@ -139,12 +147,16 @@ async def _create_from_zip(
                 "multipart field 'capture' (a zip file) is required",
                 errors=[ErrorItem(loc=["body", "capture"], msg="field required", type="missing")],
             )
-        raw_options = form.get("options")
-        label = form.get("label")
-        if isinstance(raw_options, UploadFile) or isinstance(label, UploadFile):
-            raise ApiError(422, "validation_error", "'options' and 'label' are text fields")
+        text: dict[str, str] = {}
+        for name in ("options", "label", "callback_url", "result_ttl"):
+            value = form.get(name)
+            if isinstance(value, UploadFile):
+                raise ApiError(422, "validation_error", f"multipart field {name!r} must be text, not a file")
+            if value:
+                text[name] = value
+        raw_options = text.pop("options", None)
         options = _parse_json(raw_options, ["body", "options"], "field 'options'") if raw_options else {}
-        spec = _job_spec({"options": options, **({"label": label} if label else {})}, ("body",))
+        spec = _job_spec({"options": options, **text}, ("body",))  # JobCreate reads result_ttl's text as int
         return await run_in_threadpool(
             partial(
                 jobs.create_job,

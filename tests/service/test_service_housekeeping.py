@@ -161,3 +161,21 @@ def test_an_expired_job_is_deleted_and_a_kept_one_is_not(
     assert hk.get(f"/v1/jobs/{kept['id']}").status_code == 200
     logs = "".join(p.read_text() for p in hk_stack.log_dir.glob("worker*.log"))
     assert f"job {short['id']} deleted" in logs
+
+
+def test_a_zipped_capture_may_name_its_callback_and_ttl_too(
+    hk: httpx.Client, receiver: http.server.HTTPServer, small_capture: Path, tmp_path: Path
+) -> None:
+    from pmvir.io.capture_zip import zip_capture
+
+    zip_capture(small_capture, tmp_path / "cap.zip")
+    zipped = (tmp_path / "cap.zip").read_bytes()
+    files = {"capture": ("cap.zip", zipped, "application/zip")}
+    bad = hk.post("/v1/jobs", files=files, data={"callback_url": "http://169.254.169.254/latest"})
+    assert bad.status_code == 422 and bad.json()["errors"][0]["loc"] == ["body", "callback_url"], bad.text
+    url = f"http://127.0.0.1:{receiver.server_port}/zip"
+    r = hk.post("/v1/jobs", files=files, data={"callback_url": url, "result_ttl": "600"})
+    assert r.status_code == 201, r.text
+    job = r.json()
+    assert job["webhook"]["url"] == url and job["result_ttl"] == 600
+    hk.delete(f"/v1/jobs/{job['id']}")
