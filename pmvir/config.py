@@ -44,7 +44,7 @@ class DecodeOptions(_Options):
         description="Pixels whose mean intensity (I_int averaged over colours, = s0 / 2, normalized "
         "units) is at or below this are invalid: AoP/DoP are undefined there.",
     )
-    demosaic: Literal["bilinear", "edge-aware", "guided"] = Field(
+    demosaic: Literal["bilinear", "edge-aware", "guided", "eari", "eari-guided"] = Field(
         default="guided",
         description="Demosaicing method: 'bilinear' (per-angle Bayer then polarization interpolation, "
         "float32), 'edge-aware' (OpenCV's edge-aware Bayer step, 16-bit, then bilinear) or 'guided' "

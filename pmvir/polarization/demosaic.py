@@ -10,7 +10,7 @@ half-resolution planes is then interpolated back to full resolution
 
 Pixel registration: the samples of the angle at row ``dy``, column ``dx`` of
 the 2x2 block sit at full-resolution pixels ``(2 i + dy, 2 j + dx)``. Every
-upsampling here (:func:`_upsample2`) keeps each lattice sample at its own pixel
+upsampling here (:func:`upsample2` in :mod:`pmvir.polarization.lattice`) keeps each lattice sample at its own pixel
 and fills the pixels between with the mean of the two (edge) or four (diagonal)
 nearest samples, i.e. exact bilinear interpolation at the true sub-pixel
 offsets; so a constant and a linear ramp come back exactly away from the image
@@ -63,11 +63,13 @@ import cv2
 import numpy as np
 
 from pmvir.errors import ConfigError, DTypeError, ShapeError
+from pmvir.polarization.eari import EARI_REACH, eari_polarization
 from pmvir.polarization.guided import GUIDED_REACH, guided_polarization
+from pmvir.polarization.lattice import column_phases, interleave2, pair_means, upsample2
 from pmvir.polarization.layout import MosaicLayout
 
-DemosaicMethod = Literal["bilinear", "edge-aware", "guided"]
-_METHODS: tuple[str, ...] = ("bilinear", "edge-aware", "guided")
+DemosaicMethod = Literal["bilinear", "edge-aware", "guided", "eari", "eari-guided"]
+_METHODS: tuple[str, ...] = ("bilinear", "edge-aware", "guided", "eari", "eari-guided")
 
 #: OpenCV Bayer conversion name for each pattern (pattern letters are the
 #: colours at (0,0), (0,1), (1,0), (1,1)).
@@ -86,6 +88,11 @@ _SUPPORT_RADIUS = {
     (True, "edge-aware"): 4,
     (False, "guided"): GUIDED_REACH,
     (True, "guided"): GUIDED_REACH + 1,
+    (False, "eari"): EARI_REACH,
+    (True, "eari"): EARI_REACH + 1,
+    # the guided step widens its input's reach by GUIDED_REACH - 1 (its own, without bilinear's 1)
+    (False, "eari-guided"): EARI_REACH + GUIDED_REACH - 1,
+    (True, "eari-guided"): EARI_REACH + GUIDED_REACH,
 }
 
 
@@ -173,19 +180,21 @@ def demosaic(
     mosaic = np.ascontiguousarray(mosaic)
     planes = _planes_for(out, (4, layout.channels, h, w))
     block = layout.angle_index_block()
-    if not layout.is_colour:
-        columns = _column_phases(mosaic, 2)
+    if method in ("eari", "eari-guided"):
+        eari_polarization(_colour_complete_mosaic(mosaic, layout), block, planes)
+    elif not layout.is_colour:
+        columns = column_phases(mosaic, 2)
         for dy in range(2):
             for dx in range(2):
-                _upsample2(columns[dx][dy::2], dy, dx, planes[block[dy, dx], 0])
+                upsample2(columns[dx][dy::2], dy, dx, planes[block[dy, dx], 0])
     elif method != "edge-aware" or min(h, w) < _EA_MIN_SIZE:
-        columns = _column_phases(mosaic, 4)
+        columns = column_phases(mosaic, 4)
         for dy in range(2):
             for dx in range(2):
                 _bilinear_colour(columns, layout, dy, dx, planes[block[dy, dx]])
     else:
         _edge_aware_colour(mosaic, layout, planes)
-    if method == "guided":
+    if method in ("guided", "eari-guided"):
         guided_polarization(planes)
     return planes.transpose(2, 3, 0, 1)
 
@@ -208,80 +217,26 @@ def _check_method(method: str) -> None:
         raise ConfigError(f"method must be one of {', '.join(map(repr, _METHODS))}, got {method!r}")
 
 
-def _column_phases(image: np.ndarray, period: int) -> list[np.ndarray]:
-    """The ``period`` column phases of an image: ``out[k] == image[:, k::period]``, contiguous."""
-    h, w = image.shape
-    return list(cv2.split(np.ascontiguousarray(image).reshape(h, w // period, period)))
-
-
-def _interleave2(p00: np.ndarray, p01: np.ndarray, p10: np.ndarray, p11: np.ndarray,
-                 out: np.ndarray) -> None:
-    """Write ``out[r::2, s::2] = p_rs`` for four (h, w) planes; out is a contiguous (2h, 2w) plane."""
-    h, w = p00.shape
-    quad = out.reshape(h, 2, w, 2)
-    for r, (left, right) in enumerate(((p00, p01), (p10, p11))):
-        res = cv2.merge([left, right], dst=quad[:, r])
-        if not np.shares_memory(res, out):  # pragma: no cover - OpenCV reallocated
-            quad[:, r] = res
-
-
-def _pair_means(q: np.ndarray, axis: int) -> np.ndarray:
-    """Means of neighbouring samples along ``axis``, edge samples repeated.
-
-    For q of shape (h, w) and axis 1 returns (h, w + 1) with
-    ``out[:, k] = (q[:, k - 1] + q[:, k]) / 2`` for 0 < k < w, ``out[:, 0] = q[:, 0]``
-    and ``out[:, w] = q[:, w - 1]``; axis 0 likewise on rows, (h + 1, w).
-    """
-    h, w = q.shape
-    if axis == 1:
-        out = np.empty((h, w + 1), dtype=np.float32)
-        if w > 1:
-            cv2.addWeighted(q[:, :-1], 0.5, q[:, 1:], 0.5, 0.0, dst=out[:, 1:w])
-        out[:, 0] = q[:, 0]
-        out[:, w] = q[:, w - 1]
-    else:
-        out = np.empty((h + 1, w), dtype=np.float32)
-        if h > 1:
-            cv2.addWeighted(q[:-1], 0.5, q[1:], 0.5, 0.0, dst=out[1:h])
-        out[0] = q[0]
-        out[h] = q[h - 1]
-    return out
-
-
-def _upsample2(q: np.ndarray, oy: int, ox: int, out: np.ndarray) -> None:
-    """Bilinear 2x upsampling of a lattice, registered: ``q[i, j]`` is ``out[2i + oy, 2j + ox]``.
-
-    Args:
-        q: lattice samples (h, w), float32 (rows may be strided).
-        oy, ox: the lattice's row / column phase in ``out`` (0 or 1).
-        out: contiguous (2h, 2w) float32 plane, overwritten. Pixels beyond the
-            outermost lattice rows/columns repeat the edge values.
-    """
-    h, w = q.shape
-    horiz = _pair_means(q, 1)[:, 1 - ox : 1 - ox + w]
-    vert_full = _pair_means(q, 0)
-    vert = vert_full[1 - oy : 1 - oy + h]
-    diag = _pair_means(vert, 1)[:, 1 - ox : 1 - ox + w]
-    rows_on = (q, horiz) if ox == 0 else (horiz, q)
-    rows_off = (vert, diag) if ox == 0 else (diag, vert)
-    if oy == 0:
-        _interleave2(*rows_on, *rows_off, out)
-    else:
-        _interleave2(*rows_off, *rows_on, out)
-
-
 def _bilinear_colour(columns: list[np.ndarray], layout: MosaicLayout, dy: int, dx: int,
                      out: np.ndarray) -> None:
     """Bilinear Bayer + polarization interpolation of the angle at (dy, dx); out (3, H, W)."""
     h4, w4 = columns[0].shape[0] // 4, columns[0].shape[1]
+    half = np.empty((3, 2 * h4, 2 * w4), dtype=np.float32)
+    _bilinear_bayer(columns, layout, dy, dx, half)
+    for c in range(3):
+        upsample2(half[c], dy, dx, out[c])
+
+
+def _bilinear_bayer(columns: list[np.ndarray], layout: MosaicLayout, dy: int, dx: int,
+                    half: np.ndarray) -> None:
+    """Bilinear Bayer interpolation of the angle at (dy, dx) at half resolution; half (3, H/2, W/2)."""
+    h4, w4 = columns[0].shape[0] // 4, columns[0].shape[1]
     colours = layout.colour_index_block()
     # quarter[by][bx]: the angle's samples under the Bayer block (by, bx), (H/4, W/4)
     quarter = [[columns[2 * bx + dx][2 * by + dy :: 4] for bx in range(2)] for by in range(2)]
-    half = np.empty((2 * h4, 2 * w4), dtype=np.float32)
     for c in (0, 2):
         (by, bx), = np.argwhere(colours == c)
-        _upsample2(quarter[by][bx], int(by), int(bx), half)
-        _upsample2(half, dy, dx, out[c])
+        upsample2(quarter[by][bx], int(by), int(bx), half[c])
     # green: two diagonal lattices; the two other positions get the mean of
     # their four edge neighbours (two from each green lattice).
     filled = [row[:] for row in quarter]  # the green lattices as they are
@@ -290,11 +245,30 @@ def _bilinear_colour(columns: list[np.ndarray], layout: MosaicLayout, dy: int, d
             if colours[by, bx] != 1:
                 beside = quarter[by][1 - bx]  # green lattice in the same row
                 above = quarter[1 - by][bx]  # green lattice in the same column
-                horiz = _pair_means(beside, 1)[:, bx : bx + w4]
-                vert = _pair_means(above, 0)[by : by + h4]
+                horiz = pair_means(beside, 1)[:, bx : bx + w4]
+                vert = pair_means(above, 0)[by : by + h4]
                 filled[by][bx] = cv2.addWeighted(horiz, 0.5, vert, 0.5, 0.0)
-    _interleave2(filled[0][0], filled[0][1], filled[1][0], filled[1][1], half)
-    _upsample2(half, dy, dx, out[1])
+    interleave2(filled[0][0], filled[0][1], filled[1][0], filled[1][1], half[1])
+
+
+def _colour_complete_mosaic(mosaic: np.ndarray, layout: MosaicLayout) -> np.ndarray:
+    """(C, H, W): at every pixel its own polarizer angle's value of each colour.
+
+    Monochrome: the mosaic itself. Colour: each angle's half-resolution Bayer
+    image, bilinearly colour-interpolated, put back at the angle's pixels.
+    """
+    h, w = mosaic.shape
+    if not layout.is_colour:
+        return mosaic[None]
+    columns = column_phases(mosaic, 4)
+    halves = np.empty((2, 2, 3, h // 2, w // 2), dtype=np.float32)
+    for dy in range(2):
+        for dx in range(2):
+            _bilinear_bayer(columns, layout, dy, dx, halves[dy, dx])
+    out = np.empty((3, h, w), dtype=np.float32)
+    for c in range(3):
+        interleave2(halves[0, 0, c], halves[0, 1, c], halves[1, 0, c], halves[1, 1, c], out[c])
+    return out
 
 
 def _edge_aware_colour(mosaic: np.ndarray, layout: MosaicLayout, planes: np.ndarray) -> None:
@@ -308,7 +282,7 @@ def _edge_aware_colour(mosaic: np.ndarray, layout: MosaicLayout, planes: np.ndar
     q16 = cv2.normalize(  # type: ignore[call-overload]  # the stubs refuse dst=None, which OpenCV allows
         mosaic, None, 0, 65535, cv2.NORM_MINMAX, dtype=cv2.CV_16U
     )
-    columns = _column_phases(q16, 2)
+    columns = column_phases(q16, 2)
     code = getattr(cv2, f"COLOR_{_CV_BAYER[layout.bayer]}2RGB_EA")
     block = layout.angle_index_block()
     for dy in range(2):
@@ -317,4 +291,4 @@ def _edge_aware_colour(mosaic: np.ndarray, layout: MosaicLayout, planes: np.ndar
             rgb = cv2.cvtColor(np.ascontiguousarray(columns[dx][dy::2]), code)
             for c, plane in enumerate(cv2.split(rgb)):
                 f = cv2.addWeighted(plane, 1.0 / scale, plane, 0.0, lo, dtype=cv2.CV_32F)
-                _upsample2(f, dy, dx, planes[block[dy, dx], c])
+                upsample2(f, dy, dx, planes[block[dy, dx], c])
