@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_guided import _errors, _field, _textured_capture
+from test_guided import _errors, _field, _independent_ramps, _textured_capture
 
 from pmvir.polarization.demosaic import demosaic
 from pmvir.polarization.eari import directional_weights, eari_polarization, edge_aware_guide
@@ -42,11 +42,7 @@ def test_linear_intensity_under_one_polarization_comes_back_exactly(name: str) -
 
 def test_independent_ramps_per_channel_come_back_to_second_order() -> None:
     """Twelve unrelated ramps (no physical polarization): within 5e-3, second-order terms of the guide."""
-    y, x = np.mgrid[0:96, 0:128].astype(np.float64)
-    truth = np.empty((96, 128, 4, 3), dtype=np.float32)
-    for a in range(4):
-        for k in range(3):
-            truth[:, :, a, k] = 0.5 + 0.001 * (a + 1) * (x - 64) - 0.0008 * (k + 1) * (y - 48) + 0.01 * a
+    truth = _independent_ramps()
     out = demosaic(mosaic(truth, IMX250MYR), IMX250MYR, method="eari")
     np.testing.assert_allclose(out[INNER], truth[INNER], atol=5e-3)
 
