@@ -46,6 +46,10 @@ run. On the Lambert capture (true DoP 0) the measured DoP is false
 polarization: reported at albedo/shading edges (top 20 % of the true
 intensity's log-gradient) and in flat areas (bottom 50 %).
 
+Methods: pmvir's ``bilinear``, ``edge-aware``, ``guided``, ``eari`` (Morimatsu et al.'s
+edge-aware residual interpolation) and ``eari-guided`` (EARI intensities, then the guided
+polarization step), and polanalyser's two.
+
 Run: .venv/bin/python bench/demosaic.py [--frames 3] [--reps 5] [--no-mitsuba]
 Prints tables, writes bench/results/demosaic.json.
 """
@@ -58,6 +62,7 @@ import json
 import os
 import platform
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -65,7 +70,7 @@ import numpy as np
 
 from pmvir.config import DecodeOptions
 from pmvir.decode import decode_frame
-from pmvir.polarization.demosaic import demosaic, saturation_footprint
+from pmvir.polarization.demosaic import demosaic, saturation_footprint, support_radius
 from pmvir.polarization.layout import IMX250MYR, mosaic
 from pmvir.polarization.stokes import intensities_from_polarization, polarization_images
 from pmvir.synth.sensor import SensorModel, capture_mosaic
@@ -135,7 +140,9 @@ RENDERS: dict[str, dict[str, object]] = {
     "plastic-hq": {"shape": "knot", "size": "612x512", "material": "plastic", "spp": 1024},
     "lambert": {"shape": "blob", "size": "1224x1024", "material": "lambert", "spp": 64},
 }
-PMVIR_METHODS = ("bilinear", "edge-aware", "guided")
+PMVIR_METHODS = ("bilinear", "edge-aware", "guided", "eari", "eari-guided")
+#: the method with the widest saturation footprint (scored pixels are valid for every method)
+WIDEST = max(PMVIR_METHODS, key=lambda m: support_radius(IMX250MYR, m))
 PA_METHODS = {"polanalyser COLOR_PolarRGB": "COLOR_PolarRGB", "polanalyser COLOR_PolarRGB_EA": "COLOR_PolarRGB_EA"}
 
 
@@ -193,7 +200,7 @@ def rendered_accuracy(cache: Path, seed: int) -> dict[str, dict[str, float]]:
             sel = view["mask"].copy()
             for _, _, valid in results.values():
                 sel &= valid
-            sel &= ~saturation_footprint(samples >= SensorModel().white_level, IMX250MYR, method="guided")
+            sel &= ~saturation_footprint(samples >= SensorModel().white_level, IMX250MYR, method=WIDEST)
             for method, (aop, dop, _) in results.items():
                 err = aop_err_deg(aop[sel], aop_t[sel])
                 for _key, acc in ((name, sums.setdefault(f"{method}|{name}", {})),
@@ -254,18 +261,17 @@ def main() -> None:
         "pmvir bilinear, out= reused": lambda k: demosaic(floats[k], IMX250MYR, method="bilinear", out=reuse),
         "pmvir edge-aware": lambda k: demosaic(floats[k], IMX250MYR, method="edge-aware"),
         "pmvir guided": lambda k: demosaic(floats[k], IMX250MYR, method="guided"),
+        "pmvir eari": lambda k: demosaic(floats[k], IMX250MYR, method="eari"),
+        "pmvir eari-guided": lambda k: demosaic(floats[k], IMX250MYR, method="eari-guided"),
         "polanalyser COLOR_PolarRGB": lambda k: pa.demosaicing(frames[k]["samples"], pa.COLOR_PolarRGB),
         "polanalyser COLOR_PolarRGB_EA": lambda k: pa.demosaicing(frames[k]["samples"], pa.COLOR_PolarRGB_EA),
     }
+    def decode_run(method: str) -> Callable[[int], object]:
+        return lambda k: decode_frame(floats[k], IMX250MYR, saturated=frames[k]["samples"] >= WHITE,
+                                      options=DecodeOptions(demosaic=method))
+
     chain_runs = {
-        "pmvir decode_frame (bilinear)": lambda k: decode_frame(
-            floats[k], IMX250MYR, saturated=frames[k]["samples"] >= WHITE,
-            options=DecodeOptions(demosaic="bilinear"),
-        ),
-        "pmvir decode_frame (guided)": lambda k: decode_frame(
-            floats[k], IMX250MYR, saturated=frames[k]["samples"] >= WHITE,
-            options=DecodeOptions(demosaic="guided"),
-        ),
+        **{f"pmvir decode_frame ({m})": decode_run(m) for m in ("bilinear", "guided", "eari", "eari-guided")},
         "polanalyser demosaic+Stokes+AoLP/DoLP": lambda k: polanalyser_aop_dop(
             pa.demosaicing(frames[k]["samples"], pa.COLOR_PolarRGB)
         ),
@@ -283,14 +289,14 @@ def main() -> None:
                     del result
 
     # accuracy on every frame, pooled
-    methods = ["pmvir bilinear", "pmvir edge-aware", "pmvir guided",
-               "polanalyser COLOR_PolarRGB", "polanalyser COLOR_PolarRGB_EA"]
+    methods = [f"pmvir {m}" for m in PMVIR_METHODS] + ["polanalyser COLOR_PolarRGB",
+                                                       "polanalyser COLOR_PolarRGB_EA"]
     errors: dict[str, dict[str, list[np.ndarray]]] = {m: {} for m in methods}
     for k, f in enumerate(frames):
         sat = f["samples"] >= WHITE
         results = {}
         valid = np.ones((H, W), bool)
-        for method in ("bilinear", "edge-aware", "guided"):
+        for method in PMVIR_METHODS:
             d = decode_frame(floats[k], IMX250MYR, saturated=sat, options=DecodeOptions(demosaic=method))
             results[f"pmvir {method}"] = (d.aop, d.dop)
             valid &= d.valid
@@ -373,9 +379,9 @@ def main() -> None:
             v = lambert[n]
             print(f"{n:<32} {v['edges']:8.4f} {v['flat']:8.4f} {v['all']:8.4f}")
     chain = {r["name"]: r for r in table}
-    guided_chain = chain["pmvir decode_frame (guided)"]["throughput_vs_polanalyser"]
-    print(f"end to end (decode_frame vs polanalyser chain): bilinear "
-          f"{chain['pmvir decode_frame (bilinear)']['throughput_vs_polanalyser']:.2f}x, guided {guided_chain:.2f}x")
+    print("end to end (decode_frame vs polanalyser chain): " + ", ".join(
+        f"{m} {chain[f'pmvir decode_frame ({m})']['throughput_vs_polanalyser']:.2f}x"
+        for m in ("bilinear", "guided", "eari", "eari-guided")))
 
     out = Path(__file__).parent / "results"
     out.mkdir(exist_ok=True)
