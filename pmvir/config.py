@@ -47,10 +47,13 @@ class DecodeOptions(_Options):
     demosaic: Literal["bilinear", "edge-aware", "guided", "eari", "eari-guided"] = Field(
         default="guided",
         description="Demosaicing method: 'bilinear' (per-angle Bayer then polarization interpolation, "
-        "float32), 'edge-aware' (OpenCV's edge-aware Bayer step, 16-bit, then bilinear) or 'guided' "
+        "float32), 'edge-aware' (OpenCV's edge-aware Bayer step, 16-bit, then bilinear), 'guided' "
         "(bilinear intensity; the colour-mean polarization from a guided filter with the intensity as "
-        "guide: much less false polarization from texture and noise, reach 13 px around saturated "
-        "samples; bench/demosaic.py). Monochrome sensors: no colour step.",
+        "guide, windows weighted by their fitting error: much less false polarization from texture and "
+        "noise, reach 13 px around saturated samples), 'eari' (Morimatsu et al.'s edge-aware residual "
+        "interpolation: every angle and colour from an edge-aware guide; keeps each sample and its "
+        "noise, reach 15 px) or 'eari-guided' (EARI, then the guided polarization step; reach 27 px). "
+        "Measured in bench/demosaic.py. Monochrome sensors: no colour step.",
     )
 
 
