@@ -10,8 +10,8 @@ half-resolution planes is then interpolated back to full resolution
 
 Pixel registration: the samples of the angle at row ``dy``, column ``dx`` of
 the 2x2 block sit at full-resolution pixels ``(2 i + dy, 2 j + dx)``. Every
-upsampling here (:func:`upsample2` in :mod:`pmvir.polarization.lattice`) keeps each lattice sample at its own pixel
-and fills the pixels between with the mean of the two (edge) or four (diagonal)
+upsampling here (:func:`pmvir.polarization.lattice.upsample2`) keeps each
+lattice sample at its own pixel and fills the pixels between with the mean of the two (edge) or four (diagonal)
 nearest samples, i.e. exact bilinear interpolation at the true sub-pixel
 offsets; so a constant and a linear ramp come back exactly away from the image
 border (within 2 pixels of the border, samples beyond it are taken to repeat
@@ -35,6 +35,14 @@ Methods:
   replaced by a guided-filter estimate with the intensity as guide
   (:mod:`pmvir.polarization.guided`): far less false polarization from
   texture and noise, one colour-mean polarization shared by the colours.
+* ``"eari"``: Morimatsu et al.'s edge-aware residual interpolation
+  (:mod:`pmvir.polarization.eari`): the bilinear colour step of each angle's
+  Bayer image at half resolution, the four angles' colour images put back on
+  the mosaic grid, then every angle of every colour from an edge-aware guide
+  (all four angles) and a Laplacian-fitted tentative image plus the
+  interpolated residuals. Keeps every sample (and its noise).
+* ``"eari-guided"``: ``"eari"``, then the polarization replaced as in
+  ``"guided"``.
 * A monochrome layout has no colour step: ``"bilinear"`` and ``"edge-aware"``
   are the bilinear polarization interpolation.
 
@@ -145,7 +153,8 @@ def demosaic(
             ((sample - black) / (white - black), exposure-divided); H and W whole
             multiples of ``layout.period``.
         layout: where each angle and colour filter sits.
-        method: ``"bilinear"`` or ``"edge-aware"`` (see the module docstring).
+        method: ``"bilinear"``, ``"edge-aware"``, ``"guided"``, ``"eari"`` or
+            ``"eari-guided"`` (see the module docstring).
         out: optional array to write into and return, typically an earlier
             result of this function for a frame of the same size (saves
             allocating, and page-faulting, ~240 MB per 5-Mpixel colour frame).

@@ -58,7 +58,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from pmvir.polarization.lattice import pair_means, upsample2
+from pmvir.polarization.lattice import column_phases, interleave2, pair_means, upsample2_phases
 
 #: Window half-width r of the residual fit, in lattice steps (2 full-resolution pixels):
 #: (2r + 1)^2 lattice samples, about the authors' 11x11 full-resolution window for r = 2.
@@ -136,8 +136,8 @@ def edge_aware_guide(m: np.ndarray, weights: list[np.ndarray]) -> np.ndarray:
 
 
 def residual_interpolation(
-    m: np.ndarray,
-    guide: np.ndarray,
+    samples: np.ndarray,
+    guide_phases: list[np.ndarray],
     dy: int,
     dx: int,
     out: np.ndarray,
@@ -148,11 +148,12 @@ def residual_interpolation(
     """One angle at full resolution from its lattice samples and the guide (EARI steps 2-3).
 
     Args:
-        m: colour-complete polarization mosaic (H, W) float32, H and W even.
-        guide: :func:`edge_aware_guide` of ``m``, (H, W) float32.
-        dy, dx: the angle's position in the 2x2 polarizer block: its samples are
-            ``m[dy::2, dx::2]``.
-        out: (H, W) float32 plane, C-contiguous, overwritten with the angle's
+        samples: the angle's samples (h, w) float32, ``m[dy::2, dx::2]`` of the
+            colour-complete mosaic m (rows may be strided).
+        guide_phases: the guide's four phases ``guide[r::2, s::2]`` in the order
+            (0, 0), (0, 1), (1, 0), (1, 1), (h, w) float32 each (rows may be strided).
+        dy, dx: the angle's position in the 2x2 polarizer block.
+        out: (2h, 2w) float32 plane, C-contiguous, overwritten with the angle's
             intensity at every pixel (its own samples unchanged).
         radius: window half-width of the fit, in lattice steps.
         eps_slope: ridge on the Laplacian slope.
@@ -162,8 +163,7 @@ def residual_interpolation(
     def box(x: np.ndarray) -> np.ndarray:
         return cv2.boxFilter(x, -1, size, borderType=_REPLICATE)
 
-    samples = np.ascontiguousarray(m[dy::2, dx::2])
-    g = np.ascontiguousarray(guide[dy::2, dx::2])
+    g = guide_phases[2 * dy + dx]
     lap_r = cv2.filter2D(samples, -1, _LAPLACIAN, borderType=_REPLICATE)
     lap_g = cv2.filter2D(g, -1, _LAPLACIAN, borderType=_REPLICATE)
     num = box(cv2.multiply(lap_g, lap_r))
@@ -172,12 +172,16 @@ def residual_interpolation(
     a = cv2.divide(num, den)
     b = cv2.subtract(box(samples), cv2.multiply(a, box(g)))
     a, b = box(a), box(b)
-    # b + residual at the samples: R - a g (the tentative image's a g part is added at full resolution)
+    # tentative a g + b plus the residual R - (a g + b) at the samples = R - a g + (a g at full resolution),
+    # with a and the offset R - a g upsampled bilinearly; evaluated phase by phase, the samples' own as is
     offset = cv2.subtract(samples, cv2.multiply(a, g))
-    slope = np.empty_like(out)
-    upsample2(a, dy, dx, slope)
-    upsample2(offset, dy, dx, out)
-    cv2.add(out, cv2.multiply(slope, guide), dst=out)
+    slopes = upsample2_phases(a, dy, dx)
+    offsets = upsample2_phases(offset, dy, dx)
+    phases = [
+        samples if k == 2 * dy + dx else cv2.add(offsets[k], cv2.multiply(slopes[k], guide_phases[k]))
+        for k in range(4)
+    ]
+    interleave2(phases[0], phases[1], phases[2], phases[3], out)
 
 
 def eari_polarization(mosaics: np.ndarray, block: np.ndarray, planes: np.ndarray, *,
@@ -201,8 +205,11 @@ def eari_polarization(mosaics: np.ndarray, block: np.ndarray, planes: np.ndarray
     luma = mosaics[0] if len(mosaics) == 1 else cv2.add(cv2.add(mosaics[0], mosaics[1]), mosaics[2])
     weights = directional_weights(luma, eps=eps * len(mosaics))
     for c, m in enumerate(mosaics):
-        guide = edge_aware_guide(m, weights)
+        columns = column_phases(m, 2)
+        guide_columns = column_phases(edge_aware_guide(m, weights), 2)
+        guide_phases = [guide_columns[s][r::2] for r in range(2) for s in range(2)]
         for dy in range(2):
             for dx in range(2):
-                residual_interpolation(m, guide, dy, dx, planes[block[dy, dx], c], radius=radius)
+                residual_interpolation(columns[dx][dy::2], guide_phases, dy, dx, planes[block[dy, dx], c],
+                                       radius=radius)
 

@@ -65,14 +65,18 @@ def upsample2(q: np.ndarray, oy: int, ox: int, out: np.ndarray) -> None:
         out: contiguous (2h, 2w) float32 plane, overwritten. Pixels beyond the
             outermost lattice rows/columns repeat the edge values.
     """
+    interleave2(*upsample2_phases(q, oy, ox), out)
+
+
+def upsample2_phases(q: np.ndarray, oy: int, ox: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`upsample2`'s result as its four phases ``(p00, p01, p10, p11)``, ``p_rs = out[r::2, s::2]``.
+
+    The phase ``(oy, ox)`` is ``q`` itself; the others are (h, w) float32 views of new arrays.
+    """
     h, w = q.shape
     horiz = pair_means(q, 1)[:, 1 - ox : 1 - ox + w]
-    vert_full = pair_means(q, 0)
-    vert = vert_full[1 - oy : 1 - oy + h]
+    vert = pair_means(q, 0)[1 - oy : 1 - oy + h]
     diag = pair_means(vert, 1)[:, 1 - ox : 1 - ox + w]
     rows_on = (q, horiz) if ox == 0 else (horiz, q)
     rows_off = (vert, diag) if ox == 0 else (diag, vert)
-    if oy == 0:
-        interleave2(*rows_on, *rows_off, out)
-    else:
-        interleave2(*rows_off, *rows_on, out)
+    return (*rows_on, *rows_off) if oy == 0 else (*rows_off, *rows_on)
