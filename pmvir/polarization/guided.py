@@ -84,9 +84,9 @@ GUIDED_TAU = 0.1
 GUIDED_REACH = 4 * GUIDED_RADIUS + 4
 
 #: Windows are averaged with weights 1 / max(fitting error, k x the frame's median fitting error
-#: per unit intensity x the window's intensity): k = 3 measured as well as 1 and 2 on the Mitsuba
-#: knot frames (AoP 0.69x, DoP 0.75x polanalyser's, against 0.72x / 0.79x unweighted) and, unlike
-#: them, cost nothing on the noisy synthetic texture of tests/polarization/test_guided.py.
+#: per unit intensity x the window's intensity): k = 0.01 .. 4 all measured AoP 0.69x, DoP 0.75x
+#: polanalyser's on the Mitsuba knot frames (0.72x / 0.79x unweighted); k <= 1 cost 3% AoP on the
+#: noisy synthetic texture of tests/polarization/test_guided.py, k >= 2 nothing (< 0.2%).
 GUIDED_WEIGHT_K = 3.0
 
 #: mean(g) at or below this (normalized units) gives zero polarization.
