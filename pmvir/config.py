@@ -52,7 +52,7 @@ class DecodeOptions(_Options):
         "guide, windows weighted by their fitting error: much less false polarization from texture and "
         "noise, reach 13 px around saturated samples), 'eari' (Morimatsu et al.'s edge-aware residual "
         "interpolation: every angle and colour from an edge-aware guide; keeps each sample and its "
-        "noise, reach 15 px) or 'eari-guided' (EARI, then the guided polarization step; reach 26 px). "
+        "noise, reach 16 px) or 'eari-guided' (EARI, then the guided polarization step; reach 27 px). "
         "Measured in bench/demosaic.py. Monochrome sensors: no colour step.",
     )
 

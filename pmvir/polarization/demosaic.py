@@ -97,10 +97,10 @@ _SUPPORT_RADIUS = {
     (False, "guided"): GUIDED_REACH,
     (True, "guided"): GUIDED_REACH + 1,
     (False, "eari"): EARI_REACH,
-    (True, "eari"): EARI_REACH + 1,
+    (True, "eari"): EARI_REACH + 2,  # the bilinear colour step's 2 (a bound: 14-15 measured)
     # the guided step widens its input's reach by GUIDED_REACH - 1 (its own, without bilinear's 1)
     (False, "eari-guided"): EARI_REACH + GUIDED_REACH - 1,
-    (True, "eari-guided"): EARI_REACH + GUIDED_REACH,
+    (True, "eari-guided"): EARI_REACH + GUIDED_REACH + 1,
 }
 
 

@@ -168,8 +168,10 @@ def test_impulse_response_stays_within_the_declared_support(name: str, method: s
         assert ys.size > 0
         reach = max(reach, int(np.abs(ys - py).max()), int(np.abs(xs - px).max()))
     assert reach <= r
-    if method != "eari-guided":  # two steps in a row: the declared sum is a bound (measured 14-17 px)
-        assert reach >= r - 1  # the declared radius is not needlessly wide
+    # the declared radius is not needlessly wide; EARI's is a bound along a chain of steps whose extremes
+    # do not line up (colour: 14-15 measured of 16), eari-guided's the sum of two (14-17 of 25-27)
+    if method != "eari-guided":
+        assert reach >= r - (2 if method == "eari" and layout.is_colour else 1)
 
 
 @pytest.mark.parametrize("method", METHODS)

@@ -17,7 +17,7 @@ LAYOUTS = {
     "BGGR": MosaicLayout(polarizer_block=((45, 0), (90, 135)), bayer="BGGR"),
     "mono-rotated": MosaicLayout(polarizer_block=((45, 90), (0, 135)), bayer=None),
 }
-MARGIN = 24  # beyond the EARI reach (15 px) from the border
+MARGIN = 24  # beyond the EARI reach (16 px) from the border
 INNER = (slice(MARGIN, -MARGIN), slice(MARGIN, -MARGIN))
 
 
