@@ -159,7 +159,7 @@ def guided_polarization(planes: np.ndarray, *, radius: int = GUIDED_RADIUS, tau:
             # per colour c: s_c' = A g_c + B / C, so that the colour sum is A g + B
             coeffs.append((up(box(a)), up(cv2.multiply(box(b), 1.0 / n_col))))
     else:
-        per_intensity = cv2.multiply(mse, inv_mean_g)[lit > 0]
+        per_intensity = cv2.multiply(mse, inv_mean_g)[::2, ::2][lit[::2, ::2] > 0]  # every 4th window
         typical = float(np.median(per_intensity)) if per_intensity.size else 0.0
         floor_img = mean_g * np.float32(max(weight_k * typical, _WEIGHT_FLOOR_MIN))
         np.maximum(floor_img, np.float32(1e-20), out=floor_img)
