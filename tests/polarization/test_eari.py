@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from test_guided import _errors, _field, _independent_ramps, _textured_capture
@@ -117,3 +119,20 @@ def test_bad_inputs_raise_value_error() -> None:
         eari_polarization(np.zeros((1, 8, 8), np.float32), IMX250MZR.angle_index_block(), planes[:3])
     with pytest.raises(ValueError, match="radius"):
         eari_polarization(np.zeros((1, 8, 8), np.float32), IMX250MZR.angle_index_block(), planes, radius=0)
+
+
+def test_cli_decode_accepts_demosaic_eari(tmp_path: Path) -> None:
+    """`pmvir decode --demosaic eari` decodes a capture; its AoP/DoP differ from the default's."""
+    from test_decode_capture import IMX250MYR as MYR
+    from test_decode_capture import _raw_samples, _write_capture
+
+    from pmvir.cli import main
+    from pmvir.decode import read_decoded
+
+    cap = _write_capture(tmp_path / "cap", {"000": _raw_samples(MYR)})
+    for method in ("eari", "guided"):
+        assert main(["decode", str(cap), "--out", str(tmp_path / method), "--demosaic", method,
+                     "--no-previews", "--quiet"]) == 0
+    eari, guided = (read_decoded(tmp_path / m / "000.npz") for m in ("eari", "guided"))
+    assert eari.aop.dtype == np.float32 and eari.valid.any()
+    assert not np.array_equal(eari.dop, guided.dop)
