@@ -28,7 +28,10 @@ Per colour:
    ``detail = centre - mean of the two row neighbours`` (for any physical
    polarization, ``I0 + I90 = I45 + I135``, this vanishes on flat fields and
    responds to intensity edges only). So the guide interpolates along edges,
-   not across them.
+   not across them. The weights are computed once, from the sum of the
+   colours' mosaics, and shared by the colours (the authors compute them per
+   colour; edges are mostly common to the colours, and this saves two thirds
+   of the guide's cost).
 2. **Tentative estimate** of each angle (minimized-Laplacian residual
    interpolation, Kiku et al. 2016): on the angle's own lattice (every second
    pixel in both directions) the samples ``R`` are fitted as ``a G + b`` per
