@@ -192,8 +192,17 @@ class MvsOptions(_Options):
     planes: int = Field(
         default=96, ge=8, le=1024, description="Fronto-parallel depth planes, evenly spaced in inverse depth."
     )
-    window: int = Field(
-        default=7, ge=3, le=31, description="ZNCC window side in pixels of the stereo grid (odd)."
+    window: int | None = Field(
+        default=None,
+        ge=3,
+        le=31,
+        description="ZNCC window side in pixels of the stereo grid (odd). None: 3, or 7 for captures of at "
+        "most sparse_rig_views registered views. A fronto-parallel window on a curved surface matches it at "
+        "about the window's mean depth, behind a convex surface, so a small window keeps thin parts thick "
+        "(measured on the built-in shapes, 36 views of 612x512, 7 -> 3: completeness of the knot's tube "
+        "0.0031 -> 0.0020, the blob's 0.0012 -> 0.0010, mug and gear 0.0024 / 0.0021 -> 0.0014); with a few "
+        "views a depth needs only one confirming view and the wider window's lower noise wins (8 views of "
+        "320x256: accuracy 0.0063 with 7, 0.018 with 3).",
     )
     min_score: float = Field(
         default=0.3,
@@ -263,7 +272,7 @@ class MvsOptions(_Options):
 
     @model_validator(mode="after")
     def _check_window_and_angles(self) -> MvsOptions:
-        if self.window % 2 == 0:
+        if self.window is not None and self.window % 2 == 0:
             raise ValueError(f"window must be odd, got {self.window}")
         if self.min_angle_deg >= self.max_angle_deg:
             raise ValueError(

@@ -71,3 +71,15 @@ def test_old_keys_are_still_validated():
         GeometryOptions(mvs_window=8)
     with pytest.raises(ValidationError, match="extra"):
         GeometryOptions(mvs_no_such_option=1)
+
+
+def test_stereo_window_is_small_on_dense_rigs_and_wider_on_sparse_ones():
+    from pmvir.config import MvsOptions
+    from pmvir.geometry.mvs_dense import stereo_window
+
+    auto = MvsOptions()
+    assert auto.window is None
+    assert stereo_window(auto, 36) == 3 and stereo_window(auto, 13) == 3
+    assert stereo_window(auto, 12) == 7 and stereo_window(auto, 8) == 7  # at most sparse_rig_views
+    assert stereo_window(MvsOptions(window=5), 36) == 5 and stereo_window(MvsOptions(window=9), 8) == 9
+    assert stereo_window(MvsOptions(sparse_rig_views=0), 8) == 3
