@@ -308,10 +308,13 @@ class SurfaceOptions(_Options):
         "into well observed ones).",
     )
     trim_distance: float = Field(
-        default=0.01,
+        default=0.02,
         gt=0.0,
         description="Poisson vertices farther than this fraction of the dense points' bounding-box "
-        "diagonal from every dense point are removed (unobserved guesses).",
+        "diagonal from every dense point are removed (unobserved guesses). 0.02 (0.01 before): the "
+        "crevices where the knot's tube passes close to itself hold few fused points, and 0.01 cut holes "
+        "there (measured on the built-in shapes, 36 views of 612x512: knot completeness 0.00202 -> "
+        "0.00187, mug 0.00141 -> 0.00136, blob and gear unchanged, accuracy unchanged on all four).",
     )
     min_component_points: int = Field(
         default=200,

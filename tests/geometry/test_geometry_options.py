@@ -57,8 +57,8 @@ def test_old_flat_keys_through_the_pipeline_config_and_the_cli(capsys: pytest.Ca
 def test_new_keys_do_not_warn():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        c = _cli("geometry.mvs.planes=48", "geometry.surface.trim_distance=0.02")
-    assert c.geometry.mvs.planes == 48 and c.geometry.surface.trim_distance == 0.02
+        c = _cli("geometry.mvs.planes=48", "geometry.surface.trim_distance=0.03")
+    assert c.geometry.mvs.planes == 48 and c.geometry.surface.trim_distance == 0.03
 
 
 def test_old_and_new_spelling_of_one_option_is_an_error():
