@@ -195,8 +195,17 @@ class MvsOptions(_Options):
     planes: int = Field(
         default=96, ge=8, le=1024, description="Fronto-parallel depth planes, evenly spaced in inverse depth."
     )
-    window: int = Field(
-        default=7, ge=3, le=31, description="ZNCC window side in pixels of the stereo grid (odd)."
+    window: int | None = Field(
+        default=None,
+        ge=3,
+        le=31,
+        description="ZNCC window side in pixels of the stereo grid (odd). None: 3, or 7 for captures of at "
+        "most sparse_rig_views registered views. A fronto-parallel window on a curved surface matches it at "
+        "about the window's mean depth, behind a convex surface, so a small window keeps thin parts thick "
+        "(measured on the built-in shapes, 36 views of 612x512, 7 -> 3: completeness of the knot's tube "
+        "0.0031 -> 0.0020, the blob's 0.0012 -> 0.0010, mug and gear 0.0024 / 0.0021 -> 0.0014); with a few "
+        "views a depth needs only one confirming view and the wider window's lower noise wins (8 views of "
+        "320x256: accuracy 0.0063 with 7, 0.018 with 3).",
     )
     min_score: float = Field(
         default=0.3,
@@ -266,7 +275,7 @@ class MvsOptions(_Options):
 
     @model_validator(mode="after")
     def _check_window_and_angles(self) -> MvsOptions:
-        if self.window % 2 == 0:
+        if self.window is not None and self.window % 2 == 0:
             raise ValueError(f"window must be odd, got {self.window}")
         if self.min_angle_deg >= self.max_angle_deg:
             raise ValueError(
@@ -302,10 +311,13 @@ class SurfaceOptions(_Options):
         "into well observed ones).",
     )
     trim_distance: float = Field(
-        default=0.01,
+        default=0.02,
         gt=0.0,
         description="Poisson vertices farther than this fraction of the dense points' bounding-box "
-        "diagonal from every dense point are removed (unobserved guesses).",
+        "diagonal from every dense point are removed (unobserved guesses). 0.02 (0.01 before): the "
+        "crevices where the knot's tube passes close to itself hold few fused points, and 0.01 cut holes "
+        "there (measured on the built-in shapes, 36 views of 612x512: knot completeness 0.00202 -> "
+        "0.00187, mug 0.00141 -> 0.00136, blob and gear unchanged, accuracy unchanged on all four).",
     )
     min_component_points: int = Field(
         default=200,

@@ -48,6 +48,10 @@ from pmvir.progress import Progress
 #: Sparse points choose stereo neighbours and tighten depth ranges when there are at least this many
 #: (in all, and in a view); otherwise the known cameras' visual hull does both alone.
 _MIN_SUPPORT_POINTS = 20
+#: Automatic ZNCC window sides (pixels of the stereo grid): small against the fronto-parallel bias on
+#: curved and thin parts; wider on sparse rigs, whose depths one other view confirms.
+_WINDOW = 3
+_SPARSE_RIG_WINDOW = 7
 
 
 @dataclass(frozen=True)
@@ -212,6 +216,14 @@ def depth_range(
     return (near, far) if near < far else outer
 
 
+def stereo_window(options: MvsOptions, registered_views: int) -> int:
+    """The CPU stereo's ZNCC window side: ``options.window``, or when None 3 (7 for captures of at most
+    ``options.sparse_rig_views`` registered views: one confirming view then fuses a depth, so noise counts)."""
+    if options.window is not None:
+        return options.window
+    return _SPARSE_RIG_WINDOW if registered_views <= options.sparse_rig_views else _WINDOW
+
+
 def _dense_cpu(
     images: Sequence[np.ndarray],
     masks: Sequence[np.ndarray | None],
@@ -248,7 +260,7 @@ def _dense_cpu(
             sources,
             *rng,
             planes=options.planes,
-            window=options.window,
+            window=stereo_window(options, len(registered)),
             top_k=options.top_k,
             min_score=options.min_score,
         )

@@ -57,8 +57,8 @@ def test_old_flat_keys_through_the_pipeline_config_and_the_cli(capsys: pytest.Ca
 def test_new_keys_do_not_warn():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        c = _cli("geometry.mvs.planes=48", "geometry.surface.trim_distance=0.02")
-    assert c.geometry.mvs.planes == 48 and c.geometry.surface.trim_distance == 0.02
+        c = _cli("geometry.mvs.planes=48", "geometry.surface.trim_distance=0.03")
+    assert c.geometry.mvs.planes == 48 and c.geometry.surface.trim_distance == 0.03
 
 
 def test_old_and_new_spelling_of_one_option_is_an_error():
@@ -71,3 +71,15 @@ def test_old_keys_are_still_validated():
         GeometryOptions(mvs_window=8)
     with pytest.raises(ValidationError, match="extra"):
         GeometryOptions(mvs_no_such_option=1)
+
+
+def test_stereo_window_is_small_on_dense_rigs_and_wider_on_sparse_ones():
+    from pmvir.config import MvsOptions
+    from pmvir.geometry.mvs_dense import stereo_window
+
+    auto = MvsOptions()
+    assert auto.window is None
+    assert stereo_window(auto, 36) == 3 and stereo_window(auto, 13) == 3
+    assert stereo_window(auto, 12) == 7 and stereo_window(auto, 8) == 7  # at most sparse_rig_views
+    assert stereo_window(MvsOptions(window=5), 36) == 5 and stereo_window(MvsOptions(window=9), 8) == 9
+    assert stereo_window(MvsOptions(sparse_rig_views=0), 8) == 3

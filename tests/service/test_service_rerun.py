@@ -13,15 +13,7 @@ from pmvir.cli import main
 from pmvir.synth import synthesize
 from service.testing import ServiceStack
 
-from svc_helpers import KEY, finished, new_job, wait_for
-
-ONE_STAGE = {
-    "max_iterations": 1,
-    "tau_pol": [60.0],
-    "tau_gsm": [0.1],
-    "tau_psm": [2.0],
-    "gsm_exponent": [2.2],
-}
+from svc_helpers import KEY, ONE_REFINE_STAGE, finished, new_job, wait_for
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +40,7 @@ def test_rerun_from_refine_reuses_the_capture_and_skips_geometry(
     code = main(
         [
             "rerun", geometry_job["id"], "--server", stack.url, "--api-key", KEY, "--from", "refine",
-            "--set", "stop_after=refine", "--set", f"refine={json.dumps(ONE_STAGE)}",
+            "--set", "stop_after=refine", "--set", f"refine={json.dumps(ONE_REFINE_STAGE)}",
         ]
     )  # fmt: skip
     assert code == 0
