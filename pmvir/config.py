@@ -609,14 +609,22 @@ class RefineOptions(_Options):
         description="'free': full 3D vertex motion (3 unknowns per vertex; measured more accurate); 'normal': "
         "each vertex moves along its normal at the start of the stage (1 unknown per vertex).",
     )
+    intensity_scale: Literal["median", "absolute"] = Field(
+        default="median",
+        description="What E_pho and E_psm measure intensities in. 'median': multiples of the capture's median "
+        "observed intensity (colour mean over every view's valid pixels) times intensity_units, so the balance "
+        "between the terms does not depend on the exposure, the lighting's brightness or how much of the frame "
+        "highlights take; 'absolute': the capture's normalized units times intensity_units (earlier versions). "
+        "Measured in the README.",
+    )
     intensity_units: float = Field(
-        default=32.0,
+        default=6.4,
         gt=0.0,
-        description="Intensities and albedos (normalized capture units, [0, 1]) are multiplied by this in E_pho "
-        "and E_psm. It sets the balance between E_pho/E_psm and E_pol/E_gsm, which the paper's tau weights "
-        "assume but the paper's units do not fix. 32 is measured: on the Stanford models (plastic, 36 views) "
-        "it beat 64 on accuracy and completeness (bunny 46% -> 52% and 12% -> 15%, dragon 34% -> 38% and "
-        "13% -> 15%); 255 (8-bit units) leaves E_pol a tie-breaker.",
+        description="Intensities and albedos are multiplied by this in E_pho and E_psm (after dividing by the "
+        "capture's median intensity with intensity_scale='median'). It sets the balance between E_pho/E_psm "
+        "and E_pol/E_gsm, which the paper's tau weights assume but the paper's units do not fix. 6.4 with "
+        "'median' is 32 with 'absolute' at the built-in renderer's typical median of 0.2, measured best on the "
+        "Stanford models (32 beat 64: bunny 46% -> 52% and 12% -> 15%, dragon 34% -> 38% and 13% -> 15%).",
     )
     diffuse_fresnel_ior: float = Field(
         default=0.0,
@@ -626,13 +634,27 @@ class RefineOptions(_Options):
         "dielectric of index n, relative to normal emission (a smooth plastic's diffuse lobe, as Mitsuba's "
         "pplastic renders it: 0.95 at 60 degrees, 0.80 at 75 degrees for n = 1.5). Measured in the README.",
     )
-    pho_robust: Literal["none", "cauchy"] = Field(
+    pho_robust: Literal["none", "cauchy", "specular"] = Field(
         default="cauchy",
         description="E_pho's loss. 'none': least squares (the paper's). 'cauchy': from stage 2 on, each pair's "
         "squared residual is weighted by the Cauchy weight 1 / (1 + (r / s)^2) of its residual r at the "
         "stage's start (s = pho_robust_scale times the median residual), fixed for the stage like the "
         "pairs: specular residue, cast shadows and misregistered samples lose their pull. Measured in the "
         "README.",
+    )
+    lighting_prefit_iterations: int = Field(
+        default=30,
+        ge=0,
+        le=100_000,
+        description="Before the first stage, L-BFGS iterations fitting the per-view lighting (and the albedo) "
+        "to the initial surface with the geometry held; with pho_robust the first stage's Cauchy weights then "
+        "come from that fit's residuals instead of the first stage running least squares. 0: none (the "
+        "paper's start). Measured in the README.",
+    )
+    pho_robust_first_stage: bool = Field(
+        default=False,
+        description="With pho_robust and the lighting pre-fit: stage 1's Cauchy weights come from the pre-fit's "
+        "residuals (False: stage 1 is least squares, the robust weights start at stage 2). Measured in the README.",
     )
     pho_robust_scale: float = Field(
         default=0.5,

@@ -259,6 +259,7 @@ def refine_report(refined: RefineResult) -> dict:
     """The refinement's part of report.json: per stage its parameters and per-iteration term values."""
     return {
         "vertices": len(refined.vertices),
+        "intensity_factor": refined.intensity_factor,
         "timings": {k: float(v) for k, v in refined.timings.items()},
         "stages": [_stage_report(st) for st in refined.stages],
     }

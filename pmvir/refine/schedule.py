@@ -116,6 +116,8 @@ class RefineResult:
         visibility: (N, V) bool visibility used by the last stage.
         stages: one :class:`StageLog` per stage.
         timings: seconds: ``setup``, ``stage_1`` ... ``stage_S``, ``total``.
+        intensity_factor: what E_pho and E_psm multiplied intensities and albedos by
+            (:func:`intensity_units`).
     """
 
     vertices: np.ndarray
@@ -126,6 +128,7 @@ class RefineResult:
     visibility: np.ndarray
     stages: list[StageLog] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    intensity_factor: float = 0.0
 
 
 def resolve_device(name: str) -> torch.device:
@@ -322,6 +325,7 @@ class _Setup:
     opts: RefineOptions
     device: torch.device
     dtype: torch.dtype
+    units: float
 
 
 @dataclass(frozen=True)
@@ -411,7 +415,7 @@ def prepare_stage(
         sigma_chroma=opts.psm_sigma_chroma,
         sigma_log_intensity=opts.psm_sigma_log_intensity,
     )
-    robust = opts.pho_robust == "cauchy" and s > 0  # stage 1 starts from uniform lighting: no residuals yet
+    robust = opts.pho_robust != "none" and s > 0  # stage 1 starts from uniform lighting: no residuals yet
     pho_weight = _robust_pho_weights(setup, state, pairs, samples) if robust else None
     problem = _stage_problem(setup, pairs, samples, psm_weight, t=weights.t, pho_weight=pho_weight)
     stage = _Stage(
@@ -425,6 +429,37 @@ def prepare_stage(
         h=mean_edge_length(cur_np, setup.topo.edges_np),
     )
     return stage, state
+
+
+def prefit_lighting(
+    setup: _Setup, stage: _Stage, state: _Unknowns, *, progress: Progress
+) -> tuple[_Stage, _Unknowns]:
+    """Before the first stage: fit the lighting (and the projected albedo) to the initial surface
+    with the geometry held (``lighting_prefit_iterations``), so that the first stage starts from
+    lighting that explains the images; with ``pho_robust`` the first stage's Cauchy weights are then
+    taken from the residuals of that fit (otherwise it would have none: it starts from uniform
+    lighting), and specular residue loses its pull from the first stage on.
+
+    Returns:
+        the first stage (with its robust weights) and the unknowns after the fit.
+    """
+    opts = setup.opts
+    state, _ = solve_stage(
+        setup,
+        stage,
+        state,
+        progress=progress,
+        max_iterations=opts.lighting_prefit_iterations,
+        freeze_motion=True,
+    )
+    if opts.pho_robust == "none" or not opts.pho_robust_first_stage:
+        return stage, state
+    _, _, samples = _stage_observations(state.vertices, setup.topo.faces, setup.views, stage.pairs)
+    pho_weight = _robust_pho_weights(setup, state, stage.pairs, samples)
+    problem = _stage_problem(
+        setup, stage.pairs, samples, stage.psm_weight, t=stage.weights.t, pho_weight=pho_weight
+    )
+    return replace(stage, problem=problem), state
 
 
 def _stage_problem(
@@ -444,7 +479,9 @@ def _stage_problem(
     pol_weight = dop if opts.dop_weight and dop is not None else None
     if pol_weight is not None and opts.dop_weight_normalized:
         used = pol_weight if pol_mask is None else pol_weight[pol_mask]
-        pol_weight = pol_weight / (used.mean() if used.numel() else pol_weight.new_tensor(1.0)).clamp_min(1e-6)
+        pol_weight = pol_weight / (used.mean() if used.numel() else pol_weight.new_tensor(1.0)).clamp_min(
+            1e-6
+        )
     return StageProblem(
         faces=topo.faces,
         face_pairs=topo.face_pairs,
@@ -458,7 +495,7 @@ def _stage_problem(
         pol_weight=pol_weight,
         k=opts.pol_k,
         t=t,
-        units=opts.intensity_units,
+        units=setup.units,
         pho_weight=pho_weight,
         diffuse_fresnel_ior=opts.diffuse_fresnel_ior,
     )
@@ -468,18 +505,25 @@ def _robust_pho_weights(
     setup: _Setup, state: _Unknowns, pairs: PairSet, samples: PairSamples
 ) -> torch.Tensor:
     """(P,) Cauchy weights 1 / (1 + (r / s)^2) of each pair's E_pho residual r (RGB norm) at the
-    current unknowns, s = ``pho_robust_scale`` times the median residual (``pho_robust``)."""
+    current unknowns, s = ``pho_robust_scale`` times the median residual (``pho_robust``).
+
+    ``pho_robust='specular'`` weights only the pairs observed brighter than rendered (colour mean):
+    specular residue only adds light, while a misplaced surface errs both ways, so pairs darker
+    than their rendering keep full weight and keep pulling the surface into place.
+    """
     with torch.no_grad():
         normals = vertex_normals(state.vertices, setup.topo.faces)
         light = pair_light(normals, state.sh, state.rgb_scale, pairs)
         if setup.opts.diffuse_fresnel_ior > 0.0:
             cos_o = -(samples.normal_cam * samples.ray_cam).sum(-1)
             light = light * fresnel_transmittance(cos_o, setup.opts.diffuse_fresnel_ior)[:, None]
-        r = torch.linalg.vector_norm(
-            samples.intensity - state.albedo.index_select(0, pairs.vertex) * light, dim=1
-        )
+        diff = samples.intensity - state.albedo.index_select(0, pairs.vertex) * light
+        r = torch.linalg.vector_norm(diff, dim=1)
         scale = setup.opts.pho_robust_scale * r.median().clamp_min(1e-12)
-        return 1.0 / (1.0 + (r / scale) ** 2)
+        weight = 1.0 / (1.0 + (r / scale) ** 2)
+        if setup.opts.pho_robust == "specular":
+            weight = torch.where(diff.mean(dim=1) > 0, weight, torch.ones_like(weight))
+        return weight
 
 
 def _minimize(
@@ -491,8 +535,11 @@ def _minimize(
     smoother: GraphSmoother,
     opts: RefineOptions,
     log: _IterationLog,
+    max_iterations: int,
+    freeze_motion: bool = False,
 ) -> LbfgsResult:
-    """L-BFGS on one parametrization of a stage's cost."""
+    """L-BFGS on one parametrization of a stage's cost (``freeze_motion``: the vertex-motion block's
+    gradient is zeroed, so the geometry stays put and only lighting and albedo move)."""
 
     def fun(z: torch.Tensor) -> tuple[float, torch.Tensor, dict[str, float]]:
         z = z.detach().requires_grad_(True)
@@ -501,6 +548,8 @@ def _minimize(
         terms = energy_terms(u.vertices, albedo, u.sh, u.rgb_scale, problem)
         total = total_energy(terms, tau_pol=weights.tau_pol, tau_gsm=weights.tau_gsm, tau_psm=weights.tau_psm)
         (grad,) = torch.autograd.grad(total, z)
+        if freeze_motion:
+            grad[param.blocks.motion] = 0.0
         named = {k: float(v.detach()) for k, v in terms.items()}
         named["total"] = float(total.detach())
         return named["total"], grad, named
@@ -510,7 +559,7 @@ def _minimize(
         param.initial(),
         precondition=param.preconditioner(smoother),
         first_step=0.1,
-        max_iterations=opts.max_iterations,
+        max_iterations=max_iterations,
         history_size=opts.history_size,
         rel_tolerance=opts.rel_tolerance,
         grad_tolerance=opts.grad_tolerance,
@@ -531,9 +580,18 @@ def _accepted(
 
 
 def solve_stage(
-    setup: _Setup, stage: _Stage, state: _Unknowns, *, progress: Progress
+    setup: _Setup,
+    stage: _Stage,
+    state: _Unknowns,
+    *,
+    progress: Progress,
+    max_iterations: int | None = None,
+    freeze_motion: bool = False,
 ) -> tuple[_Unknowns, StageLog]:
     """Minimize one stage's cost from ``state`` (L-BFGS; the albedo projected or joint).
+
+    ``max_iterations`` (default: the options') and ``freeze_motion`` (geometry held, only lighting
+    and albedo solved) serve :func:`prefit_lighting`.
 
     Returns:
         the unknowns at the accepted point and the stage's log.
@@ -556,7 +614,8 @@ def solve_stage(
             stage.pairs, setup.topo.edges_np, stage.psm_weight, stage.weights.tau_psm, state.albedo
         )
     )
-    log = _IterationLog(max_iterations=opts.max_iterations, progress=progress)
+    iterations = opts.max_iterations if max_iterations is None else max_iterations
+    log = _IterationLog(max_iterations=iterations, progress=progress)
     res = _minimize(
         param,
         problem=stage.problem,
@@ -565,6 +624,8 @@ def solve_stage(
         smoother=setup.smoother,
         opts=opts,
         log=log,
+        max_iterations=iterations,
+        freeze_motion=freeze_motion,
     )
     w = stage.weights
     stage_log = StageLog(
@@ -583,6 +644,26 @@ def solve_stage(
         seconds=time.perf_counter() - t0,
     )
     return _accepted(param, stage.problem, solver, res.x), stage_log
+
+
+def intensity_units(observations: Sequence[Observation], opts: RefineOptions) -> float:
+    """The factor on intensities and albedos in E_pho and E_psm (``intensity_scale``, ``intensity_units``).
+
+    With ``intensity_scale='median'`` it is ``intensity_units / m``, m the median colour-mean observed
+    intensity over every view's valid pixels, so that E_pho's weight against E_pol and E_gsm does not
+    change with the exposure or the lighting's brightness.
+
+    Raises:
+        ReconstructionError: 'median' asked for but no view has a valid pixel with positive intensity.
+    """
+    if opts.intensity_scale == "absolute":
+        return opts.intensity_units
+    values = [obs.intensity[obs.valid].mean(axis=-1) for obs in observations]
+    flat = np.concatenate(values) if values else np.zeros(0, np.float32)
+    flat = flat[np.isfinite(flat) & (flat > 0)]
+    if flat.size == 0:
+        raise ReconstructionError("no view has a valid pixel with positive intensity to scale E_pho by")
+    return opts.intensity_units / float(np.median(flat))
 
 
 def _setup(
@@ -609,6 +690,7 @@ def _setup(
         dtype=dtype,
     )
     return _Setup(
+        units=intensity_units(observations, opts),
         faces_np=faces_np,
         topo=topo,
         cameras=cameras,
@@ -688,6 +770,9 @@ def refine_surface(
             p.update(0.0, f"of {opts.n_stages}: visibility and pairs")
             stage, state = prepare_stage(setup, state, vis, s)
             vis = stage.visibility
+            if s == 0 and opts.lighting_prefit_iterations > 0:
+                with p.step("lighting", weight=0.1) as q:
+                    stage, state = prefit_lighting(setup, stage, state, progress=q)
             state, log = solve_stage(setup, stage, state, progress=p)
         logs.append(log)
         timings[f"stage_{s + 1}"] = time.perf_counter() - t_stage
@@ -704,4 +789,5 @@ def refine_surface(
         visibility=vis.astype(bool),
         stages=logs,
         timings=timings,
+        intensity_factor=setup.units,
     )

@@ -292,3 +292,105 @@ def test_unknown_option_is_rejected_and_config_tree_has_refine() -> None:
     cfg = PipelineConfig.model_validate({"refine": {"polarimetric": False, "intensity": "int"}})
     assert cfg.refine.polarimetric is False and cfg.refine.n_stages == 3
     assert RefineOptions().tau_pol == [60.0, 120.0, 360.0] and RefineOptions().pol_k == 0.5
+
+
+def test_median_intensity_scale_makes_the_result_independent_of_the_exposure(plastic) -> None:
+    """With intensity_scale='median' a capture 4x brighter (exposure, lighting) refines to the same
+    surface; with 'absolute' E_pho's weight against E_pol and E_gsm changes, and so does the result."""
+    scene, obs, _, vis = plastic
+    brighter = [Observation(o.intensity * 4.0, o.aop, o.dop, o.valid) for o in obs]
+    short = {
+        "max_iterations": 8,
+        "tau_pol": [60.0],
+        "tau_gsm": [0.1],
+        "tau_psm": [2.0],
+        "gsm_exponent": [2.2],
+    }
+
+    def run(observations, scale: str) -> np.ndarray:
+        opts = RefineOptions(intensity_scale=scale, dtype="float64", **short)
+        res = refine_surface(scene.vertices, scene.faces, scene.cameras, observations, vis, options=opts)
+        return res.vertices - scene.vertices
+
+    h = float(
+        np.linalg.norm(scene.vertices[scene.faces[:, 0]] - scene.vertices[scene.faces[:, 1]], axis=1).mean()
+    )
+    moved = run(obs, "median")
+    assert np.abs(moved).max() > 0.01 * h  # the surface does move
+    np.testing.assert_allclose(run(brighter, "median"), moved, atol=1e-4 * h)
+    assert np.abs(run(brighter, "absolute") - run(obs, "absolute")).max() > 0.01 * h
+
+
+def test_median_intensity_units_follow_the_observations() -> None:
+    from pmvir.refine.schedule import intensity_units
+
+    valid = np.ones((2, 3), bool)
+    grey = np.zeros((2, 3, 3), np.float32)
+    grey[..., :] = np.array([0.1, 0.2, 0.4, 0.4, 0.4, 0.8], np.float32).reshape(2, 3, 1)
+    obs = [Observation(grey, np.zeros((2, 3)), np.zeros((2, 3)), valid)]
+    assert intensity_units(obs, RefineOptions(intensity_units=4.0)) == pytest.approx(4.0 / 0.4)
+    assert intensity_units(obs, RefineOptions(intensity_units=4.0, intensity_scale="absolute")) == 4.0
+    dark = [Observation(np.zeros((2, 3, 3), np.float32), np.zeros((2, 3)), np.zeros((2, 3)), valid)]
+    with pytest.raises(ReconstructionError, match="no view has a valid pixel"):
+        intensity_units(dark, RefineOptions())
+
+
+def test_lighting_prefit_holds_the_geometry_and_fits_the_lighting(plastic) -> None:
+    """The pre-fit moves no vertex and lowers E_pho from the uniform-lighting start."""
+    from pmvir.refine.schedule import _initial_unknowns, _setup, prefit_lighting, prepare_stage
+
+    scene, obs, _, vis = plastic
+    opts = RefineOptions(lighting_prefit_iterations=15, pho_robust_first_stage=True)
+    setup = _setup(
+        scene.faces.astype(np.int64), len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None
+    )
+    state = _initial_unknowns(scene.vertices, len(scene.cameras), device=setup.device, dtype=setup.dtype)
+    stage, state = prepare_stage(setup, state, vis, 0)
+    assert stage.problem.pho_weight is None  # stage 1 alone has no residuals to weight by
+    fitted_stage, fitted = prefit_lighting(setup, stage, state, progress=Progress.none())
+    assert np.array_equal(fitted.vertices.numpy(), state.vertices.numpy())
+    assert not np.allclose(fitted.sh.numpy(), state.sh.numpy())
+    assert fitted_stage.problem.pho_weight is not None
+    w = fitted_stage.problem.pho_weight.numpy()
+    assert 0.0 < w.min() < 0.5 < w.max() <= 1.0
+
+
+def test_specular_robust_weights_spare_pairs_darker_than_rendered(plastic) -> None:
+    """pho_robust='specular' down-weights only pairs brighter than their rendering (specular adds
+    light); 'cauchy' down-weights both signs."""
+    from pmvir.refine.energy import pair_light
+    from pmvir.refine.mesh_ops import vertex_normals
+    from pmvir.refine.schedule import (
+        _initial_unknowns,
+        _robust_pho_weights,
+        _setup,
+        _stage_observations,
+        prepare_stage,
+    )
+
+    scene, obs, _, vis = plastic
+    weights = {}
+    for mode in ("cauchy", "specular"):
+        opts = RefineOptions(pho_robust=mode)
+        setup = _setup(
+            scene.faces.astype(np.int64),
+            len(scene.vertices),
+            scene.cameras,
+            obs,
+            opts=opts,
+            visibility_fn=None,
+        )
+        state = _initial_unknowns(scene.vertices, len(scene.cameras), device=setup.device, dtype=setup.dtype)
+        stage, state = prepare_stage(setup, state, vis, 0)
+        _, _, samples = _stage_observations(state.vertices, setup.topo.faces, setup.views, stage.pairs)
+        weights[mode] = _robust_pho_weights(setup, state, stage.pairs, samples).numpy()
+    light = pair_light(
+        vertex_normals(state.vertices, setup.topo.faces), state.sh, state.rgb_scale, stage.pairs
+    )
+    brighter = (samples.intensity - state.albedo.index_select(0, stage.pairs.vertex) * light).mean(
+        1
+    ).numpy() > 0
+    assert brighter.any() and (~brighter).any()
+    assert np.all(weights["specular"][~brighter] == 1.0)
+    np.testing.assert_allclose(weights["specular"][brighter], weights["cauchy"][brighter])
+    assert weights["cauchy"][~brighter].min() < 0.5
