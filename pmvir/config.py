@@ -610,21 +610,21 @@ class RefineOptions(_Options):
         "each vertex moves along its normal at the start of the stage (1 unknown per vertex).",
     )
     intensity_scale: Literal["median", "absolute"] = Field(
-        default="median",
+        default="absolute",
         description="What E_pho and E_psm measure intensities in. 'median': multiples of the capture's median "
         "observed intensity (colour mean over every view's valid pixels) times intensity_units, so the balance "
         "between the terms does not depend on the exposure, the lighting's brightness or how much of the frame "
-        "highlights take; 'absolute': the capture's normalized units times intensity_units (earlier versions). "
-        "Measured in the README.",
+        "highlights take (use intensity_units 6.4 with it: the same balance at the built-in renderer's median of "
+        "0.2); 'absolute': the capture's normalized units times intensity_units. Measured in the README.",
     )
     intensity_units: float = Field(
-        default=6.4,
+        default=32.0,
         gt=0.0,
         description="Intensities and albedos are multiplied by this in E_pho and E_psm (after dividing by the "
         "capture's median intensity with intensity_scale='median'). It sets the balance between E_pho/E_psm "
-        "and E_pol/E_gsm, which the paper's tau weights assume but the paper's units do not fix. 6.4 with "
-        "'median' is 32 with 'absolute' at the built-in renderer's typical median of 0.2, measured best on the "
-        "Stanford models (32 beat 64: bunny 46% -> 52% and 12% -> 15%, dragon 34% -> 38% and 13% -> 15%).",
+        "and E_pol/E_gsm, which the paper's tau weights assume but the paper's units do not fix. 32 ('absolute') "
+        "measured best on the Stanford models (32 beat 64: bunny 46% -> 52% and 12% -> 15%, dragon 34% -> 38% "
+        "and 13% -> 15%); 6.4 with 'median' is the same balance at the built-in renderer's median of 0.2.",
     )
     diffuse_fresnel_ior: float = Field(
         default=0.0,
@@ -643,7 +643,7 @@ class RefineOptions(_Options):
         "README.",
     )
     lighting_prefit_iterations: int = Field(
-        default=30,
+        default=0,
         ge=0,
         le=100_000,
         description="Before the first stage, L-BFGS iterations fitting the per-view lighting (and the albedo) "

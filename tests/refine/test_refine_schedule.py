@@ -330,11 +330,13 @@ def test_median_intensity_units_follow_the_observations() -> None:
     grey = np.zeros((2, 3, 3), np.float32)
     grey[..., :] = np.array([0.1, 0.2, 0.4, 0.4, 0.4, 0.8], np.float32).reshape(2, 3, 1)
     obs = [Observation(grey, np.zeros((2, 3)), np.zeros((2, 3)), valid)]
-    assert intensity_units(obs, RefineOptions(intensity_units=4.0)) == pytest.approx(4.0 / 0.4)
+    assert intensity_units(
+        obs, RefineOptions(intensity_units=4.0, intensity_scale="median")
+    ) == pytest.approx(4.0 / 0.4)
     assert intensity_units(obs, RefineOptions(intensity_units=4.0, intensity_scale="absolute")) == 4.0
     dark = [Observation(np.zeros((2, 3, 3), np.float32), np.zeros((2, 3)), np.zeros((2, 3)), valid)]
     with pytest.raises(ReconstructionError, match="no view has a valid pixel"):
-        intensity_units(dark, RefineOptions())
+        intensity_units(dark, RefineOptions(intensity_scale="median"))
 
 
 def test_lighting_prefit_holds_the_geometry_and_fits_the_lighting(plastic) -> None:
