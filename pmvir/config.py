@@ -540,6 +540,13 @@ class RefineOptions(_Options):
         "Rayleigh-distributed DoP of mean 0.0125 with random AoP; fewer than 0.3% of its pairs exceed 0.035. "
         "0 keeps every pair, as the paper's equation does.",
     )
+    dop_min_noise: Literal["fixed", "shot"] = Field(
+        default="fixed",
+        description="How dop_min follows the pair's brightness. 'fixed': the same floor everywhere. 'shot': "
+        "the floor rises as 1 / sqrt(I_int) below the stage's median I_int (dop_min * sqrt(median / I_int), "
+        "never below dop_min), as the DoP's shot noise does, so that the AoP of dark, shadowed parts, "
+        "which is mostly noise, stops pulling their normals. Measured in the README.",
+    )
     intensity: Literal["min", "int"] = Field(
         default="min",
         description="Observed colour in E_pho: 'min' = I_min = (1 - rho) I_int (the paper's), 'int' = I_int.",

@@ -475,7 +475,7 @@ def _stage_problem(
     from the samples at the stage's start and stay fixed, like the pairs."""
     opts, topo = setup.opts, setup.topo
     dop = samples.dop
-    pol_mask = None if dop is None or opts.dop_min <= 0.0 else dop >= opts.dop_min
+    pol_mask = None if dop is None or opts.dop_min <= 0.0 else dop >= dop_floor(samples, opts)
     pol_weight = dop if opts.dop_weight and dop is not None else None
     if pol_weight is not None and opts.dop_weight_normalized:
         used = pol_weight if pol_mask is None else pol_weight[pol_mask]
@@ -499,6 +499,26 @@ def _stage_problem(
         pho_weight=pho_weight,
         diffuse_fresnel_ior=opts.diffuse_fresnel_ior,
     )
+
+
+def dop_floor(samples: PairSamples, opts: RefineOptions) -> torch.Tensor | float:
+    """E_pol's DoP floor per pair (``dop_min``, ``dop_min_noise``).
+
+    'shot': ``dop_min * sqrt(max(1, m / I))`` with I the pair's colour-mean I_int (recovered from
+    I_min = (1 - rho) I_int when E_pho uses I_min) and m its median over the stage's pairs: the
+    standard deviation of a DoP measured under shot noise grows as 1 / sqrt(I).
+
+    Returns:
+        a float (``'fixed'``) or a (P,) tensor.
+    """
+    if opts.dop_min_noise == "fixed" or samples.dop is None:
+        return opts.dop_min
+    i = samples.intensity.mean(dim=-1)
+    if opts.intensity == "min":
+        i = i / (1.0 - samples.dop).clamp_min(0.05)
+    i = i.clamp_min(1e-6)
+    ratio = (i.median() / i).clamp_min(1.0)
+    return opts.dop_min * torch.sqrt(ratio)
 
 
 def _robust_pho_weights(

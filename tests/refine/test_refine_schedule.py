@@ -398,3 +398,27 @@ def test_specular_robust_weights_spare_pairs_darker_than_rendered(plastic) -> No
     assert np.all(weights["specular"][~brighter] == 1.0)
     np.testing.assert_allclose(weights["specular"][brighter], weights["cauchy"][brighter])
     assert weights["cauchy"][~brighter].min() < 0.5
+
+
+def test_shot_noise_dop_floor_rises_only_below_the_median_intensity() -> None:
+    """dop_min_noise='shot' raises E_pol's DoP floor as 1 / sqrt(I_int) in pairs darker than the
+    median, recovering I_int from I_min = (1 - rho) I_int; 'fixed' keeps dop_min everywhere."""
+    import torch
+
+    from pmvir.refine.sampling import PairSamples
+    from pmvir.refine.schedule import dop_floor
+
+    i_int = torch.tensor([0.4, 0.1, 0.025, 0.8, 0.4], dtype=torch.float64)
+    dop = torch.tensor([0.2, 0.1, 0.0, 0.5, 0.3], dtype=torch.float64)
+    i_min = ((1.0 - dop) * i_int)[:, None].expand(5, 3)
+    zeros = torch.zeros(5, 3, dtype=torch.float64)
+    samples = PairSamples(i_min, zeros, zeros, torch.zeros(5), dop, torch.ones(5, dtype=torch.bool))
+    assert dop_floor(samples, RefineOptions(dop_min=0.04)) == 0.04
+    shot = dop_floor(samples, RefineOptions(dop_min=0.04, dop_min_noise="shot"))
+    np.testing.assert_allclose(shot.numpy(), [0.04, 0.08, 0.16, 0.04, 0.04], rtol=1e-6)
+    i_int_samples = PairSamples(i_int[:, None].expand(5, 3), zeros, zeros, torch.zeros(5), dop, dop > 0)
+    np.testing.assert_allclose(
+        dop_floor(i_int_samples, RefineOptions(dop_min=0.04, dop_min_noise="shot", intensity="int")).numpy(),
+        shot.numpy(),
+        rtol=1e-6,
+    )
