@@ -124,9 +124,6 @@ def guided_polarization(planes: np.ndarray, *, radius: int = GUIDED_RADIUS, tau:
     def box(x: np.ndarray) -> np.ndarray:
         return cv2.boxFilter(x, -1, size, borderType=cv2.BORDER_REPLICATE)
 
-    def up(x: np.ndarray) -> np.ndarray:
-        return cv2.resize(x, (w, h), interpolation=cv2.INTER_LINEAR)
-
     # colour sums of each angle at half resolution (2x2 means), then g, s1, s2 there
     quads = [_half_colour_sum(planes[k], half) for k in range(4)]
     gh = cv2.add(cv2.add(quads[0], quads[2]), cv2.add(quads[1], quads[3]))  # C * 2 s0
@@ -153,11 +150,10 @@ def guided_polarization(planes: np.ndarray, *, radius: int = GUIDED_RADIUS, tau:
             var_s = cv2.subtract(box(cv2.multiply(sh, sh)), cv2.multiply(mean_s, mean_s))
             cv2.add(mse, cv2.subtract(var_s, cv2.multiply(a, cov, scale=2.0)), dst=mse)
             cv2.add(mse, cv2.multiply(cv2.multiply(a, a), var_g), dst=mse)
-    coeffs = []
+    coeffs = []  # half resolution; per colour c: s_c' = A g_c + B / C, so that the colour sum is A g + B
     if weight_k is None:
         for a, b in fits:
-            # per colour c: s_c' = A g_c + B / C, so that the colour sum is A g + B
-            coeffs.append((up(box(a)), up(cv2.multiply(box(b), 1.0 / n_col))))
+            coeffs += [box(a), cv2.multiply(box(b), 1.0 / n_col)]
     else:
         per_intensity = cv2.multiply(mse, inv_mean_g)[::2, ::2][lit[::2, ::2] > 0]  # every 4th window
         typical = float(np.median(per_intensity)) if per_intensity.size else 0.0
@@ -166,23 +162,56 @@ def guided_polarization(planes: np.ndarray, *, radius: int = GUIDED_RADIUS, tau:
         weight = cv2.divide(1.0, cv2.max(mse, floor_img))
         inv_weight_sum = cv2.divide(1.0, box(weight))
         for a, b in fits:
-            coeffs.append((up(cv2.multiply(box(cv2.multiply(a, weight)), inv_weight_sum)),
-                           up(cv2.multiply(box(cv2.multiply(b, weight)), inv_weight_sum, scale=1.0 / n_col))))
-    pair_sum = (np.empty((h, w), np.float32), np.empty((h, w), np.float32))
-    g = np.empty((h, w), np.float32)
-    s_new = np.empty((h, w), np.float32)
-    for c in range(n_col):
-        i0, i45, i90, i135 = (planes[k, c] for k in range(4))
-        cv2.add(i0, i90, dst=pair_sum[0])  # the pair sums are kept
-        cv2.add(i45, i135, dst=pair_sum[1])
-        cv2.add(pair_sum[0], pair_sum[1], dst=g)  # 2 s0 of colour c
-        for (plus, minus), total, (a_full, b_full) in zip(
-            ((i0, i90), (i45, i135)), pair_sum, coeffs, strict=True
-        ):
-            cv2.multiply(a_full, g, dst=s_new)
-            cv2.add(s_new, b_full, dst=s_new)
-            cv2.addWeighted(total, 0.5, s_new, 0.5, 0.0, dst=plus)
-            cv2.subtract(total, plus, dst=minus)
+            coeffs += [cv2.multiply(box(cv2.multiply(a, weight)), inv_weight_sum),
+                       cv2.multiply(box(cv2.multiply(b, weight)), inv_weight_sum, scale=1.0 / n_col)]
+    _apply_coefficients(planes, coeffs)
+
+
+#: Rows per strip of the full-resolution pass (even): its temporaries stay in the CPU cache
+#: (12 strips of 32 x 2448 float32 = 3.8 MB), so each full-resolution plane is read and written once.
+_STRIP_ROWS = 32
+
+
+def _apply_coefficients(planes: np.ndarray, coeffs: list[np.ndarray]) -> None:
+    """Step 5 of the module docstring, in place, strip by strip.
+
+    Args:
+        planes: (4, C, H, W) float32 bilinear intensities; overwritten.
+        coeffs: half-resolution (H/2, W/2) float32 ``A1, B1 / C, A2, B2 / C`` of
+            ``s1`` (I0 - I90) and ``s2`` (I45 - I135).
+    """
+    n_col, h, w = planes.shape[1:]
+    rows = min(_STRIP_ROWS, h)
+    pair_sum = (np.empty((rows, w), np.float32), np.empty((rows, w), np.float32))
+    g = np.empty((rows, w), np.float32)
+    s_new = np.empty((rows, w), np.float32)
+    for r0 in range(0, h, rows):
+        r1 = min(r0 + rows, h)
+        n = r1 - r0
+        a1, b1, a2, b2 = (_upsample_rows(x, r0, r1, w) for x in coeffs)
+        for c in range(n_col):
+            i0, i45, i90, i135 = (planes[k, c, r0:r1] for k in range(4))
+            total0, total1, g_c, s_c = pair_sum[0][:n], pair_sum[1][:n], g[:n], s_new[:n]
+            cv2.add(i0, i90, dst=total0)  # the pair sums are kept
+            cv2.add(i45, i135, dst=total1)
+            cv2.add(total0, total1, dst=g_c)  # 2 s0 of colour c
+            for plus, minus, total, a_full, b_full in ((i0, i90, total0, a1, b1), (i45, i135, total1, a2, b2)):
+                cv2.multiply(a_full, g_c, dst=s_c)
+                cv2.add(s_c, b_full, dst=s_c)
+                cv2.addWeighted(total, 0.5, s_c, 0.5, 0.0, dst=plus)
+                cv2.subtract(total, plus, dst=minus)
+
+
+def _upsample_rows(x: np.ndarray, r0: int, r1: int, w: int) -> np.ndarray:
+    """Rows ``r0:r1`` (even bounds) of ``cv2.resize(x, (w, 2 x rows), INTER_LINEAR)``, computing only those.
+
+    A 2x linear upsampling reads the source rows next to each output row's own: with one
+    source row of margin on each side (where the image has one) the strip equals the whole
+    image's rows.
+    """
+    lo, hi = max(r0 // 2 - 1, 0), min(r1 // 2 + 1, x.shape[0])
+    up = cv2.resize(x[lo:hi], (w, 2 * (hi - lo)), interpolation=cv2.INTER_LINEAR)
+    return up[r0 - 2 * lo : r1 - 2 * lo]
 
 
 def _half_colour_sum(angle_planes: np.ndarray, half: tuple[int, int]) -> np.ndarray:

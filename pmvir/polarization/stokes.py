@@ -168,8 +168,8 @@ def dop_from_stokes(stokes: np.ndarray, *, eps: float = DOP_EPS) -> np.ndarray:
     return _dop(s[..., 0], s[..., 1], s[..., 2], eps)
 
 
-def _aop(s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
-    phi = np.arctan2(s2, s1)  # (-pi, pi]
+def _aop(s1: np.ndarray, s2: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    phi = np.arctan2(s2, s1, out=out)  # (-pi, pi]
     phi *= np.float32(0.5)
     np.add(phi, np.float32(np.pi), out=phi, where=phi < 0)
     # float32 rounding can land a tiny negative angle exactly on pi
@@ -177,8 +177,8 @@ def _aop(s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
     return phi
 
 
-def _dop(s0: np.ndarray, s1: np.ndarray, s2: np.ndarray, eps: float) -> np.ndarray:
-    num = s1 * s1
+def _dop(s0: np.ndarray, s1: np.ndarray, s2: np.ndarray, eps: float, out: np.ndarray | None = None) -> np.ndarray:
+    num = np.multiply(s1, s1, out=out)
     num += s2 * s2
     np.sqrt(num, out=num)
     num /= np.maximum(s0, np.float32(eps))
@@ -249,25 +249,35 @@ def polarization_images(
     """
     _check_intensities(intensities)
     planes = intensities.transpose(2, 3, 0, 1)  # (4, C, H, W)
-    c = planes.shape[1]
-    i_int = [_weighted_sum([planes[a, k] for a in range(4)], 0.25) for k in range(c)]
-    # the colour-averaged I0..I135 only enter through these sums:
-    s0 = _weighted_sum(i_int, 2.0 / c)  # (I0 + I45 + I90 + I135) / 2
-    s1 = _weighted_sum([planes[0, k] for k in range(c)], 1.0 / c)
-    s1 -= _weighted_sum([planes[2, k] for k in range(c)], 1.0 / c)
-    s2 = _weighted_sum([planes[1, k] for k in range(c)], 1.0 / c)
-    s2 -= _weighted_sum([planes[3, k] for k in range(c)], 1.0 / c)
-    aop = _aop(s1, s2)
-    dop = _dop(s0, s1, s2, DOP_EPS)
-    keep = np.float32(1.0) - dop
-    i_min = [p * keep for p in i_int]
-    return PolarizationImages(
-        i_int=_interleave(i_int),
-        i_min=_interleave(i_min),
-        aop=aop,
-        dop=dop,
-        valid=valid_pixels(s0, noise_floor=noise_floor, invalid=invalid),
-    )
+    c, h, w = planes.shape[1:]
+    if invalid is not None and invalid.shape != (h, w):
+        raise ShapeError(f"invalid mask {invalid.shape} does not match s0 {(h, w)}")
+    i_int = np.empty((h, w, c), dtype=np.float32)
+    i_min = np.empty((h, w, c), dtype=np.float32)
+    aop = np.empty((h, w), dtype=np.float32)
+    dop = np.empty((h, w), dtype=np.float32)
+    valid = np.empty((h, w), dtype=bool)
+    for r0 in range(0, h, _STRIP_ROWS):  # strips: the temporaries stay in the CPU cache
+        rows = slice(r0, min(r0 + _STRIP_ROWS, h))
+        strip = planes[:, :, rows]
+        i_int_c = [_weighted_sum([strip[a, k] for a in range(4)], 0.25) for k in range(c)]
+        # the colour-averaged I0..I135 only enter through these sums:
+        s0 = _weighted_sum(i_int_c, 2.0 / c)  # (I0 + I45 + I90 + I135) / 2
+        s1 = _weighted_sum([strip[0, k] for k in range(c)], 1.0 / c)
+        s1 -= _weighted_sum([strip[2, k] for k in range(c)], 1.0 / c)
+        s2 = _weighted_sum([strip[1, k] for k in range(c)], 1.0 / c)
+        s2 -= _weighted_sum([strip[3, k] for k in range(c)], 1.0 / c)
+        _aop(s1, s2, out=aop[rows])
+        keep = np.subtract(np.float32(1.0), _dop(s0, s1, s2, DOP_EPS, out=dop[rows]), out=s1)
+        _interleave(i_int_c, out=i_int[rows])
+        _interleave([p * keep for p in i_int_c], out=i_min[rows])
+        valid[rows] = valid_pixels(s0, noise_floor=noise_floor, invalid=None if invalid is None else invalid[rows])
+    return PolarizationImages(i_int=i_int, i_min=i_min, aop=aop, dop=dop, valid=valid)
+
+
+#: Rows per strip in :func:`polarization_images` (32 x 2448 float32 strips: 12 inputs and the
+#: temporaries fit in the CPU cache, so each plane is read once).
+_STRIP_ROWS = 32
 
 
 def _weighted_sum(planes: list[np.ndarray], weight: float) -> np.ndarray:
@@ -291,8 +301,11 @@ def _weighted_sum(planes: list[np.ndarray], weight: float) -> np.ndarray:
     return out
 
 
-def _interleave(planes: list[np.ndarray]) -> np.ndarray:
-    """C planes (H, W) -> C-contiguous (H, W, C)."""
+def _interleave(planes: list[np.ndarray], out: np.ndarray) -> None:
+    """C planes (h, w) -> ``out`` (h, w, C), C-contiguous."""
     if len(planes) == 1:
-        return np.ascontiguousarray(planes[0][..., None])
-    return cv2.merge(planes)
+        out[..., 0] = planes[0]
+        return
+    res = cv2.merge(planes, dst=out)
+    if not np.shares_memory(res, out):  # pragma: no cover - OpenCV reallocated
+        out[...] = res
