@@ -69,8 +69,12 @@ sample moves it by at most a rank, far below 1e-4 in any output on frames of
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
+
+from pmvir.polarization.lattice import STRIP_ROWS
 
 #: Window half-width r at half resolution ((2r + 1)^2 half-resolution pixels). On the Mitsuba
 #: frames of bench/demosaic.py r = 2 measured clearly better than r = 1 at 1224x1024 and about
@@ -96,7 +100,8 @@ _WEIGHT_FLOOR_MIN = 1e-7
 
 
 def guided_polarization(planes: np.ndarray, *, radius: int = GUIDED_RADIUS, tau: float = GUIDED_TAU,
-                        weight_k: float | None = GUIDED_WEIGHT_K) -> None:
+                        weight_k: float | None = GUIDED_WEIGHT_K, quads: list[np.ndarray] | None = None,
+                        on_strip: Callable[[slice], None] | None = None) -> None:
     """Replace the polarization of bilinear-demosaiced planes by the guided estimate, in place.
 
     Args:
@@ -110,6 +115,13 @@ def guided_polarization(planes: np.ndarray, *, radius: int = GUIDED_RADIUS, tau:
             error, floored at ``weight_k`` times the frame's typical (median)
             error per unit intensity (step 4 of the module docstring), or None
             for the plain mean of the windows.
+        quads: optional, each angle's colour sum of the planes' 2x2 means, four
+            (H/2, W/2) float32 arrays (what the demosaicing computes more cheaply
+            from its half-resolution lattices, :func:`pmvir.polarization.lattice.quad_means`);
+            taken from ``planes`` when None.
+        on_strip: optional, called with consecutive row ranges (slices) covering
+            the frame, each as soon as those rows of ``planes`` are final (so that
+            the caller can use them while they are in the CPU cache).
     """
     if planes.ndim != 4 or planes.shape[0] != 4 or planes.dtype != np.float32:
         raise ValueError(f"expected (4, C, H, W) float32 planes, got {planes.shape} {planes.dtype}")
@@ -125,7 +137,10 @@ def guided_polarization(planes: np.ndarray, *, radius: int = GUIDED_RADIUS, tau:
         return cv2.boxFilter(x, -1, size, borderType=cv2.BORDER_REPLICATE)
 
     # colour sums of each angle at half resolution (2x2 means), then g, s1, s2 there
-    quads = [_half_colour_sum(planes[k], half) for k in range(4)]
+    if quads is None:
+        quads = [_half_colour_sum(planes[k], half) for k in range(4)]
+    elif len(quads) != 4 or any(q.shape != (h // 2, w // 2) or q.dtype != np.float32 for q in quads):
+        raise ValueError(f"expected four ({h // 2}, {w // 2}) float32 quads, got {[q.shape for q in quads]}")
     gh = cv2.add(cv2.add(quads[0], quads[2]), cv2.add(quads[1], quads[3]))  # C * 2 s0
     mean_g = box(gh)
     var_g = cv2.subtract(box(cv2.multiply(gh, gh)), cv2.multiply(mean_g, mean_g))
@@ -164,24 +179,21 @@ def guided_polarization(planes: np.ndarray, *, radius: int = GUIDED_RADIUS, tau:
         for a, b in fits:
             coeffs += [cv2.multiply(box(cv2.multiply(a, weight)), inv_weight_sum),
                        cv2.multiply(box(cv2.multiply(b, weight)), inv_weight_sum, scale=1.0 / n_col)]
-    _apply_coefficients(planes, coeffs)
+    _apply_coefficients(planes, coeffs, on_strip)
 
 
-#: Rows per strip of the full-resolution pass (even): its temporaries stay in the CPU cache
-#: (12 strips of 32 x 2448 float32 = 3.8 MB), so each full-resolution plane is read and written once.
-_STRIP_ROWS = 32
-
-
-def _apply_coefficients(planes: np.ndarray, coeffs: list[np.ndarray]) -> None:
-    """Step 5 of the module docstring, in place, strip by strip.
+def _apply_coefficients(planes: np.ndarray, coeffs: list[np.ndarray],
+                        on_strip: Callable[[slice], None] | None) -> None:
+    """Step 5 of the module docstring, in place, strip by strip (:data:`STRIP_ROWS`, even).
 
     Args:
         planes: (4, C, H, W) float32 bilinear intensities; overwritten.
         coeffs: half-resolution (H/2, W/2) float32 ``A1, B1 / C, A2, B2 / C`` of
             ``s1`` (I0 - I90) and ``s2`` (I45 - I135).
+        on_strip: called with each strip's rows once they are final.
     """
     n_col, h, w = planes.shape[1:]
-    rows = min(_STRIP_ROWS, h)
+    rows = min(STRIP_ROWS, h)
     pair_sum = (np.empty((rows, w), np.float32), np.empty((rows, w), np.float32))
     g = np.empty((rows, w), np.float32)
     s_new = np.empty((rows, w), np.float32)
@@ -200,6 +212,8 @@ def _apply_coefficients(planes: np.ndarray, coeffs: list[np.ndarray]) -> None:
                 cv2.add(s_c, b_full, dst=s_c)
                 cv2.addWeighted(total, 0.5, s_c, 0.5, 0.0, dst=plus)
                 cv2.subtract(total, plus, dst=minus)
+        if on_strip is not None:
+            on_strip(slice(r0, r1))
 
 
 def _upsample_rows(x: np.ndarray, r0: int, r1: int, w: int) -> np.ndarray:
