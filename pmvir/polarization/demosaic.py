@@ -74,7 +74,14 @@ import numpy as np
 from pmvir.errors import ConfigError, DTypeError, ShapeError
 from pmvir.polarization.eari import EARI_REACH, eari_polarization
 from pmvir.polarization.guided import GUIDED_REACH, guided_polarization
-from pmvir.polarization.lattice import STRIP_ROWS, column_phases, interleave2, pair_means, quad_means, upsample2
+from pmvir.polarization.lattice import (
+    STRIP_ROWS,
+    column_phases,
+    interleave2,
+    pair_means,
+    quad_means,
+    upsample2,
+)
 from pmvir.polarization.layout import MosaicLayout
 
 DemosaicMethod = Literal["bilinear", "edge-aware", "guided", "eari", "eari-guided"]
@@ -195,8 +202,23 @@ def demosaic(
     layout.check_size(h, w)
     mosaic = np.ascontiguousarray(mosaic)
     planes = _planes_for(out, (4, layout.channels, h, w))
+    quads = _first_step(mosaic, layout, method, planes)
+    if method in ("guided", "eari-guided"):
+        guided_polarization(planes, quads=quads, on_strip=on_strip)
+    elif on_strip is not None:
+        for r0 in range(0, h, STRIP_ROWS):
+            on_strip(slice(r0, min(r0 + STRIP_ROWS, h)))
+    return planes.transpose(2, 3, 0, 1)
+
+
+def _first_step(mosaic: np.ndarray, layout: MosaicLayout, method: str, planes: np.ndarray) -> list[np.ndarray] | None:
+    """Everything but the guided step, into planes (4, C, H, W).
+
+    Returns, for ``"guided"``, each angle's colour sum of the planes' 2x2 means
+    (H/2, W/2), taken from the half-resolution lattices; else None.
+    """
+    h, w = mosaic.shape
     block = layout.angle_index_block()
-    # guided: each angle's colour-summed 2x2 means, taken from the half-resolution lattices
     quads: list[np.ndarray] | None = [np.empty(0)] * 4 if method == "guided" else None
     if method in ("eari", "eari-guided"):
         eari_polarization(_colour_complete_mosaic(mosaic, layout), block, planes)
@@ -216,12 +238,7 @@ def demosaic(
                     quads[block[dy, dx]] = quad_means(cv2.add(cv2.add(half[0], half[1]), half[2]), dy, dx)
     else:
         _edge_aware_colour(mosaic, layout, planes)
-    if method in ("guided", "eari-guided"):
-        guided_polarization(planes, quads=quads, on_strip=on_strip)
-    elif on_strip is not None:
-        for r0 in range(0, h, STRIP_ROWS):
-            on_strip(slice(r0, min(r0 + STRIP_ROWS, h)))
-    return planes.transpose(2, 3, 0, 1)
+    return quads
 
 
 def _planes_for(out: np.ndarray | None, shape: tuple[int, int, int, int]) -> np.ndarray:
