@@ -130,57 +130,122 @@ def guided_polarization(planes: np.ndarray, *, radius: int = GUIDED_RADIUS, tau:
         raise ValueError(f"expected an even-sized image, got {w}x{h}")
     if radius < 1 or not tau > 0 or (weight_k is not None and not weight_k > 0):
         raise ValueError(f"need radius >= 1, tau > 0 and weight_k > 0 or None, got {radius}, {tau}, {weight_k}")
-    size = (2 * radius + 1, 2 * radius + 1)
-    half = (w // 2, h // 2)
-
-    def box(x: np.ndarray) -> np.ndarray:
-        return cv2.boxFilter(x, -1, size, borderType=cv2.BORDER_REPLICATE)
-
-    # colour sums of each angle at half resolution (2x2 means), then g, s1, s2 there
     if quads is None:
-        quads = [_half_colour_sum(planes[k], half) for k in range(4)]
+        quads = [_half_colour_sum(planes[k], (w // 2, h // 2)) for k in range(4)]
     elif len(quads) != 4 or any(q.shape != (h // 2, w // 2) or q.dtype != np.float32 for q in quads):
         raise ValueError(f"expected four ({h // 2}, {w // 2}) float32 quads, got {[q.shape for q in quads]}")
-    gh = cv2.add(cv2.add(quads[0], quads[2]), cv2.add(quads[1], quads[3]))  # C * 2 s0
-    mean_g = box(gh)
-    var_g = cv2.subtract(box(cv2.multiply(gh, gh)), cv2.multiply(mean_g, mean_g))
-    eps = cv2.multiply(mean_g, mean_g, scale=tau * tau)
-    floor = 2.0 * n_col * _EPS
-    _, lit = cv2.threshold(mean_g, floor, 1.0, cv2.THRESH_BINARY)  # 0 where dark
-    inv_mean_g = cv2.divide(lit, cv2.max(mean_g, floor))
-    np.maximum(var_g, 0.0, out=var_g)  # rounding can make it slightly negative
-    den = cv2.add(var_g, eps)
-    inv_den = np.reciprocal(np.maximum(den, np.float32(1e-30), out=den))
-    fits = []
-    mse = np.zeros_like(gh)  # the windows' mean squared fitting error, s1 and s2 together
-    for plus, minus in ((0, 2), (1, 3)):
-        sh = cv2.subtract(quads[plus], quads[minus])
-        mean_s = box(sh)
-        cov = cv2.subtract(box(cv2.multiply(gh, sh)), cv2.multiply(mean_g, mean_s))
-        q = cv2.multiply(mean_s, inv_mean_g)
-        a = cv2.multiply(cv2.multiply(cv2.add(cov, cv2.multiply(eps, q)), inv_den), lit)
-        b = cv2.subtract(cv2.multiply(mean_s, lit), cv2.multiply(a, mean_g))
-        fits.append((a, b))
-        if weight_k is not None:  # mean((s - a g - b)^2) = var(s) - 2 a cov(g, s) + a^2 var(g)
-            var_s = cv2.subtract(box(cv2.multiply(sh, sh)), cv2.multiply(mean_s, mean_s))
-            cv2.add(mse, cv2.subtract(var_s, cv2.multiply(a, cov, scale=2.0)), dst=mse)
-            cv2.add(mse, cv2.multiply(cv2.multiply(a, a), var_g), dst=mse)
-    coeffs = []  # half resolution; per colour c: s_c' = A g_c + B / C, so that the colour sum is A g + B
+    # colour sums at half resolution (2x2 means): g = C * 2 s0, and s1, s2
+    gh = cv2.add(cv2.add(quads[0], quads[2]), cv2.add(quads[1], quads[3]))
+    sh = (cv2.subtract(quads[0], quads[2]), cv2.subtract(quads[1], quads[3]))
+    fit = _WindowFits(gh, sh, radius=radius, tau=tau, n_col=n_col)
+    # half resolution; per colour c: s_c' = A g_c + B / C, so that the colour sum is A g + B
+    coeffs = [np.empty_like(gh) for _ in range(4)]
     if weight_k is None:
-        for a, b in fits:
-            coeffs += [box(a), cv2.multiply(box(b), 1.0 / n_col)]
+        fit.plain_means(1.0 / n_col, coeffs)
     else:
-        per_intensity = cv2.multiply(mse, inv_mean_g)[::2, ::2][lit[::2, ::2] > 0]  # every 4th window
+        per_intensity = np.concatenate(fit.per_intensity)
         typical = float(np.median(per_intensity)) if per_intensity.size else 0.0
-        floor_img = mean_g * np.float32(max(weight_k * typical, _WEIGHT_FLOOR_MIN))
-        np.maximum(floor_img, np.float32(1e-20), out=floor_img)
-        weight = cv2.divide(1.0, cv2.max(mse, floor_img))
-        inv_weight_sum = cv2.divide(1.0, box(weight))
-        for a, b in fits:
-            coeffs += [cv2.multiply(box(cv2.multiply(a, weight)), inv_weight_sum),
-                       cv2.multiply(box(cv2.multiply(b, weight)), inv_weight_sum, scale=1.0 / n_col)]
+        fit.weighted_means(max(weight_k * typical, _WEIGHT_FLOOR_MIN), 1.0 / n_col, coeffs)
     _apply_coefficients(planes, coeffs, on_strip)
 
+
+#: Half-resolution rows per strip of :class:`_WindowFits` (even, so that strips keep the global
+#: row parity); each strip's temporaries are small and stay in the CPU cache.
+_HALF_STRIP_ROWS = 32
+
+
+class _WindowFits:
+    """Steps 3 and 4 of the module docstring, in strips of half-resolution rows.
+
+    Box sums need ``radius`` rows beyond a strip: each is taken over the strip's rows plus that
+    margin (OpenCV replicates the border at the margin's outer edge, which is the image's own
+    edge only where the image ends) and cropped to the strip. Holds, for the whole
+    half-resolution frame: the fits ``a``, ``b`` of s1 and s2, ``mean_g``, the fitting error
+    ``mse`` (s1 and s2 together) and the error per unit intensity of every 4th lit window
+    (``per_intensity``, one array per strip).
+
+    Args:
+        gh: colour sum of the four angles' 2x2 means, (h, w) float32.
+        sh: the half-resolution ``s1``, ``s2`` (I0 - I90, I45 - I135), (h, w) float32 each.
+        radius, tau: as for :func:`guided_polarization`.
+        n_col: number of colours C (the dark threshold scales with it).
+    """
+
+    def __init__(self, gh: np.ndarray, sh: tuple[np.ndarray, np.ndarray], *, radius: int, tau: float,
+                 n_col: int):
+        self.size = (2 * radius + 1, 2 * radius + 1)
+        self.strips = [
+            (slice(y0, min(y0 + _HALF_STRIP_ROWS, gh.shape[0])),
+             slice(max(y0 - radius, 0), min(y0 + _HALF_STRIP_ROWS + radius, gh.shape[0])))
+            for y0 in range(0, gh.shape[0], _HALF_STRIP_ROWS)
+        ]
+        self.a = (np.empty_like(gh), np.empty_like(gh))
+        self.b = (np.empty_like(gh), np.empty_like(gh))
+        self.mean_g = np.empty_like(gh)
+        self.mse = np.empty_like(gh)
+        self.per_intensity: list[np.ndarray] = []
+        self.dark = floor = 2.0 * n_col * _EPS
+        for rows, margin in self.strips:
+            g_m = gh[margin]
+            mean_g = self.mean_g[rows]
+            mean_g[...] = self.box(g_m, rows, margin)
+            var_g = cv2.subtract(self.box(cv2.multiply(g_m, g_m), rows, margin), cv2.multiply(mean_g, mean_g))
+            eps = cv2.multiply(mean_g, mean_g, scale=tau * tau)
+            _, lit = cv2.threshold(mean_g, floor, 1.0, cv2.THRESH_BINARY)  # 0 where dark
+            inv_mean_g = cv2.divide(lit, np.maximum(mean_g, np.float32(floor)))
+            np.maximum(var_g, 0.0, out=var_g)  # rounding can make it slightly negative
+            den = cv2.add(var_g, eps)
+            inv_den = np.reciprocal(np.maximum(den, np.float32(1e-30), out=den))
+            mse = self.mse[rows]
+            mse[...] = 0.0
+            for k in range(2):
+                s_m = sh[k][margin]
+                mean_s = self.box(s_m, rows, margin)
+                cov = cv2.subtract(self.box(cv2.multiply(g_m, s_m), rows, margin), cv2.multiply(mean_g, mean_s))
+                q = cv2.multiply(mean_s, inv_mean_g)
+                a = self.a[k][rows]
+                a[...] = cv2.multiply(cv2.multiply(cv2.add(cov, cv2.multiply(eps, q)), inv_den), lit)
+                self.b[k][rows] = cv2.subtract(cv2.multiply(mean_s, lit), cv2.multiply(a, mean_g))
+                # mean((s - a g - b)^2) = var(s) - 2 a cov(g, s) + a^2 var(g)
+                var_s = cv2.subtract(self.box(cv2.multiply(s_m, s_m), rows, margin), cv2.multiply(mean_s, mean_s))
+                mse += cv2.subtract(var_s, cv2.multiply(a, cov, scale=2.0))
+                mse += cv2.multiply(cv2.multiply(a, a), var_g)
+            # every 4th window (strips start on even rows, so these are the frame's even rows)
+            self.per_intensity.append(cv2.multiply(mse, inv_mean_g)[::2, ::2][lit[::2, ::2] > 0])
+
+    def box(self, x: np.ndarray, rows: slice, margin: slice) -> np.ndarray:
+        """Box means (border replicated) of x, given on rows ``margin``, at rows ``rows``."""
+        full = cv2.boxFilter(x, -1, self.size, borderType=cv2.BORDER_REPLICATE)
+        return full[rows.start - margin.start : rows.stop - margin.start]
+
+    def plain_means(self, b_scale: float, coeffs: list[np.ndarray]) -> None:
+        """Step 4 unweighted: ``coeffs`` = A1, B1 b_scale, A2, B2 b_scale, plain window means; overwritten."""
+        for rows, margin in self.strips:
+            for k in range(2):
+                coeffs[2 * k][rows] = self.box(self.a[k][margin], rows, margin)
+                np.multiply(self.box(self.b[k][margin], rows, margin), np.float32(b_scale), out=coeffs[2 * k + 1][rows])
+
+    def weighted_means(self, floor_per_intensity: float, b_scale: float, coeffs: list[np.ndarray]) -> None:
+        """Step 4: ``coeffs`` = A1, B1 b_scale, A2, B2 b_scale, window means weighted by 1 / max(error, floor).
+
+        Args:
+            floor_per_intensity: the error floor per unit of the window's mean intensity.
+            b_scale: factor on the B coefficients (1 / C).
+            coeffs: four (h, w) float32 arrays, overwritten.
+        """
+        for rows, margin in self.strips:
+            # the floor's intensity is at least the dark threshold: a dark, noise-free window's weight
+            # stays ~1e5 x a lit one's, not 1e20 (whose rounding in OpenCV's running box sums, double,
+            # spread ~1e4 of error down the columns below a dark area, ~100x the lit windows' weights)
+            floor_img = np.maximum(self.mean_g[margin], np.float32(self.dark))
+            floor_img *= np.float32(floor_per_intensity)
+            weight = cv2.divide(1.0, cv2.max(self.mse[margin], floor_img))
+            inv_weight_sum = cv2.divide(1.0, self.box(weight, rows, margin))
+            for k in range(2):
+                cv2.multiply(self.box(cv2.multiply(self.a[k][margin], weight), rows, margin), inv_weight_sum,
+                             dst=coeffs[2 * k][rows])
+                cv2.multiply(self.box(cv2.multiply(self.b[k][margin], weight), rows, margin), inv_weight_sum,
+                             dst=coeffs[2 * k + 1][rows], scale=b_scale)
 
 def _apply_coefficients(planes: np.ndarray, coeffs: list[np.ndarray],
                         on_strip: Callable[[slice], None] | None) -> None:

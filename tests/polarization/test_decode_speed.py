@@ -27,8 +27,12 @@ _EPS = 1e-6
 _WEIGHT_FLOOR_MIN = 1e-7
 
 
-def _reference_guided(planes: np.ndarray, *, weight_k: float | None = GUIDED_WEIGHT_K) -> None:
-    """``guided_polarization`` as it was: whole planes, upsampled coefficients at full resolution."""
+def _reference_guided(planes: np.ndarray, *, weight_k: float | None = GUIDED_WEIGHT_K,
+                      legacy_floor: bool = False) -> None:
+    """``guided_polarization`` as it was: whole planes, upsampled coefficients at full resolution.
+
+    With ``legacy_floor``, the weights' floor of before the speed-up (see below).
+    """
     n_col, h, w = planes.shape[1:]
     size = (2 * GUIDED_RADIUS + 1, 2 * GUIDED_RADIUS + 1)
     half = (w // 2, h // 2)
@@ -77,8 +81,11 @@ def _reference_guided(planes: np.ndarray, *, weight_k: float | None = GUIDED_WEI
     else:
         per_intensity = cv2.multiply(mse, inv_mean_g)[::2, ::2][lit[::2, ::2] > 0]
         typical = float(np.median(per_intensity)) if per_intensity.size else 0.0
-        floor_img = mean_g * np.float32(max(weight_k * typical, _WEIGHT_FLOOR_MIN))
-        np.maximum(floor_img, np.float32(1e-20), out=floor_img)
+        # changed with the speed-up: the floor's intensity is at least the dark threshold (was: floor
+        # >= 1e-20, whose 1e20 weights in dark windows broke the box sums below them, see
+        # test_a_dark_area_does_not_change_the_polarization_beyond_the_reach)
+        floor_img = np.maximum(mean_g, np.float32(1e-20 if legacy_floor else floor))
+        floor_img *= np.float32(max(weight_k * typical, _WEIGHT_FLOOR_MIN))
         weight = cv2.divide(1.0, cv2.max(mse, floor_img))
         inv_weight_sum = cv2.divide(1.0, box(weight))
         for a, b in fits:
@@ -184,3 +191,18 @@ def test_polarization_images_of_strided_intensities_equal_the_planar_ones() -> N
     polarized = a.dop > 0.02  # elsewhere the AoP of a tiny (s1, s2) moves with its rounding
     assert polarized.mean() > 0.5
     np.testing.assert_allclose(a.aop[polarized], b.aop[polarized], rtol=0, atol=1e-4)
+
+
+def test_dark_windows_no_longer_break_the_box_sums_below_them() -> None:
+    """The one intended change: the old floor (1e-20) gave dark windows weights of ~1e20, and the
+    rounding of OpenCV's running box sums (double) then left errors ~1e4 in the weight sums of the
+    columns below a dark area, ~100x a lit window's weight. Old and new differ only there."""
+    raw = _noisy_frame(IMX250MYR, 200, 264, seed=3)  # dark top-left corner: rows < 40, columns < 52
+    old = demosaic(raw, IMX250MYR, method="bilinear").transpose(2, 3, 0, 1).copy()
+    _reference_guided(old, legacy_floor=True)
+    new = demosaic(raw, IMX250MYR, method="guided").transpose(2, 3, 0, 1)
+    scale = np.abs(new).max()
+    below = (slice(None), slice(None), slice(40 + 14, None), slice(0, 52 - 14))
+    beside = (slice(None), slice(None), slice(None), slice(52 + 14, None))
+    assert np.abs(old - new)[below].max() > 1e-3 * scale
+    assert np.abs(old - new)[beside].max() <= 1e-5 * scale
