@@ -40,7 +40,7 @@ Per colour c:
    EARI uses (``guidedfilter_MLRI_wei.m``). The error is floored at
    ``k`` (3) times the frame's median error per unit intensity (a noise
    estimate, since shot noise grows with intensity) times the window's
-   intensity, so windows that fit to within the noise count equally and only
+   intensity (at least the dark threshold), so windows that fit to within the noise count equally and only
    windows that straddle a change of polarization (a contour, a highlight's
    edge, where a single line cannot fit) lose weight. Then ``a`` and ``b`` are
    brought back to full resolution (bilinear, the registration of
@@ -65,6 +65,15 @@ Saturated samples invalidate that neighbourhood (``saturation_footprint``).
 The weights' floor is one number per frame (a median over all windows): one
 sample moves it by at most a rank, far below 1e-4 in any output on frames of
 128x128 and up (the impulse-response test).
+
+Implementation: the half-resolution statistics, fits and weighted means are
+computed in strips of 32 rows (each box sum over the strip plus ``r`` rows of
+margin, cropped), and step 5 in strips of 32 full-resolution rows with the
+coefficients upsampled per strip, so the temporaries stay in the CPU cache and
+each full-resolution plane is read and written once; a caller can take each
+finished strip at once (``on_strip``, what decoding does for the Stokes
+quantities). The demosaicing hands over the 2x2 means of step 2 from its
+half-resolution lattices (:func:`pmvir.polarization.lattice.quad_means`).
 """
 
 from __future__ import annotations
