@@ -19,6 +19,14 @@ affinity limited to 2 cores when there are more):
   validity) vs polanalyser demosaicing + ``calcStokes`` of the colour-mean
   intensities + ``cvtStokesToAoLP`` / ``cvtStokesToDoLP``.
 
+The end-to-end target (issue 11: ``decode_frame`` with the default ``guided`` at
+>= 2x polanalyser's chain) is timed first and on its own, robust to a shared
+machine: the two chains alternate call by call on the same frames (``--pairs``
+repeats, the order flipped from pair to pair), and the table gives each side's
+median wall time and median process CPU time per frame, the ratio of the
+medians and the median of the per-pair ratios (``--only-end-to-end``: only this,
+written to results/demosaic_end_to_end.json).
+
 Accuracy against the true field: AoP error (degrees, modulo 180) and DoP error,
 mean and 90th percentile, on the valid pixels of the smooth half (8 px from the
 texture and the border) and, separately, of the textured half. "Valid" is the
@@ -51,7 +59,8 @@ Methods: pmvir's ``bilinear``, ``edge-aware``, ``guided``, ``eari`` (Morimatsu e
 edge-aware residual interpolation) and ``eari-guided`` (EARI intensities, then the guided
 polarization step), and polanalyser's two.
 
-Run: .venv/bin/python bench/demosaic.py [--frames 3] [--reps 5] [--no-mitsuba]
+Run: .venv/bin/python bench/demosaic.py [--frames 3] [--reps 5] [--pairs 5] [--no-mitsuba]
+     [--only-end-to-end]
 Prints tables, writes bench/results/demosaic.json.
 """
 
@@ -65,6 +74,7 @@ import platform
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -236,10 +246,73 @@ def lambert_false_polarization(cache: Path, seed: int) -> dict[str, dict[str, fl
             for method, regions_ in acc.items()}
 
 
+def paired_end_to_end(ours: Callable[[int], object], theirs: Callable[[int], object], n_frames: int,
+                      reps: int) -> dict[str, Any]:
+    """Alternating calls of two chains on the same frames: per-frame wall and process CPU time, and ratios.
+
+    Each repeat calls both on every frame, back to back, the order alternating from pair to pair,
+    so a change of machine load between calls hits both about equally. Reports the medians of
+    each side, their ratio (theirs / ours) and the median of the per-pair ratios, for wall-clock
+    time and for the process's CPU time (all threads: what the work costs, whatever else runs).
+    """
+    wall: dict[str, list[float]] = {"ours": [], "theirs": []}
+    cpu: dict[str, list[float]] = {"ours": [], "theirs": []}
+    pair_wall, pair_cpu = [], []
+    load_before = os.getloadavg()[0]
+    ours(0), theirs(0)  # warm-up
+    for rep in range(reps):
+        for k in range(n_frames):
+            order = [("ours", ours), ("theirs", theirs)]
+            if (rep + k) % 2:
+                order.reverse()
+            got = {}
+            for name, fn in order:
+                t, c = time.perf_counter(), time.process_time()
+                result = fn(k)
+                got[name] = (time.perf_counter() - t, time.process_time() - c)
+                del result
+            for name, (w, c) in got.items():
+                wall[name].append(w)
+                cpu[name].append(c)
+            pair_wall.append(got["theirs"][0] / got["ours"][0])
+            pair_cpu.append(got["theirs"][1] / got["ours"][1])
+    med = {f"{kind}_{name}_s": float(np.median(v[name])) for kind, v in (("wall", wall), ("cpu", cpu))
+           for name in ("ours", "theirs")}
+    return {
+        **med,
+        "pairs": len(pair_wall),
+        "wall_ratio_of_medians": med["wall_theirs_s"] / med["wall_ours_s"],
+        "wall_median_paired_ratio": float(np.median(pair_wall)),
+        "cpu_ratio_of_medians": med["cpu_theirs_s"] / med["cpu_ours_s"],
+        "cpu_median_paired_ratio": float(np.median(pair_cpu)),
+        "load_average_1min_before_after": [load_before, os.getloadavg()[0]],
+    }
+
+
+def print_end_to_end(e2e: dict[str, Any], args: argparse.Namespace) -> None:
+    """The alternating end-to-end comparison as a small table."""
+    load = e2e["load_average_1min_before_after"]
+    print(f"\nEnd to end, {W}x{H} 12-bit mosaic -> 12 channels + Stokes/AoP/DoP, {e2e['pairs']} alternating "
+          f"pairs ({args.frames} frames x {args.pairs}), cv2 threads {cv2.getNumThreads()}, CPUs "
+          f"{sorted(os.sched_getaffinity(0))}, load average {load[0]:.1f} -> {load[1]:.1f}:")
+    print(f"{'chain':<52} {'median wall ms':>15} {'median CPU ms':>14}")
+    print(f"{'pmvir decode_frame (guided, the default)':<52} {1000 * e2e['wall_ours_s']:15.1f} "
+          f"{1000 * e2e['cpu_ours_s']:14.1f}")
+    print(f"{'polanalyser demosaicing + calcStokes + AoLP/DoLP':<52} {1000 * e2e['wall_theirs_s']:15.1f} "
+          f"{1000 * e2e['cpu_theirs_s']:14.1f}")
+    print(f"throughput pmvir / polanalyser: wall {e2e['wall_ratio_of_medians']:.2f}x (ratio of medians), "
+          f"{e2e['wall_median_paired_ratio']:.2f}x (median of paired ratios); CPU "
+          f"{e2e['cpu_ratio_of_medians']:.2f}x / {e2e['cpu_median_paired_ratio']:.2f}x")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=3)
     parser.add_argument("--reps", type=int, default=5)
+    parser.add_argument("--pairs", type=int, default=5,
+                        help="repeats of the alternating end-to-end comparison (times --frames pairs)")
+    parser.add_argument("--only-end-to-end", action="store_true",
+                        help="only the alternating end-to-end timing (no other timings, no accuracy)")
     parser.add_argument("--no-mitsuba", dest="mitsuba", action="store_false",
                         help="skip the physically rendered frames")
     parser.add_argument("--cache", type=Path, default=Path(__file__).parent / "results" / "demosaic_frames",
@@ -277,6 +350,20 @@ def main() -> None:
             pa.demosaicing(frames[k]["samples"], pa.COLOR_PolarRGB)
         ),
     }
+    end_to_end = paired_end_to_end(decode_run("guided"), chain_runs["polanalyser demosaic+Stokes+AoLP/DoLP"],
+                                   len(frames), args.pairs)
+    print_end_to_end(end_to_end, args)
+    if args.only_end_to_end:
+        out = Path(__file__).parent / "results"
+        out.mkdir(exist_ok=True)
+        (out / "demosaic_end_to_end.json").write_text(json.dumps({
+            "benchmark": "demosaic end to end, alternating pairs", "frames": args.frames, "pairs": args.pairs,
+            "frame": {"width": W, "height": H, "bit_depth": 12, "layout": "IMX250MYR"},
+            "ours": "pmvir decode_frame (guided)", "theirs": "polanalyser demosaic+Stokes+AoLP/DoLP",
+            "machine": {"cpus_used": sorted(os.sched_getaffinity(0)), "cv2_threads": cv2.getNumThreads()},
+            "results": end_to_end,
+        }, indent=2))
+        return
     times: dict[str, list[float]] = {name: [] for name in {**demosaic_runs, **chain_runs}}
     cpu_times: dict[str, list[float]] = {name: [] for name in times}
     for runs in (demosaic_runs, chain_runs):
@@ -392,6 +479,8 @@ def main() -> None:
         f"{row['throughput_vs_polanalyser_cpu']:.2f}x"
         for m in ("bilinear", "guided", "eari", "eari-guided") for row in [chain[f"pmvir decode_frame ({m})"]]))
 
+    print_end_to_end(end_to_end, args)
+
     out = Path(__file__).parent / "results"
     out.mkdir(exist_ok=True)
     (out / "demosaic.json").write_text(json.dumps({
@@ -409,6 +498,7 @@ def main() -> None:
                 "may be shared.",
         "results": table,
         "throughput_ratio_bilinear_vs_polanalyser": ratio,
+        "end_to_end_guided_vs_polanalyser": end_to_end,
         "rendered": {"renders": RENDERS, "accuracy": rendered, "lambert_false_dop": lambert},
     }, indent=2))
 

@@ -43,7 +43,7 @@ from pmvir.polarization.preview import (
     intensity_preview,
     write_png,
 )
-from pmvir.polarization.stokes import PolarizationImages, polarization_images
+from pmvir.polarization.stokes import PolarizationImages, PolarizationWriter
 from pmvir.progress import Progress
 
 #: Arrays of a decoded-frame file: name -> (dtype, number of dimensions).
@@ -86,13 +86,16 @@ def decode_frame(
     for name, m in (("saturated", saturated), ("mask", mask)):
         if m is not None and m.shape != mosaic.shape:
             raise ShapeError(f"{name} has shape {m.shape}, the mosaic {mosaic.shape}")
-    intensities = demosaic(mosaic, layout, method=options.demosaic)
     invalid = None
     if saturated is not None and saturated.any():
         invalid = saturation_footprint(saturated, layout, method=options.demosaic)
     if mask is not None:
         invalid = ~mask.astype(bool) if invalid is None else invalid | ~mask.astype(bool)
-    images = polarization_images(intensities, noise_floor=options.noise_floor, invalid=invalid)
+    # the Stokes quantities are computed strip by strip as the demosaicing finishes each strip
+    intensities = np.empty((4, layout.channels, *mosaic.shape), dtype=np.float32).transpose(2, 3, 0, 1)
+    writer = PolarizationWriter(intensities, noise_floor=options.noise_floor, invalid=invalid)
+    demosaic(mosaic, layout, method=options.demosaic, out=intensities, on_strip=writer.write)
+    images = writer.result()
     if images.i_int.shape[2] == 1:
         images = PolarizationImages(
             i_int=np.repeat(images.i_int, 3, axis=2),

@@ -65,6 +65,7 @@ which :class:`MosaicLayout` handles here.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Literal
 
 import cv2
@@ -73,7 +74,14 @@ import numpy as np
 from pmvir.errors import ConfigError, DTypeError, ShapeError
 from pmvir.polarization.eari import EARI_REACH, eari_polarization
 from pmvir.polarization.guided import GUIDED_REACH, guided_polarization
-from pmvir.polarization.lattice import column_phases, interleave2, pair_means, upsample2
+from pmvir.polarization.lattice import (
+    STRIP_ROWS,
+    column_phases,
+    interleave2,
+    pair_means,
+    quad_means,
+    upsample2,
+)
 from pmvir.polarization.layout import MosaicLayout
 
 DemosaicMethod = Literal["bilinear", "edge-aware", "guided", "eari", "eari-guided"]
@@ -145,6 +153,7 @@ def demosaic(
     *,
     method: DemosaicMethod = "bilinear",
     out: np.ndarray | None = None,
+    on_strip: Callable[[slice], None] | None = None,
 ) -> np.ndarray:
     """Full-resolution intensities for every polarizer angle and colour.
 
@@ -160,6 +169,11 @@ def demosaic(
             allocating, and page-faulting, ~240 MB per 5-Mpixel colour frame).
             Must be (H, W, 4, C) float32 with planar storage, i.e.
             ``out.transpose(2, 3, 0, 1)`` C-contiguous.
+        on_strip: optional, called with consecutive row ranges (slices, step 1)
+            that cover the frame, each once those rows of the result are final;
+            ``"guided"`` calls it during its last pass, while the rows are still
+            in the CPU cache (:func:`pmvir.decode.decode_frame` computes the
+            Stokes quantities there), the other methods at the end.
 
     Returns:
         Intensities, shape (H, W, 4, C), float32, angle axis in ``ANGLES_DEG``
@@ -188,7 +202,24 @@ def demosaic(
     layout.check_size(h, w)
     mosaic = np.ascontiguousarray(mosaic)
     planes = _planes_for(out, (4, layout.channels, h, w))
+    quads = _first_step(mosaic, layout, method, planes)
+    if method in ("guided", "eari-guided"):
+        guided_polarization(planes, quads=quads, on_strip=on_strip)
+    elif on_strip is not None:
+        for r0 in range(0, h, STRIP_ROWS):
+            on_strip(slice(r0, min(r0 + STRIP_ROWS, h)))
+    return planes.transpose(2, 3, 0, 1)
+
+
+def _first_step(mosaic: np.ndarray, layout: MosaicLayout, method: str, planes: np.ndarray) -> list[np.ndarray] | None:
+    """Everything but the guided step, into planes (4, C, H, W).
+
+    Returns, for ``"guided"``, each angle's colour sum of the planes' 2x2 means
+    (H/2, W/2), taken from the half-resolution lattices; else None.
+    """
+    h, w = mosaic.shape
     block = layout.angle_index_block()
+    quads: list[np.ndarray] | None = [np.empty(0)] * 4 if method == "guided" else None
     if method in ("eari", "eari-guided"):
         eari_polarization(_colour_complete_mosaic(mosaic, layout), block, planes)
     elif not layout.is_colour:
@@ -196,16 +227,18 @@ def demosaic(
         for dy in range(2):
             for dx in range(2):
                 upsample2(columns[dx][dy::2], dy, dx, planes[block[dy, dx], 0])
+                if quads is not None:
+                    quads[block[dy, dx]] = quad_means(columns[dx][dy::2], dy, dx)
     elif method != "edge-aware" or min(h, w) < _EA_MIN_SIZE:
         columns = column_phases(mosaic, 4)
         for dy in range(2):
             for dx in range(2):
-                _bilinear_colour(columns, layout, dy, dx, planes[block[dy, dx]])
+                half = _bilinear_colour(columns, layout, dy, dx, planes[block[dy, dx]])
+                if quads is not None:
+                    quads[block[dy, dx]] = quad_means(cv2.add(cv2.add(half[0], half[1]), half[2]), dy, dx)
     else:
         _edge_aware_colour(mosaic, layout, planes)
-    if method in ("guided", "eari-guided"):
-        guided_polarization(planes)
-    return planes.transpose(2, 3, 0, 1)
+    return quads
 
 
 def _planes_for(out: np.ndarray | None, shape: tuple[int, int, int, int]) -> np.ndarray:
@@ -227,13 +260,17 @@ def _check_method(method: str) -> None:
 
 
 def _bilinear_colour(columns: list[np.ndarray], layout: MosaicLayout, dy: int, dx: int,
-                     out: np.ndarray) -> None:
-    """Bilinear Bayer + polarization interpolation of the angle at (dy, dx); out (3, H, W)."""
+                     out: np.ndarray) -> np.ndarray:
+    """Bilinear Bayer + polarization interpolation of the angle at (dy, dx); out (3, H, W).
+
+    Returns the half-resolution colour image (3, H/2, W/2) that was upsampled.
+    """
     h4, w4 = columns[0].shape[0] // 4, columns[0].shape[1]
     half = np.empty((3, 2 * h4, 2 * w4), dtype=np.float32)
     _bilinear_bayer(columns, layout, dy, dx, half)
     for c in range(3):
         upsample2(half[c], dy, dx, out[c])
+    return half
 
 
 def _bilinear_bayer(columns: list[np.ndarray], layout: MosaicLayout, dy: int, dx: int,

@@ -15,6 +15,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+#: Rows per strip of the strip-wise full-resolution passes (the guided demosaic's last pass,
+#: :class:`pmvir.polarization.stokes.PolarizationWriter`), even: 12 strips of 32 x 2448 float32
+#: and the temporaries fit in the CPU cache, so each full-resolution plane is read from memory once.
+STRIP_ROWS = 32
+
 
 def column_phases(image: np.ndarray, period: int) -> list[np.ndarray]:
     """The ``period`` column phases of an image: ``out[k] == image[:, k::period]``, contiguous."""
@@ -80,3 +85,23 @@ def upsample2_phases(q: np.ndarray, oy: int, ox: int) -> tuple[np.ndarray, np.nd
     rows_on = (q, horiz) if ox == 0 else (horiz, q)
     rows_off = (vert, diag) if ox == 0 else (diag, vert)
     return (*rows_on, *rows_off) if oy == 0 else (*rows_off, *rows_on)
+
+
+def quad_means(q: np.ndarray, oy: int, ox: int) -> np.ndarray:
+    """The 2x2-block means of :func:`upsample2`'s result, from the lattice alone.
+
+    ``out[i, j]`` is the mean of ``upsample2(q, oy, ox)[2i : 2i + 2, 2j : 2j + 2]``: along each
+    axis the block holds the sample and the mean of it and its neighbour on the far side of the
+    phase, so the block mean is ``3/4 q[i] + 1/4 q[i + 1]`` (phase 0) or ``1/4 q[i - 1] + 3/4 q[i]``
+    (phase 1), edge samples repeated. One separable filter on the (h, w) lattice instead of a
+    pass over the (2h, 2w) plane.
+
+    Args:
+        q: lattice samples (h, w), float32.
+        oy, ox: the lattice's row / column phase, as for :func:`upsample2`.
+
+    Returns:
+        (h, w) float32.
+    """
+    kx, ky = (np.array([[0.75, 0.25]] if o == 0 else [[0.25, 0.75]], dtype=np.float32) for o in (ox, oy))
+    return cv2.sepFilter2D(q, cv2.CV_32F, kx, ky, anchor=(ox, oy), borderType=cv2.BORDER_REPLICATE)

@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 
 from pmvir.errors import ShapeError
+from pmvir.polarization.lattice import STRIP_ROWS
 from pmvir.polarization.layout import ANGLES_DEG
 
 #: Smallest s0 divided by when forming the DoP (normalized intensity units).
@@ -168,8 +169,8 @@ def dop_from_stokes(stokes: np.ndarray, *, eps: float = DOP_EPS) -> np.ndarray:
     return _dop(s[..., 0], s[..., 1], s[..., 2], eps)
 
 
-def _aop(s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
-    phi = np.arctan2(s2, s1)  # (-pi, pi]
+def _aop(s1: np.ndarray, s2: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    phi = np.arctan2(s2, s1, out=out)  # (-pi, pi]
     phi *= np.float32(0.5)
     np.add(phi, np.float32(np.pi), out=phi, where=phi < 0)
     # float32 rounding can land a tiny negative angle exactly on pi
@@ -177,8 +178,8 @@ def _aop(s1: np.ndarray, s2: np.ndarray) -> np.ndarray:
     return phi
 
 
-def _dop(s0: np.ndarray, s1: np.ndarray, s2: np.ndarray, eps: float) -> np.ndarray:
-    num = s1 * s1
+def _dop(s0: np.ndarray, s1: np.ndarray, s2: np.ndarray, eps: float, out: np.ndarray | None = None) -> np.ndarray:
+    num = np.multiply(s1, s1, out=out)
     num += s2 * s2
     np.sqrt(num, out=num)
     num /= np.maximum(s0, np.float32(eps))
@@ -237,7 +238,8 @@ def polarization_images(
     Same results as :func:`colour_mean_stokes`, :func:`mean_intensity`,
     :func:`aop_from_stokes`, :func:`dop_from_stokes`,
     :func:`unpolarized_intensity` and :func:`valid_pixels` applied in turn
-    (tested), computed plane by plane (fast on :func:`demosaic`'s planar output).
+    (tested), computed plane by plane (fast on :func:`demosaic`'s planar output)
+    in strips of rows (:class:`PolarizationWriter`).
 
     Args:
         intensities: (H, W, 4, C) float32 (e.g. from :func:`pmvir.polarization.demosaic.demosaic`).
@@ -247,27 +249,63 @@ def polarization_images(
     Returns:
         The frame's :class:`PolarizationImages`; i_int and i_min C-contiguous.
     """
-    _check_intensities(intensities)
-    planes = intensities.transpose(2, 3, 0, 1)  # (4, C, H, W)
-    c = planes.shape[1]
-    i_int = [_weighted_sum([planes[a, k] for a in range(4)], 0.25) for k in range(c)]
-    # the colour-averaged I0..I135 only enter through these sums:
-    s0 = _weighted_sum(i_int, 2.0 / c)  # (I0 + I45 + I90 + I135) / 2
-    s1 = _weighted_sum([planes[0, k] for k in range(c)], 1.0 / c)
-    s1 -= _weighted_sum([planes[2, k] for k in range(c)], 1.0 / c)
-    s2 = _weighted_sum([planes[1, k] for k in range(c)], 1.0 / c)
-    s2 -= _weighted_sum([planes[3, k] for k in range(c)], 1.0 / c)
-    aop = _aop(s1, s2)
-    dop = _dop(s0, s1, s2, DOP_EPS)
-    keep = np.float32(1.0) - dop
-    i_min = [p * keep for p in i_int]
-    return PolarizationImages(
-        i_int=_interleave(i_int),
-        i_min=_interleave(i_min),
-        aop=aop,
-        dop=dop,
-        valid=valid_pixels(s0, noise_floor=noise_floor, invalid=invalid),
-    )
+    images = PolarizationWriter(intensities, noise_floor=noise_floor, invalid=invalid)
+    for r0 in range(0, intensities.shape[0], STRIP_ROWS):
+        images.write(slice(r0, min(r0 + STRIP_ROWS, intensities.shape[0])))
+    return images.result()
+
+
+class PolarizationWriter:
+    """:func:`polarization_images`, filled in strip by strip (row ranges in any order).
+
+    Holds the output arrays; :meth:`write` computes the rows of a strip from the
+    same rows of the intensities, so a demosaicing pass can hand each strip over
+    while it is still in the CPU cache (:func:`pmvir.decode.decode_frame`).
+
+    Args:
+        intensities: (H, W, 4, C) float32; only read by :meth:`write`, for its rows.
+        noise_floor: see :func:`valid_pixels`.
+        invalid: optional (H, W) bool of pixels known bad before this step.
+    """
+
+    def __init__(self, intensities: np.ndarray, *, noise_floor: float, invalid: np.ndarray | None = None):
+        _check_intensities(intensities)
+        h, w, _, c = intensities.shape
+        if invalid is not None and invalid.shape != (h, w):
+            raise ShapeError(f"invalid mask {invalid.shape} does not match s0 {(h, w)}")
+        self._planes = intensities.transpose(2, 3, 0, 1)  # (4, C, H, W)
+        self._noise_floor = noise_floor
+        self._invalid = invalid
+        self._images = PolarizationImages(
+            i_int=np.empty((h, w, c), dtype=np.float32),
+            i_min=np.empty((h, w, c), dtype=np.float32),
+            aop=np.empty((h, w), dtype=np.float32),
+            dop=np.empty((h, w), dtype=np.float32),
+            valid=np.empty((h, w), dtype=bool),
+        )
+
+    def write(self, rows: slice) -> None:
+        """Compute the outputs' rows ``rows`` (a slice with step 1) from the same rows of the intensities."""
+        strip = self._planes[:, :, rows]
+        c = strip.shape[1]
+        out = self._images
+        i_int_c = [_weighted_sum([strip[a, k] for a in range(4)], 0.25) for k in range(c)]
+        # the colour-averaged I0..I135 only enter through these sums:
+        s0 = _weighted_sum(i_int_c, 2.0 / c)  # (I0 + I45 + I90 + I135) / 2
+        s1 = _weighted_sum([strip[0, k] for k in range(c)], 1.0 / c)
+        s1 -= _weighted_sum([strip[2, k] for k in range(c)], 1.0 / c)
+        s2 = _weighted_sum([strip[1, k] for k in range(c)], 1.0 / c)
+        s2 -= _weighted_sum([strip[3, k] for k in range(c)], 1.0 / c)
+        _aop(s1, s2, out=out.aop[rows])
+        keep = np.subtract(np.float32(1.0), _dop(s0, s1, s2, DOP_EPS, out=out.dop[rows]), out=s1)
+        _interleave(i_int_c, out=out.i_int[rows])
+        _interleave([p * keep for p in i_int_c], out=out.i_min[rows])
+        invalid = None if self._invalid is None else self._invalid[rows]
+        out.valid[rows] = valid_pixels(s0, noise_floor=self._noise_floor, invalid=invalid)
+
+    def result(self) -> PolarizationImages:
+        """The frame's :class:`PolarizationImages` (complete once every row was written)."""
+        return self._images
 
 
 def _weighted_sum(planes: list[np.ndarray], weight: float) -> np.ndarray:
@@ -291,8 +329,11 @@ def _weighted_sum(planes: list[np.ndarray], weight: float) -> np.ndarray:
     return out
 
 
-def _interleave(planes: list[np.ndarray]) -> np.ndarray:
-    """C planes (H, W) -> C-contiguous (H, W, C)."""
+def _interleave(planes: list[np.ndarray], out: np.ndarray) -> None:
+    """C planes (h, w) -> ``out`` (h, w, C), C-contiguous."""
     if len(planes) == 1:
-        return np.ascontiguousarray(planes[0][..., None])
-    return cv2.merge(planes)
+        out[..., 0] = planes[0]
+        return
+    res = cv2.merge(planes, dst=out)
+    if not np.shares_memory(res, out):  # pragma: no cover - OpenCV reallocated
+        out[...] = res
