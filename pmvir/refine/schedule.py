@@ -33,6 +33,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 import torch
 
@@ -686,6 +687,15 @@ def intensity_units(observations: Sequence[Observation], opts: RefineOptions) ->
     return opts.intensity_units / float(np.median(flat))
 
 
+def with_valid_margin(obs: Observation, margin: int) -> Observation:
+    """The observation with ``valid`` shrunk by ``margin`` pixels (a square structuring element):
+    pixels that near an invalid one (the mask's outside, a saturated footprint) are invalid too.
+    The image border is not a boundary: pixels there stay valid."""
+    kernel = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
+    valid = cv2.erode(obs.valid.astype(np.uint8), kernel, borderType=cv2.BORDER_REPLICATE) > 0
+    return replace(obs, valid=valid)
+
+
 def _setup(
     faces_np: np.ndarray,
     n_vertices: int,
@@ -697,6 +707,8 @@ def _setup(
 ) -> _Setup:
     device = resolve_device(opts.device)
     dtype = torch.float32 if opts.dtype == "float32" else torch.float64
+    if opts.silhouette_margin_px > 0:
+        observations = [with_valid_margin(obs, opts.silhouette_margin_px) for obs in observations]
     views = build_view_stack(
         cameras, observations, polarimetric=opts.polarimetric, device=device, dtype=dtype
     )

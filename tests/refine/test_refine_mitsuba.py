@@ -42,7 +42,7 @@ def mitsuba_runs():
             scene.cameras,
             obs,
             vis,
-            options=RefineOptions(max_iterations=ITERATIONS, **extra),
+            options=RefineOptions(max_iterations=ITERATIONS, silhouette_margin_px=0, **extra),
             visibility_fn=vis_fn,
         )
         runs[name] = accuracy(res.vertices, scene.true_vertices, scene.true_faces)

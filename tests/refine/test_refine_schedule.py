@@ -16,7 +16,11 @@ from pmvir.refine import Observation, make_visibility_fn, observation_from_decod
 from pmvir.sh import sh9_shading
 
 #: The tests run the default options (three stages of at most 80 L-BFGS iterations).
-DEFAULTS = RefineOptions()
+#: The scenes here are rendered straight to decoded frames (no mosaic, so no demosaicing mixes the
+#: background into the pixels along the silhouette, and ``valid`` already holds only pixels every
+#: sample of which hit the mesh): the silhouette margin, which is for demosaiced captures, is off.
+NO_MOSAIC = {"silhouette_margin_px": 0}
+DEFAULTS = RefineOptions(**NO_MOSAIC)
 
 
 def _inputs(scene, intensity="min"):
@@ -57,7 +61,7 @@ def plastic_runs(plastic):
         scene.cameras,
         obs,
         vis,
-        options=RefineOptions(polarimetric=False),
+        options=RefineOptions(polarimetric=False, **NO_MOSAIC),
         visibility_fn=vis_fn,
     )
     return full, baseline, calls, progress
@@ -144,7 +148,7 @@ def test_lambert_capture_full_method_agrees_with_the_baseline() -> None:
             scene.cameras,
             obs,
             vis,
-            options=RefineOptions(polarimetric=pol),
+            options=RefineOptions(polarimetric=pol, **NO_MOSAIC),
             visibility_fn=vis_fn,
         )
         accs.append(accuracy(res.vertices, scene.true_vertices, scene.true_faces))
@@ -422,3 +426,24 @@ def test_shot_noise_dop_floor_rises_only_below_the_median_intensity() -> None:
         shot.numpy(),
         rtol=1e-6,
     )
+
+
+def test_silhouette_margin_invalidates_pixels_near_the_mask_edge_only() -> None:
+    """silhouette_margin_px shrinks each observation's valid region away from invalid pixels (the
+    mask's outside), not away from the image border, and keeps the images themselves."""
+    from pmvir.refine.schedule import with_valid_margin
+
+    valid = np.zeros((10, 12), bool)
+    valid[2:10, 3:12] = True  # touches the bottom and right borders
+    obs = Observation(
+        np.random.default_rng(0).random((10, 12, 3), np.float32),
+        np.zeros((10, 12)),
+        np.zeros((10, 12)),
+        valid,
+    )
+    shrunk = with_valid_margin(obs, 2)
+    expected = np.zeros_like(valid)
+    expected[4:10, 5:12] = True
+    assert np.array_equal(shrunk.valid, expected)
+    assert np.array_equal(shrunk.intensity, obs.intensity)
+    assert np.array_equal(with_valid_margin(obs, 0).valid, valid)
