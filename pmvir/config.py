@@ -146,6 +146,24 @@ class SfmOptions(_Options):
         "guided matching). Off: on the 36-view 432x360 test blob it moved the estimated focal length from "
         "within 1% to 1.1% off.",
     )
+    match_max_ratio: float = Field(
+        default=0.9,
+        gt=0.0,
+        le=1.0,
+        description="SfM matching: Lowe's ratio test, the largest ratio of a match's descriptor distance to "
+        "the second best's (COLMAP: 0.8). 0.9 keeps matches across the 30-45 degree steps of a ring where "
+        "thin or repetitive parts give near-ties: with 0.9 (and mask_erosion_px 0) all 36 views of the "
+        "dragon registered instead of 19 (README, SfM).",
+    )
+    mask_erosion_px: int = Field(
+        default=0,
+        ge=0,
+        le=64,
+        description="SfM features: the masks are eroded by this many pixels before SIFT detection, to keep "
+        "features off the silhouette (which is no fixed surface point). 0: on thin parts (the dragon's "
+        "claws, horns) an eroded mask left too few features to match, and the verification discards the "
+        "silhouette's stray matches anyway.",
+    )
     grey: Literal["int", "min"] = Field(
         default="int",
         description="The image SIFT sees: 'int' = I_int, 'min' = I_min = (1 - DoP) I_int, the unpolarized "

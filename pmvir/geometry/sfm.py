@@ -23,8 +23,8 @@ The COLMAP plumbing (database, matching, mapping, refinement) is in
 SIFT sees an 8-bit grey image per view (:func:`sift_image`): the channel mean,
 exposed so the 99.5th percentile of the foreground is white, sRGB-encoded and
 (``sift_equalize``) contrast-equalized with CLAHE. Masks, eroded by
-``_MASK_EROSION_PX`` so that no feature sits on the silhouette (a silhouette is
-no fixed surface point), restrict where features are detected. Where masks are
+``sfm.mask_erosion_px`` (default 0: thin parts keep their features), restrict
+where features are detected. Where masks are
 given, sparse points must also project into every view's mask (grown by
 ``_HULL_TOLERANCE_PX``): the visual hull.
 
@@ -62,9 +62,6 @@ __all__ = [
     "Progress", "SparseModel", "estimate_poses", "fundamental_matrix", "sampson_error", "sift_image",
     "write_poses_text",
 ]
-
-#: Masks are eroded by this many pixels before feature detection (no features on the silhouette).
-_MASK_EROSION_PX = 4
 
 #: Sparse points must project into every mask grown by this many pixels (visual hull).
 _HULL_TOLERANCE_PX = 3
@@ -179,7 +176,7 @@ def _write_inputs(
     has_masks = masks is not None and any(m is not None for m in masks)
     if has_masks:
         mask_dir.mkdir()
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * _MASK_EROSION_PX + 1,) * 2)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * options.mask_erosion_px + 1,) * 2)
     for i, (im, name) in enumerate(zip(images, files, strict=True)):
         mask = None if masks is None else masks[i]
         cv2.imwrite(str(image_dir / name), sift_image(im, mask, equalize=options.sift_equalize))

@@ -168,6 +168,7 @@ def _match(database: Path, n: int, options: SfmOptions) -> None:
     verification.ransac.random_seed = options.seed
     matching = pycolmap.FeatureMatchingOptions()
     matching.guided_matching = options.guided_matching
+    matching.sift.max_ratio = options.match_max_ratio
     if n <= options.exhaustive_matching_max_views:
         pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verification)
     else:

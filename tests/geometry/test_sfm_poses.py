@@ -284,3 +284,42 @@ def test_inconsistent_arguments_are_value_errors(sfm_views: dict, tmp_path: Path
     skewed = np.array([[500.0, 1.0, 172.0], [0.0, 500.0, 160.0], [0.0, 0.0, 1.0]])
     with pytest.raises(ValueError, match="skew"):
         estimate_poses(images, names, intrinsics=[skewed] * 3, options=SfmOptions(), workdir=tmp_path)
+
+
+def test_mask_erosion_option_shrinks_the_feature_masks(sfm_views: dict, tmp_path: Path) -> None:
+    """sfm.mask_erosion_px reaches the masks COLMAP detects features in (0: the masks as given)."""
+    import cv2
+
+    from pmvir.geometry.sfm import _write_inputs
+
+    images, masks = sfm_views["images"][:2], sfm_views["masks"][:2]
+    areas = {}
+    for px in (0, 4):
+        _, mask_dir, files = _write_inputs(tmp_path / f"e{px}", images, masks, SfmOptions(mask_erosion_px=px))
+        written = cv2.imread(str(mask_dir / f"{files[0]}.png"), cv2.IMREAD_GRAYSCALE) > 0
+        areas[px] = int(written.sum())
+        if px == 0:
+            assert np.array_equal(written, masks[0].astype(bool))
+    assert areas[4] < areas[0] - 100  # a 4 px band along the silhouette is gone
+
+
+def test_match_ratio_option_reaches_colmap_matching(sfm_views: dict, tmp_path: Path) -> None:
+    """A stricter ratio test (sfm.match_max_ratio) keeps fewer raw matches between neighbouring views."""
+    import pycolmap
+
+    from pmvir.geometry.sfm import _write_inputs
+    from pmvir.geometry.sfm_colmap import _extract_features, _match
+
+    images, masks = sfm_views["images"][:3], sfm_views["masks"][:3]
+    counts = {}
+    for ratio in (0.7, 0.95):
+        opts = SfmOptions(match_max_ratio=ratio, sift_affine_shape=False, sift_upsample=False)
+        image_dir, mask_dir, files = _write_inputs(tmp_path / f"r{ratio}", images, masks, opts)
+        database = tmp_path / f"r{ratio}" / "database.db"
+        sizes = [im.shape[:2] for im in images]
+        _extract_features(database, image_dir, mask_dir, files, sizes, [None] * len(files), opts)
+        _match(database, len(files), opts)
+        db = pycolmap.Database.open(str(database))
+        counts[ratio] = db.num_matches()
+        db.close()
+    assert 0 < counts[0.7] < counts[0.95]
