@@ -147,22 +147,21 @@ class SfmOptions(_Options):
         "within 1% to 1.1% off.",
     )
     match_max_ratio: float = Field(
-        default=0.9,
+        default=0.8,
         gt=0.0,
         le=1.0,
         description="SfM matching: Lowe's ratio test, the largest ratio of a match's descriptor distance to "
-        "the second best's (COLMAP: 0.8). 0.9 keeps matches across the 30-45 degree steps of a ring where "
-        "thin or repetitive parts give near-ties: with 0.9 (and mask_erosion_px 0) all 36 views of the "
-        "dragon registered instead of 19 (README, SfM).",
+        "the second best's (COLMAP's 0.8). 0.9 with mask_erosion_px 0 was tried for the dragon's thin "
+        "parts: all 36 views registered, but in a broken model (camera centres 58% of the rig off), and "
+        "the 24-view test blob lost its 0.5% centre accuracy (README, SfM).",
     )
     mask_erosion_px: int = Field(
-        default=0,
+        default=4,
         ge=0,
         le=64,
         description="SfM features: the masks are eroded by this many pixels before SIFT detection, to keep "
-        "features off the silhouette (which is no fixed surface point). 0: on thin parts (the dragon's "
-        "claws, horns) an eroded mask left too few features to match, and the verification discards the "
-        "silhouette's stray matches anyway.",
+        "features off the silhouette, which is no fixed surface point (its matches are consistent with "
+        "wrong geometry). 0 keeps thin parts' features but lets silhouette matches in.",
     )
     grey: Literal["int", "min"] = Field(
         default="int",

@@ -23,7 +23,8 @@ The COLMAP plumbing (database, matching, mapping, refinement) is in
 SIFT sees an 8-bit grey image per view (:func:`sift_image`): the channel mean,
 exposed so the 99.5th percentile of the foreground is white, sRGB-encoded and
 (``sift_equalize``) contrast-equalized with CLAHE. Masks, eroded by
-``sfm.mask_erosion_px`` (default 0: thin parts keep their features), restrict
+``sfm.mask_erosion_px`` (default 4) so that no feature sits on the silhouette
+(a silhouette is no fixed surface point), restrict
 where features are detected. Where masks are
 given, sparse points must also project into every view's mask (grown by
 ``_HULL_TOLERANCE_PX``): the visual hull.
