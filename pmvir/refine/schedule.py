@@ -689,7 +689,8 @@ def intensity_units(observations: Sequence[Observation], opts: RefineOptions) ->
 
 def with_valid_margin(obs: Observation, margin: int) -> Observation:
     """The observation with ``valid`` shrunk by ``margin`` pixels (a square structuring element):
-    pixels that near an invalid one (the mask's outside, a saturated footprint) are invalid too.
+    pixels within ``margin`` (Chebyshev distance) of an invalid one (the mask's outside, a saturated
+    footprint) become invalid too.
     The image border is not a boundary: pixels there stay valid."""
     kernel = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
     valid = cv2.erode(obs.valid.astype(np.uint8), kernel, borderType=cv2.BORDER_REPLICATE) > 0

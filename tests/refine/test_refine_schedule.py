@@ -447,3 +447,27 @@ def test_silhouette_margin_invalidates_pixels_near_the_mask_edge_only() -> None:
     assert np.array_equal(shrunk.valid, expected)
     assert np.array_equal(shrunk.intensity, obs.intensity)
     assert np.array_equal(with_valid_margin(obs, 0).valid, valid)
+
+
+def test_refinement_setup_applies_the_silhouette_margin_to_every_view(plastic) -> None:
+    """refine_surface's set-up erodes each observation's valid region by silhouette_margin_px (and by
+    nothing at 0), and the intensities it samples stay the same."""
+    from pmvir.refine.schedule import _setup
+
+    scene, obs, vis_fn, _ = plastic
+    sets = {
+        m: _setup(
+            scene.faces,
+            len(scene.vertices),
+            scene.cameras,
+            obs,
+            opts=RefineOptions(silhouette_margin_px=m),
+            visibility_fn=vis_fn,
+        )
+        for m in (0, 2)
+    }
+    for i, o in enumerate(obs):
+        assert np.array_equal(sets[0].observations[i].valid, o.valid)
+        eroded = sets[2].observations[i].valid
+        assert not np.any(eroded & ~o.valid) and eroded.sum() < o.valid.sum()
+        assert np.array_equal(sets[2].observations[i].intensity, o.intensity)
