@@ -548,6 +548,14 @@ class RefineOptions(_Options):
         "weight ranks pairs by reliability without also scaling E_pol down by the capture's typical DoP. "
         "Measured in the README.",
     )
+    dop_weight_power: float = Field(
+        default=1.0,
+        ge=0.0,
+        le=4.0,
+        description="With dop_weight: the weight is rho ** this. 1 is the paper's rho; 2 weights each pair by "
+        "the inverse variance of its AoP (the AoP's noise falls as 1 / rho), which keeps low-DoP pairs, whose "
+        "AoP is mostly demosaicing and sensor noise, from pulling normals. Measured in the README.",
+    )
     dop_min: float = Field(
         default=0.05,
         ge=0.0,
@@ -565,6 +573,16 @@ class RefineOptions(_Options):
         "the floor rises as 1 / sqrt(I_int) below the stage's median I_int (dop_min * sqrt(median / I_int), "
         "never below dop_min), as the DoP's shot noise does, so that the AoP of dark, shadowed parts, "
         "which is mostly noise, stops pulling their normals. Measured in the README.",
+    )
+    stokes_smoothing_px: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=16.0,
+        description="Before E_pol samples them, each view's normalized linear Stokes (rho cos 2 phi, rho sin 2 "
+        "phi) is averaged with a Gaussian of this standard deviation in pixels over the valid pixels "
+        "(normalized convolution: the mask's outside does not leak in) and the AoP and DoP are taken from "
+        "the average. Noise that demosaicing turns into false polarization cancels; the surface's own "
+        "polarization, smooth across a few pixels, stays. 0: off. Measured in the README.",
     )
     silhouette_margin_px: int = Field(
         default=2,

@@ -478,6 +478,8 @@ def _stage_problem(
     dop = samples.dop
     pol_mask = None if dop is None or opts.dop_min <= 0.0 else dop >= dop_floor(samples, opts)
     pol_weight = dop if opts.dop_weight and dop is not None else None
+    if pol_weight is not None and opts.dop_weight_power != 1.0:
+        pol_weight = pol_weight.clamp_min(0.0) ** opts.dop_weight_power
     if pol_weight is not None and opts.dop_weight_normalized:
         used = pol_weight if pol_mask is None else pol_weight[pol_mask]
         pol_weight = pol_weight / (used.mean() if used.numel() else pol_weight.new_tensor(1.0)).clamp_min(
@@ -697,6 +699,34 @@ def with_valid_margin(obs: Observation, margin: int) -> Observation:
     return replace(obs, valid=valid)
 
 
+def with_smoothed_stokes(obs: Observation, sigma_px: float) -> Observation:
+    """The observation with its AoP and DoP taken from the Gaussian average (standard deviation
+    ``sigma_px``) of the normalized Stokes (rho cos 2 phi, rho sin 2 phi) over its valid pixels.
+
+    Normalized convolution: each average is divided by the Gaussian's weight on valid pixels, so
+    invalid pixels (the mask's outside, the silhouette margin, saturation) neither leak in nor pull
+    the DoP toward 0 at the edges. Invalid pixels keep their values; ``valid`` and the intensity are
+    unchanged.
+    """
+    valid = obs.valid.astype(np.float32)
+    phi = obs.aop.astype(np.float64)
+    rho = np.where(obs.valid, obs.dop, 0.0)
+
+    def blur(a: np.ndarray) -> np.ndarray:
+        return cv2.GaussianBlur(a.astype(np.float32), (0, 0), sigma_px, borderType=cv2.BORDER_REPLICATE)
+
+    weight = np.maximum(blur(valid), 1e-6)
+    s1 = blur(rho * np.cos(2.0 * phi)) / weight
+    s2 = blur(rho * np.sin(2.0 * phi)) / weight
+    aop = np.mod(0.5 * np.arctan2(s2, s1), np.pi)
+    aop = np.minimum(aop, np.nextafter(np.float32(np.pi), np.float32(0.0)))
+    return replace(
+        obs,
+        aop=np.where(obs.valid, aop, obs.aop).astype(np.float32),
+        dop=np.where(obs.valid, np.clip(np.hypot(s1, s2), 0.0, 1.0), obs.dop).astype(np.float32),
+    )
+
+
 def _setup(
     faces_np: np.ndarray,
     n_vertices: int,
@@ -710,6 +740,8 @@ def _setup(
     dtype = torch.float32 if opts.dtype == "float32" else torch.float64
     if opts.silhouette_margin_px > 0:
         observations = [with_valid_margin(obs, opts.silhouette_margin_px) for obs in observations]
+    if opts.stokes_smoothing_px > 0 and opts.polarimetric:
+        observations = [with_smoothed_stokes(obs, opts.stokes_smoothing_px) for obs in observations]
     views = build_view_stack(
         cameras, observations, polarimetric=opts.polarimetric, device=device, dtype=dtype
     )

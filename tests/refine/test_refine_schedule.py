@@ -363,33 +363,30 @@ def test_lighting_prefit_holds_the_geometry_and_fits_the_lighting(plastic) -> No
     assert 0.0 < w.min() < 0.5 < w.max() <= 1.0
 
 
+def _first_stage(plastic, opts: RefineOptions):
+    """The refinement's set-up, start and first stage on the plastic scene (no visibility refresh)."""
+    from pmvir.refine.schedule import _initial_unknowns, _setup, prepare_stage
+
+    scene, obs, _, vis = plastic
+    setup = _setup(
+        scene.faces.astype(np.int64), len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None
+    )
+    state = _initial_unknowns(scene.vertices, len(scene.cameras), device=setup.device, dtype=setup.dtype)
+    stage, state = prepare_stage(setup, state, vis, 0)
+    return setup, state, stage
+
+
 def test_specular_robust_weights_spare_pairs_darker_than_rendered(plastic) -> None:
     """pho_robust='specular' down-weights only pairs brighter than their rendering (specular adds
     light); 'cauchy' down-weights both signs."""
     from pmvir.refine.energy import pair_light
     from pmvir.refine.mesh_ops import vertex_normals
-    from pmvir.refine.schedule import (
-        _initial_unknowns,
-        _robust_pho_weights,
-        _setup,
-        _stage_observations,
-        prepare_stage,
-    )
+    from pmvir.refine.schedule import _robust_pho_weights, _stage_observations
 
-    scene, obs, _, vis = plastic
     weights = {}
     for mode in ("cauchy", "specular"):
         opts = RefineOptions(pho_robust=mode)
-        setup = _setup(
-            scene.faces.astype(np.int64),
-            len(scene.vertices),
-            scene.cameras,
-            obs,
-            opts=opts,
-            visibility_fn=None,
-        )
-        state = _initial_unknowns(scene.vertices, len(scene.cameras), device=setup.device, dtype=setup.dtype)
-        stage, state = prepare_stage(setup, state, vis, 0)
+        setup, state, stage = _first_stage(plastic, opts)
         _, _, samples = _stage_observations(state.vertices, setup.topo.faces, setup.views, stage.pairs)
         weights[mode] = _robust_pho_weights(setup, state, stage.pairs, samples).numpy()
     light = pair_light(
@@ -471,3 +468,59 @@ def test_refinement_setup_applies_the_silhouette_margin_to_every_view(plastic) -
         eroded = sets[2].observations[i].valid
         assert not np.any(eroded & ~o.valid) and eroded.sum() < o.valid.sum()
         assert np.array_equal(sets[2].observations[i].intensity, o.intensity)
+
+
+def test_stokes_smoothing_cancels_noise_and_keeps_the_mask_outside_out() -> None:
+    """stokes_smoothing_px averages the normalized Stokes over valid pixels: a noisy field of AoP 30
+    degrees and DoP 0.1 comes out closer to both, and invalid pixels (AoP 120 degrees, DoP 1) do not
+    leak into the valid ones beside them; invalid pixels and intensities are left as they were."""
+    from pmvir.refine.schedule import with_smoothed_stokes
+
+    rng = np.random.default_rng(3)
+    h, w = 40, 50
+    valid = np.zeros((h, w), bool)
+    valid[:, :30] = True
+    phi, rho = np.deg2rad(30.0), 0.1
+    s1 = rho * np.cos(2 * phi) + rng.normal(0.0, 0.03, (h, w))
+    s2 = rho * np.sin(2 * phi) + rng.normal(0.0, 0.03, (h, w))
+    aop = np.where(valid, np.mod(0.5 * np.arctan2(s2, s1), np.pi), np.deg2rad(120.0))
+    dop = np.where(valid, np.hypot(s1, s2), 1.0)
+    obs = Observation(rng.random((h, w, 3), np.float32), aop, dop, valid)
+
+    def aop_error_deg(o: Observation) -> np.ndarray:
+        d = np.mod(o.aop[valid] - phi + np.pi / 2, np.pi) - np.pi / 2
+        return np.degrees(np.abs(d))
+
+    smooth = with_smoothed_stokes(obs, 2.0)
+    assert aop_error_deg(smooth).mean() < 0.4 * aop_error_deg(obs).mean()
+    assert abs(np.median(smooth.dop[valid]) - rho) < abs(np.median(obs.dop[valid]) - rho)
+    edge = smooth.aop[:, 27:30]  # beside the invalid half
+    assert np.degrees(np.abs(np.mod(edge - phi + np.pi / 2, np.pi) - np.pi / 2)).max() < 25.0
+    assert np.all(smooth.dop[:, 27:30] < 0.3)
+    assert np.array_equal(smooth.aop[~valid], obs.aop[~valid]) and np.array_equal(
+        smooth.dop[~valid], obs.dop[~valid]
+    )
+    assert np.array_equal(smooth.valid, valid) and np.array_equal(smooth.intensity, obs.intensity)
+    assert smooth.aop.max() < np.pi
+
+
+def test_dop_weight_power_weights_e_pol_pairs_by_a_power_of_their_dop(plastic) -> None:
+    """dop_weight_power p makes E_pol's stage weights rho ** p (normalized to mean 1 over E_pol's
+    pairs), and stokes_smoothing_px reaches the observations the set-up samples."""
+    import torch
+
+    _, obs, _, _ = plastic
+    problems = {}
+    for p, smooth in ((1.0, 0.0), (2.0, 0.0), (1.0, 1.5)):
+        opts = RefineOptions(dop_weight_power=p, stokes_smoothing_px=smooth)
+        setup, _, stage = _first_stage(plastic, opts)
+        problems[(p, smooth)] = stage.problem
+        if smooth > 0:
+            assert any(not np.array_equal(s.aop, o.aop) for s, o in zip(setup.observations, obs, strict=True))
+    base, squared = problems[(1.0, 0.0)], problems[(2.0, 0.0)]
+    mask = base.pol_mask
+    assert torch.equal(mask, squared.pol_mask)
+    rho = base.pol_weight * 1.0  # normalized rho; the unnormalized one is a multiple of it
+    expected = rho**2 / (rho[mask] ** 2).mean()
+    torch.testing.assert_close(squared.pol_weight, expected)
+    assert not torch.equal(problems[(1.0, 1.5)].pol_weight, base.pol_weight)
