@@ -549,12 +549,13 @@ class RefineOptions(_Options):
         "Measured in the README.",
     )
     dop_weight_power: float = Field(
-        default=1.0,
+        default=2.0,
         ge=0.0,
         le=4.0,
-        description="With dop_weight: the weight is rho ** this. 1 is the paper's rho; 2 weights each pair by "
-        "the inverse variance of its AoP (the AoP's noise falls as 1 / rho), which keeps low-DoP pairs, whose "
-        "AoP is mostly demosaicing and sensor noise, from pulling normals. Measured in the README.",
+        description="With dop_weight: the weight is rho ** this. 1 is the paper's rho; 2 (default) weights each "
+        "pair by the inverse variance of its AoP (the AoP's noise falls as 1 / rho), which keeps low-DoP pairs, "
+        "whose AoP is mostly demosaicing and sensor noise, from pulling normals: on an environment-lit Mitsuba "
+        "capture the accuracy gain rose from +15.6% to +20.9% (3: +21.1%). Measured in the README.",
     )
     dop_min: float = Field(
         default=0.05,

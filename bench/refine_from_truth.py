@@ -1,0 +1,148 @@
+"""Where the refinement's minimum lies: refine starting from the TRUE surface of a synthetic capture.
+
+A model that matched the capture exactly, fed noise-free data, would leave the true surface where
+it is; what the refinement moves it by is its floor on that capture: the noise it fits and the
+physics it lacks. Comparing variants' floors (MVIR, the full method, options) on a physically
+rendered capture and on the built-in renderer's separates the two: on the built-in renderer the
+model is exact and only noise moves it.
+
+The true mesh (gt/mesh.ply) is split by --subdivide uniform sqrt(3) steps without smoothing (the
+surface does not change; the vertex count comes near the pipeline's subdivided initial surface),
+its visibility computed from the capture's true poses and masks, and each variant refined from it
+exactly as the pipeline's refine stage does (pmvir.refine.refine_surface with the pipeline's
+observations and visibility refresh). Accuracy is measured with pmvir.evaluate (spec section 5);
+completeness is printed too, but it depends on the vertex density, which differs from a
+reconstruction's.
+
+Prints a markdown table and writes bench/results/refine_from_truth.json (or --out).
+Run: .venv/bin/python bench/refine_from_truth.py CAPTURE [--subdivide 1] [--iterations 40]
+     [--variant NAME key=value ...] [--samples 200000]
+     e.g. --variant mvir polarimetric=false --variant full --variant rho1 dop_weight_power=1
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from pmvir.capture import open_capture
+from pmvir.config import PipelineConfig
+from pmvir.errors import PmvirError
+from pmvir.evaluate import evaluate
+from pmvir.geometry.subdivision import sqrt3_subdivide
+from pmvir.geometry.visibility import vertex_visibility
+from pmvir.io.ply import Mesh, read_mesh
+from pmvir.pipeline import decode_views
+from pmvir.refine import make_visibility_fn, observation_from_decoded, refine_surface
+
+ROOT = Path(__file__).resolve().parent
+
+
+def parse_variants(tokens: list[list[str]]) -> dict[str, dict]:
+    """``[[name, key=value, ...], ...]`` -> {name: {refine option: value}} (values parsed as JSON)."""
+    variants: dict[str, dict] = {}
+    for name, *pairs in tokens:
+        opts: dict = {}
+        for pair in pairs:
+            key, sep, raw = pair.partition("=")
+            if not sep:
+                raise SystemExit(f"--variant {name}: expected key=value, got {pair!r}")
+            try:
+                opts[key] = json.loads(raw)
+            except json.JSONDecodeError:
+                opts[key] = raw
+        variants[name] = opts
+    return variants
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("capture", type=Path, help="a synthetic capture with true poses and gt/mesh.ply")
+    parser.add_argument("--subdivide", type=int, default=1, help="sqrt(3) steps applied to the true mesh")
+    parser.add_argument("--iterations", type=int, default=40, help="refine.max_iterations per stage")
+    parser.add_argument(
+        "--variant",
+        nargs="+",
+        action="append",
+        metavar="NAME [key=value]",
+        help="refine options of a variant",
+    )
+    parser.add_argument("--samples", type=int, default=200_000, help="ground-truth samples for the metrics")
+    parser.add_argument("--out", type=Path, default=ROOT / "results" / "refine_from_truth.json")
+    args = parser.parse_args()
+    variants = parse_variants(args.variant or [["mvir", "polarimetric=false"], ["full"]])
+    try:
+        rows = run(
+            args.capture, variants, subdivide=args.subdivide, iterations=args.iterations, samples=args.samples
+        )
+    except PmvirError as e:
+        sys.exit(f"error: {e}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(
+        json.dumps({"capture": str(args.capture), "subdivide": args.subdivide, "rows": rows}, indent=1)
+    )
+    print(f"\n{args.capture}: refinement started from the true surface ({rows[0]['vertices']:,} vertices)\n")
+    print("| variant | options | accuracy (x1e-2) | completeness (x1e-2) | time (s) |")
+    print("|---|---|---:|---:|---:|")
+    for r in rows:
+        print(
+            f"| {r['variant']} | {r['options'] or 'defaults'} | {100 * r['accuracy']:.4f} "
+            f"| {100 * r['completeness']:.4f} | {r['time']:.0f} |"
+        )
+
+
+def run(
+    capture: Path, variants: dict[str, dict], *, subdivide: int, iterations: int, samples: int
+) -> list[dict]:
+    """Refine every variant from the capture's true surface; one row per variant."""
+    truth = read_mesh(capture / "gt" / "mesh.ply")
+    vertices, faces = truth.vertices.astype(np.float64), truth.faces.astype(np.int64)
+    for _ in range(subdivide):
+        step = sqrt3_subdivide(vertices, faces)
+        vertices, faces = step.vertices, step.faces
+    config = PipelineConfig()
+    with open_capture(capture) as cap:
+        known = [frame.camera for frame in cap.frames]
+        cameras = [cam for cam in known if cam is not None]
+        if len(cameras) < len(known):
+            raise PmvirError(f"{capture}: every frame needs intrinsics and a pose (the true ones)")
+        masks = [cap.read_mask(i) for i in range(len(cap.frames))]
+        views = decode_views(cap, config)
+    vis_opts = config.geometry.visibility
+    visibility = vertex_visibility(
+        vertices, faces, cameras, masks, min_cos=vis_opts.min_cos, rel_tol=vis_opts.rel_tol
+    )
+    visibility_fn = make_visibility_fn(cameras, masks, min_cos=vis_opts.min_cos, rel_tol=vis_opts.rel_tol)
+    rows = []
+    for name, overrides in variants.items():
+        opts = config.refine.model_copy(update={"max_iterations": iterations, **overrides})
+        opts = type(opts).model_validate(opts.model_dump())  # validate the overrides
+        observations = [observation_from_decoded(asdict(v.images), intensity=opts.intensity) for v in views]
+        t0 = time.perf_counter()
+        refined = refine_surface(
+            vertices, faces, cameras, observations, visibility, options=opts, visibility_fn=visibility_fn
+        )
+        elapsed = time.perf_counter() - t0
+        ev = evaluate(Mesh(refined.vertices, faces), truth, n_samples=samples)
+        rows.append(
+            {
+                "variant": name,
+                "options": " ".join(f"{k}={v}" for k, v in overrides.items()),
+                "vertices": len(vertices),
+                "accuracy": ev.accuracy,
+                "completeness": ev.completeness,
+                "time": elapsed,
+            }
+        )
+        print(f"{name}: accuracy {100 * ev.accuracy:.4f}e-2, {elapsed:.0f} s", flush=True)
+    return rows
+
+
+if __name__ == "__main__":
+    main()
