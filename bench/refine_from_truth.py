@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from pmvir.capture import open_capture
-from pmvir.config import PipelineConfig
+from pmvir.config import PipelineConfig, RefineOptions
 from pmvir.errors import PmvirError
 from pmvir.evaluate import evaluate
 from pmvir.geometry.subdivision import sqrt3_subdivide
@@ -121,8 +121,9 @@ def run(
     visibility_fn = make_visibility_fn(cameras, masks, min_cos=vis_opts.min_cos, rel_tol=vis_opts.rel_tol)
     rows = []
     for name, overrides in variants.items():
-        opts = config.refine.model_copy(update={"max_iterations": iterations, **overrides})
-        opts = type(opts).model_validate(opts.model_dump())  # validate the overrides
+        opts = RefineOptions.model_validate(
+            {**config.refine.model_dump(), "max_iterations": iterations, **overrides}
+        )
         observations = [observation_from_decoded(asdict(v.images), intensity=opts.intensity) for v in views]
         t0 = time.perf_counter()
         refined = refine_surface(
