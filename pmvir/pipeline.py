@@ -180,7 +180,7 @@ def run(
                         mesh,
                         [(views[i].name, views[i].images) for i in registered],
                         [cam for i in registered if (cam := geometry.cameras[i]) is not None],
-                        refined.sh,
+                        refined.shading_coefficients(),
                         refined.rgb_scale,
                         config=config,
                         progress=q,
@@ -231,7 +231,7 @@ def _write_refined(
 ) -> Mesh:
     mesh = Mesh(refined.vertices, geometry.faces, albedo=refined.albedo, normals=refined.normals)
     result.write_mesh("mesh.ply", mesh)
-    result.write_illumination(illumination_from_arrays(files, refined.sh, refined.rgb_scale))
+    result.write_illumination(illumination_from_arrays(files, refined.sh, refined.rgb_scale, refined.sh_high))
     return mesh
 
 

@@ -42,6 +42,79 @@ def sh9_basis(normals: Any) -> Any:
     return torch.stack(terms, dim=-1)
 
 
+#: Orders the refinement's lighting may use: 2 is pmvir-sh9; 3 and 4 add the real spherical
+#: harmonics of degree 3 (7 terms) and 4 (9 terms), which are orthogonal over the sphere to
+#: every pmvir-sh9 term, so the pmvir-sh9 part of a richer shading is its first 9 coefficients.
+SH_ORDERS = (2, 3, 4)
+
+
+def sh_term_count(order: int) -> int:
+    """Number of basis terms of a shading of SH order ``order``: (order + 1)^2."""
+    if order not in SH_ORDERS:
+        raise ConfigError(f"SH order must be one of {SH_ORDERS}, got {order}")
+    return (order + 1) ** 2
+
+
+def sh_order_of(n_terms: int) -> int:
+    """The SH order whose basis has ``n_terms`` terms (9, 16 or 25)."""
+    for order in SH_ORDERS:
+        if (order + 1) ** 2 == n_terms:
+            return order
+    raise ShapeError(f"expected 9, 16 or 25 SH coefficients, got {n_terms}")
+
+
+def sh_basis(normals: Any, order: int = 2) -> Any:
+    """The (order + 1)^2 basis functions at unit normals: pmvir-sh9 first, then degree 3 and 4.
+
+    The degree-3 and degree-4 terms are harmonic polynomials (real spherical harmonics without
+    their normalization constants, scaled to a largest value of about 1 on the sphere), so they are
+    orthogonal to the pmvir-sh9 terms over the sphere.
+
+    Args:
+        normals: (..., 3) unit normals, NumPy array or torch tensor.
+        order: 2, 3 or 4.
+
+    Returns:
+        (..., (order + 1)^2) basis values, same type and dtype as ``normals``.
+
+    Example:
+        >>> sh_basis(np.array([0.0, 0.0, 1.0]), 3)[9:].round(4)
+        array([0. , 0. , 0. , 1. , 0. , 0. , 0. ])
+    """
+    sh_term_count(order)
+    low = sh9_basis(normals)
+    if order == 2:
+        return low
+    x, y, z = normals[..., 0], normals[..., 1], normals[..., 2]
+    x2, y2, z2 = x * x, y * y, z * z
+    terms = [
+        y * (3 * x2 - y2),
+        x * y * z * 5.2,
+        y * (5 * z2 - 1) * 0.726,
+        z * (5 * z2 - 3) / 2.0,
+        x * (5 * z2 - 1) * 0.726,
+        z * (x2 - y2) * 2.6,
+        x * (x2 - 3 * y2),
+    ]
+    if order == 4:
+        terms += [
+            x * y * (x2 - y2) * 4.0,
+            y * z * (3 * x2 - y2) * 3.08,
+            x * y * (7 * z2 - 1) * 1.56,
+            y * z * (7 * z2 - 3) * 0.947,
+            (35 * z2 * z2 - 30 * z2 + 3) / 8.0,
+            x * z * (7 * z2 - 3) * 0.947,
+            (x2 - y2) * (7 * z2 - 1) * 0.78,
+            x * z * (x2 - 3 * y2) * 3.08,
+            x2 * x2 - 6 * x2 * y2 + y2 * y2,
+        ]
+    if isinstance(normals, np.ndarray):
+        return np.concatenate([low, np.stack(terms, axis=-1)], axis=-1)
+    import torch
+
+    return torch.cat([low, torch.stack(terms, dim=-1)], dim=-1)
+
+
 def sh9_shading(normals: Any, coeffs: Any) -> Any:
     """Shading S(N) for normals (..., 3) and coefficients (..., 9) (broadcast), shape (...).
 

@@ -164,7 +164,7 @@ def write_residuals(
         views: per registered view its stem and decoded images.
         cameras: the views' cameras (same order).
         mesh_vertices, mesh_faces, albedo: the refined mesh (N, 3), (F, 3), (N, 3) linear.
-        sh, rgb_scale: (V, 9) and (V, 3) lighting of the views.
+        sh, rgb_scale: (V, T) shading coefficients (T = 9, 16 or 25, as refine.sh_order) and (V, 3) scales of the views.
         options: the refinement's options (which intensity it fitted, E_pol's parameters).
         max_size: widest image written, pixels.
     """

@@ -20,6 +20,14 @@ class FrameLighting(BaseModel):
     file: str = Field(description="The frame's file, as in capture.json")
     sh: list[float] = Field(min_length=9, max_length=9, description="pmvir-sh9 coefficients L0..L8")
     rgb_scale: list[float] = Field(min_length=3, max_length=3, description="RGB colour scale LR, LG, LB")
+    sh_high: list[float] | None = Field(
+        default=None,
+        min_length=7,
+        max_length=16,
+        description="Only when the refinement fitted a richer shading (refine.sh_order 3 or 4): the "
+        "coefficients of pmvir.sh.sh_basis's degree-3 (7) and degree-4 (9) terms. They are orthogonal to "
+        "pmvir-sh9 over the sphere, so 'sh' is the least-squares pmvir-sh9 part of the full shading.",
+    )
 
 
 class Illumination(BaseModel):
@@ -40,14 +48,20 @@ class Illumination(BaseModel):
         return np.array([f.rgb_scale for f in self.frames], dtype=np.float64).reshape(-1, 3)
 
 
-def illumination_from_arrays(files: list[str], sh: np.ndarray, rgb_scale: np.ndarray) -> Illumination:
-    """Build the document from (n, 9) coefficients and (n, 3) scales."""
+def illumination_from_arrays(
+    files: list[str], sh: np.ndarray, rgb_scale: np.ndarray, sh_high: np.ndarray | None = None
+) -> Illumination:
+    """Build the document from (n, 9) coefficients, (n, 3) scales and, for a shading richer than
+    pmvir-sh9, its (n, 7) or (n, 16) degree-3/4 coefficients (None or (n, 0): none)."""
     sh = np.asarray(sh, dtype=np.float64).reshape(len(files), 9)
     rgb_scale = np.asarray(rgb_scale, dtype=np.float64).reshape(len(files), 3)
+    high: list[list[float] | None] = [None] * len(files)
+    if sh_high is not None and np.size(sh_high) > 0:
+        high = [list(row) for row in np.asarray(sh_high, dtype=np.float64).reshape(len(files), -1)]
     return Illumination(
         frames=[
-            FrameLighting(file=f, sh=s.tolist(), rgb_scale=c.tolist())
-            for f, s, c in zip(files, sh, rgb_scale, strict=True)
+            FrameLighting(file=f, sh=s.tolist(), rgb_scale=c.tolist(), sh_high=h)
+            for f, s, c, h in zip(files, sh, rgb_scale, high, strict=True)
         ]
     )
 
@@ -56,7 +70,7 @@ def write_illumination(path: str | Path, illum: Illumination) -> None:
     """Write atomically (temporary name, then rename)."""
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(illum.model_dump(), indent=1))
+    tmp.write_text(json.dumps(illum.model_dump(exclude_none=True), indent=1))
     os.replace(tmp, path)
 
 

@@ -22,7 +22,7 @@ from pmvir.errors import ConfigError
 from pmvir.polarization.azimuth import perspective_azimuth
 from pmvir.refine.mesh_ops import face_normals, normalize, vertex_normals
 from pmvir.refine.sampling import PairSamples, PairSet, ViewStack, sample_pairs
-from pmvir.sh import sh9_basis
+from pmvir.sh import sh_basis, sh_order_of
 
 #: Offsets o of the paper's Eq. (eta): eta = min_o |alpha - phi + o|, for alpha in [0, 2 pi), phi in [0, pi).
 ETA_OFFSETS = (-2.0 * math.pi, -1.5 * math.pi, -math.pi, -0.5 * math.pi, 0.0, 0.5 * math.pi, math.pi)
@@ -92,12 +92,14 @@ def pair_light(
 
     Args:
         normals: (N, 3) unit world vertex normals N(X).
-        sh: (V, 9) pmvir-sh9 coefficients L_basis per view.
+        sh: (V, T) coefficients L_basis per view: pmvir-sh9 (T = 9) or a richer basis of
+            :func:`pmvir.sh.sh_basis` (T = 16 or 25, pmvir-sh9 first).
         rgb_scale: (V, 3) L_scale per view.
         pairs: the stage's pairs.
     """
     sizes = [b - a for a, b in zip(pairs.offsets[:-1], pairs.offsets[1:], strict=True)]
-    basis = torch.split(sh9_basis(normals.index_select(0, pairs.vertex)), sizes)
+    order = sh_order_of(sh.shape[1])
+    basis = torch.split(sh_basis(normals.index_select(0, pairs.vertex), order), sizes)
     shading = torch.cat([b @ sh[c] for c, b in enumerate(basis)])
     return shading[:, None] * rgb_scale.index_select(0, pairs.view)
 

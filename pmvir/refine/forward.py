@@ -28,7 +28,7 @@ import numpy as np
 from pmvir.camera import Camera
 from pmvir.io.ply import vertex_normals
 from pmvir.polarization.azimuth import perspective_azimuth
-from pmvir.sh import sh9_shading
+from pmvir.sh import sh_basis, sh_order_of
 
 
 def diffuse_dop(cos_zenith: np.ndarray, eta: float) -> np.ndarray:
@@ -71,7 +71,8 @@ def render_decoded(
     Args:
         vertices: (N, 3) positions; faces: (F, 3) ccw triangles; albedo: (N, 3) linear RGB.
         cameras: V cameras.
-        sh: (V, 9) or (9,) pmvir-sh9 shading coefficients; rgb_scale: (V, 3) or (3,).
+        sh: (V, T) or (T,) shading coefficients: pmvir-sh9 (T = 9) or :func:`pmvir.sh.sh_basis`'s
+            richer bases (T = 16, 25); rgb_scale: (V, 3) or (3,).
         eta: refractive index for the DoP formulas.
         dop_scale: multiplies every DoP (0: Lambertian).
         specular_dirs: (M, 3) unit world directions towards lights whose mirror
@@ -92,7 +93,9 @@ def render_decoded(
     f = np.asarray(faces, dtype=np.int64)
     k = np.asarray(albedo, dtype=np.float64)
     n_views = len(cameras)
-    sh = np.broadcast_to(np.asarray(sh, dtype=np.float64), (n_views, 9))
+    sh = np.asarray(sh, dtype=np.float64)
+    sh_order = sh_order_of(sh.shape[-1])
+    sh = np.broadcast_to(sh, (n_views, sh.shape[-1]))
     rgb_scale = np.broadcast_to(np.asarray(rgb_scale, dtype=np.float64), (n_views, 3))
     vn = vertex_normals(v, f)
     rng = np.random.default_rng(seed)
@@ -114,7 +117,7 @@ def render_decoded(
         nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
         alb = np.einsum("pk,pkj->pj", bary, k[tri])
         view_dir = -d[mask]
-        i_min = alb * np.maximum(sh9_shading(nrm, sh[c]), 0.0)[:, None] * rgb_scale[c][None, :]
+        i_min = alb * np.maximum(sh_basis(nrm, sh_order) @ sh[c], 0.0)[:, None] * rgb_scale[c][None, :]
         alpha, _ = perspective_azimuth(nrm @ cam.R.T, d[mask] @ cam.R.T)
         cosz = np.clip((nrm * view_dir).sum(1), 0.0, 1.0)
         spec = np.zeros(len(nrm), dtype=bool)

@@ -68,6 +68,7 @@ from pmvir.refine.sampling import (
     sample_pairs,
     select_pairs,
 )
+from pmvir.sh import sh_term_count
 
 #: vertices (N, 3) float64, faces (F, 3) int64 -> (N, V) bool visibility.
 VisibilityFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -112,7 +113,11 @@ class RefineResult:
         vertices: (N, 3) float64 refined positions (faces are unchanged).
         normals: (N, 3) float32 area-weighted unit vertex normals of the result.
         albedo: (N, 3) float32 linear RGB albedo K.
-        sh: (V, 9) float32 pmvir-sh9 coefficients per view (L0 = 1, the gauge).
+        sh: (V, 9) float32 pmvir-sh9 coefficients per view (L0 = 1, the gauge). With
+            ``sh_order`` > 2 they are the pmvir-sh9 part (the least-squares projection over the
+            sphere) of the fitted shading.
+        sh_high: (V, T - 9) float32 degree-3 and degree-4 coefficients of :func:`pmvir.sh.sh_basis`
+            (T = 16 or 25); (V, 0) with the default ``sh_order`` 2.
         rgb_scale: (V, 3) float32 RGB scale per view (view 0 = its initial [1, 1, 1]).
         visibility: (N, V) bool visibility used by the last stage.
         stages: one :class:`StageLog` per stage.
@@ -127,9 +132,14 @@ class RefineResult:
     sh: np.ndarray
     rgb_scale: np.ndarray
     visibility: np.ndarray
+    sh_high: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
     stages: list[StageLog] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     intensity_factor: float = 0.0
+
+    def shading_coefficients(self) -> np.ndarray:
+        """(V, T) every fitted coefficient of :func:`pmvir.sh.sh_basis` (``sh`` then ``sh_high``)."""
+        return np.concatenate([self.sh, self.sh_high.reshape(len(self.sh), -1)], axis=1)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -163,7 +173,7 @@ class _Unknowns:
 
     vertices: torch.Tensor  # (N, 3)
     albedo: torch.Tensor  # (N, 3)
-    sh: torch.Tensor  # (V, 9)
+    sh: torch.Tensor  # (V, T): T = 9 (pmvir-sh9), 16 or 25 (refine.sh_order)
     rgb_scale: torch.Tensor  # (V, 3)
 
 
@@ -174,7 +184,7 @@ class _Blocks:
     Attributes:
         motion: vertex motion, N values ("normal") or 3N ("free", row-major (N, 3)).
         albedo: RGB albedo (3N, row-major (N, 3)); empty unless the albedo is a joint unknown.
-        sh: SH coefficients L1..L8 of every view (8V, row-major (V, 8)); L0 is the gauge.
+        sh: SH coefficients L1..L(T-1) of every view ((T-1)V, row-major (V, T-1)); L0 is the gauge.
         scale: RGB scales of views 1..V-1 (3(V-1)); view 0's is the gauge.
         size: length of z.
     """
@@ -186,11 +196,11 @@ class _Blocks:
     size: int
 
     @classmethod
-    def layout(cls, *, n_vertices: int, n_views: int, motion: str, joint_albedo: bool) -> _Blocks:
+    def layout(cls, *, n_vertices: int, n_views: int, n_sh: int, motion: str, joint_albedo: bool) -> _Blocks:
         sizes = {
             "motion": n_vertices if motion == "normal" else 3 * n_vertices,
             "albedo": 3 * n_vertices if joint_albedo else 0,
-            "sh": 8 * n_views,
+            "sh": (n_sh - 1) * n_views,
             "scale": 3 * (n_views - 1),
         }
         slices, start = {}, 0
@@ -224,7 +234,9 @@ class _Parametrization:
         per_view = torch.zeros(v, dtype=start.sh.dtype, device=start.sh.device)
         per_view.index_add_(0, pairs.view, pairs.weight)
         self.precond = per_view.clamp_min(1.0).rsqrt()
-        self.blocks = _Blocks.layout(n_vertices=n, n_views=v, motion=motion, joint_albedo=joint_albedo)
+        self.blocks = _Blocks.layout(
+            n_vertices=n, n_views=v, n_sh=start.sh.shape[1], motion=motion, joint_albedo=joint_albedo
+        )
 
     def initial(self) -> torch.Tensor:
         z = torch.zeros(self.blocks.size, dtype=self.start.albedo.dtype, device=self.start.albedo.device)
@@ -252,7 +264,7 @@ class _Parametrization:
         else:
             vertices = s.vertices + self.h * motion.view(self.n, 3)
         albedo = z[blocks.albedo].view(self.n, 3) if self.joint_albedo else s.albedo
-        sh_rest = s.sh[:, 1:] + z[blocks.sh].view(self.v, 8) * self.precond[:, None]
+        sh_rest = s.sh[:, 1:] + z[blocks.sh].view(self.v, -1) * self.precond[:, None]
         sh = torch.cat([torch.ones_like(s.sh[:, :1]), sh_rest], dim=1)
         scale_rest = s.rgb_scale[1:] + z[blocks.scale].view(self.v - 1, 3) * self.precond[1:, None]
         rgb_scale = torch.cat([s.rgb_scale[:1], scale_rest], dim=0)
@@ -770,11 +782,11 @@ def _setup(
 
 
 def _initial_unknowns(
-    vertices: np.ndarray, n_views: int, *, device: torch.device, dtype: torch.dtype
+    vertices: np.ndarray, n_views: int, *, sh_order: int = 2, device: torch.device, dtype: torch.dtype
 ) -> _Unknowns:
     """The paper's start (section 5.1): SH = [1, 0, ..., 0], scale = [1, 1, 1]; the albedo is set by stage 1."""
     n = len(vertices)
-    sh = torch.zeros((n_views, 9), dtype=dtype, device=device)
+    sh = torch.zeros((n_views, sh_term_count(sh_order)), dtype=dtype, device=device)
     sh[:, 0] = 1.0
     return _Unknowns(
         vertices=torch.from_numpy(vertices).to(device=device, dtype=dtype),
@@ -826,7 +838,9 @@ def refine_surface(
     vis = np.asarray(visibility)
     if vis.shape != (n, n_views):
         raise ConfigError(f"expected ({n}, {n_views}) visibility, got {vis.shape}")
-    state = _initial_unknowns(verts_np, n_views, device=setup.device, dtype=setup.dtype)
+    state = _initial_unknowns(
+        verts_np, n_views, sh_order=opts.sh_order, device=setup.device, dtype=setup.dtype
+    )
     timings = {"setup": time.perf_counter() - t_start}
     logs: list[StageLog] = []
     for s in range(opts.n_stages):
@@ -849,7 +863,8 @@ def refine_surface(
         vertices=state.vertices.cpu().numpy().astype(np.float64),
         normals=normals,
         albedo=state.albedo.cpu().numpy().astype(np.float32),
-        sh=state.sh.cpu().numpy().astype(np.float32),
+        sh=state.sh[:, :9].cpu().numpy().astype(np.float32),
+        sh_high=state.sh[:, 9:].cpu().numpy().astype(np.float32),
         rgb_scale=state.rgb_scale.cpu().numpy().astype(np.float32),
         visibility=vis.astype(bool),
         stages=logs,

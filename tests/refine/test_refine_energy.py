@@ -449,3 +449,18 @@ def test_gradient_of_the_fresnel_weighted_photometric_term(small_problem) -> Non
     assert torch.autograd.gradcheck(
         lambda *a: _pho_options(problem, *a) / value, inputs, eps=1e-6, atol=1e-7, rtol=1e-4
     )
+
+
+def test_gradient_of_the_photometric_term_with_degree_4_lighting(small_problem) -> None:
+    """refine.sh_order 4: E_pho through the 25-term shading basis, against finite differences in
+    every input; the degree-3 and degree-4 coefficients change its value."""
+    problem, inputs = small_problem
+    rng = np.random.default_rng(5)
+    sh9 = inputs[2].detach()
+    sh25 = torch.cat([sh9, torch.from_numpy(rng.normal(0.0, 0.05, (sh9.shape[0], 16)))], dim=1)
+    args = (inputs[0], inputs[1], sh25.requires_grad_(), inputs[3])
+    value = float(_pho(problem, *args).detach())
+    assert value > 0.0 and value != pytest.approx(float(_pho(problem, *inputs).detach()))
+    assert torch.autograd.gradcheck(
+        lambda *a: _pho(problem, *a) / value, args, eps=1e-6, atol=1e-7, rtol=1e-4
+    )
