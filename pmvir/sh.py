@@ -79,7 +79,7 @@ def sh_basis(normals: Any, order: int = 2) -> Any:
 
     Example:
         >>> sh_basis(np.array([0.0, 0.0, 1.0]), 3)[9:].round(4)
-        array([0. , 0. , 0. , 1. , 0. , 0. , 0. ])
+        array([0., 0., 0., 1., 0., 0., 0.])
     """
     sh_term_count(order)
     low = sh9_basis(normals)
