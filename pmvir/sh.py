@@ -66,9 +66,9 @@ def sh_order_of(n_terms: int) -> int:
 def sh_basis(normals: Any, order: int = 2) -> Any:
     """The (order + 1)^2 basis functions at unit normals: pmvir-sh9 first, then degree 3 and 4.
 
-    The degree-3 and degree-4 terms are harmonic polynomials (real spherical harmonics without
-    their normalization constants, scaled to a largest value of about 1 on the sphere), so they are
-    orthogonal to the pmvir-sh9 terms over the sphere.
+    On the unit sphere the degree-3 and degree-4 terms equal the real spherical harmonics of
+    those degrees (without their normalization constants, scaled to a largest value of about 1),
+    so they are orthogonal to the pmvir-sh9 terms over the sphere.
 
     Args:
         normals: (..., 3) unit normals, NumPy array or torch tensor.

@@ -117,7 +117,7 @@ class RefineResult:
             ``sh_order`` > 2 they are the pmvir-sh9 part (the least-squares projection over the
             sphere) of the fitted shading.
         sh_high: (V, T - 9) float32 degree-3 and degree-4 coefficients of :func:`pmvir.sh.sh_basis`
-            (T = 16 or 25); (V, 0) with the default ``sh_order`` 2.
+            (T = 16 or 25); (V, 0) with ``sh_order`` 2.
         rgb_scale: (V, 3) float32 RGB scale per view (view 0 = its initial [1, 1, 1]).
         visibility: (N, V) bool visibility used by the last stage.
         stages: one :class:`StageLog` per stage.
@@ -782,7 +782,7 @@ def _setup(
 
 
 def _initial_unknowns(
-    vertices: np.ndarray, n_views: int, *, sh_order: int = 2, device: torch.device, dtype: torch.dtype
+    vertices: np.ndarray, n_views: int, *, sh_order: int, device: torch.device, dtype: torch.dtype
 ) -> _Unknowns:
     """The paper's start (section 5.1): SH = [1, 0, ..., 0], scale = [1, 1, 1]; the albedo is set by stage 1."""
     n = len(vertices)

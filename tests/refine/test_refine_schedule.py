@@ -352,7 +352,9 @@ def test_lighting_prefit_holds_the_geometry_and_fits_the_lighting(plastic) -> No
     setup = _setup(
         scene.faces.astype(np.int64), len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None
     )
-    state = _initial_unknowns(scene.vertices, len(scene.cameras), device=setup.device, dtype=setup.dtype)
+    state = _initial_unknowns(
+        scene.vertices, len(scene.cameras), sh_order=opts.sh_order, device=setup.device, dtype=setup.dtype
+    )
     stage, state = prepare_stage(setup, state, vis, 0)
     assert stage.problem.pho_weight is None  # stage 1 alone has no residuals to weight by
     fitted_stage, fitted = prefit_lighting(setup, stage, state, progress=Progress.none())
@@ -371,7 +373,9 @@ def _first_stage(plastic, opts: RefineOptions):
     setup = _setup(
         scene.faces.astype(np.int64), len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None
     )
-    state = _initial_unknowns(scene.vertices, len(scene.cameras), device=setup.device, dtype=setup.dtype)
+    state = _initial_unknowns(
+        scene.vertices, len(scene.cameras), sh_order=opts.sh_order, device=setup.device, dtype=setup.dtype
+    )
     stage, state = prepare_stage(setup, state, vis, 0)
     return setup, state, stage
 
