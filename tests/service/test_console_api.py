@@ -56,8 +56,9 @@ def test_console_pages_and_docs_load_nothing_from_elsewhere(stack) -> None:
             assert ref.startswith(("/", "data:")), f"{page} loads {ref}"
             if ref.startswith("/ui/"):
                 assert httpx.get(stack.url + ref).status_code == 200, ref
-    js = httpx.get(stack.url + "/ui/static/console.js")
-    assert js.headers["content-type"].startswith("text/javascript")
+    for module in ("console.js", "shading.js"):  # console.js imports ./shading.js
+        js = httpx.get(stack.url + "/ui/static/" + module)
+        assert js.status_code == 200 and js.headers["content-type"].startswith("text/javascript"), module
     for module in VENDOR_FILES:
         assert httpx.get(f"{stack.url}/ui/vendor/{module}").status_code == 200, module
     for other in ("three/package.json", "three/examples/jsm/Addons.js", "three/../../package.json"):

@@ -4,6 +4,7 @@ import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import { PLYLoader } from "three/addons/loaders/PLYLoader.js";
+import { shadingAtGltfNormal } from "./shading.js";
 
 const KEY_STORE = "pmvir.apiKey";
 const app = document.getElementById("app");
@@ -334,12 +335,6 @@ function downloadsSection(job, listing, base) {
 
 // ---------------------------------------------------------------- 3D view
 
-function shFromGltfNormal(nx, ny, nz, sh) {
-  // glTF (x, y, z) -> capture world (x, -z, y): the inverse of asset.extras.pmvir.gltf_from_capture
-  const x = nx, y = -nz, z = ny;
-  return sh[0] + sh[1] * y + sh[2] * z + sh[3] * x + sh[4] * x * y + sh[5] * y * z + sh[6] * (z * z - 1 / 3) + sh[7] * x * z + sh[8] * (x * x - y * y);
-}
-
 async function viewerSection(job, base, paths, illumination, viewSelect) {
   const holder = h("div", { id: "viewer" });
   const mode = (value, text, checked) => h("label", {}, h("input", { type: "radio", name: "mode", value, checked }), text);
@@ -402,7 +397,7 @@ async function viewerSection(job, base, paths, illumination, viewSelect) {
     const values = new Float32Array(albedo.count * 3);
     let peak = [];
     for (let i = 0; i < albedo.count; i++) {
-      const s = Math.max(0, shFromGltfNormal(normals.getX(i), normals.getY(i), normals.getZ(i), frame.sh));
+      const s = Math.max(0, shadingAtGltfNormal(normals.getX(i), normals.getY(i), normals.getZ(i), frame.sh, frame.sh_high));
       for (let c = 0; c < 3; c++) values[3 * i + c] = linearAlbedo.array[3 * i + c] * s * frame.rgb_scale[c];
       if (i % 7 === 0) peak.push(Math.max(values[3 * i], values[3 * i + 1], values[3 * i + 2]));
     }
