@@ -77,6 +77,7 @@ VARIANTS: dict[str, dict] = {
     "least_squares": {"pho_robust": "none"},
     "raw_dop_weight": {"dop_weight_normalized": False},
     "previous": {"pho_robust": "none", "dop_weight_normalized": False},
+    "no_relax": {"relax_iterations": 0},
 }
 LABELS = {
     "initial": "initial surface",
@@ -87,10 +88,20 @@ LABELS = {
     "least_squares": "least-squares E_pho (pho_robust none)",
     "raw_dop_weight": "DoP weight not normalized",
     "previous": "previous defaults (both)",
+    "no_relax": "no tangential relaxation",
 }
 ROWS = {
     "main": ("initial", "mvir", "full"),
-    "ablation": ("full", "no_dop_weight", "raw_dop_weight", "least_squares", "previous", "i_int", "mvir"),
+    "ablation": (
+        "full",
+        "no_dop_weight",
+        "raw_dop_weight",
+        "least_squares",
+        "previous",
+        "no_relax",
+        "i_int",
+        "mvir",
+    ),
     "materials": ("initial", "mvir", "full"),
 }
 TARGET_ACCURACY_PCT = 35.0

@@ -664,6 +664,16 @@ class RefineOptions(_Options):
         description="'free': full 3D vertex motion (3 unknowns per vertex; measured more accurate); 'normal': "
         "each vertex moves along its normal at the start of the stage (1 unknown per vertex).",
     )
+    relax_iterations: int = Field(
+        default=20,
+        ge=0,
+        le=1000,
+        description="After the last stage, steps of tangential relaxation: every interior vertex moves toward the "
+        "centroid of its one-ring, along the surface only, and is projected back onto the refined surface, so "
+        "vertices crowded by free motion spread out again without moving the surface (the albedo is solved again "
+        "at the new positions). Completeness is measured to the nearest vertex, so crowding costs it even where "
+        "the surface improved. 0: off. Measured in the README.",
+    )
     intensity_scale: Literal["median", "absolute"] = Field(
         default="absolute",
         description="What E_pho and E_psm measure intensities in. 'median': multiples of the capture's median "

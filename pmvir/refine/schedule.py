@@ -22,6 +22,8 @@ per-view SH coefficients L_basis (9) and RGB scales L_scale (3).
 * Preconditioning: L-BFGS's initial inverse Hessian is a graph smoother on the
   vertex-motion block (:class:`pmvir.refine.mesh_ops.GraphSmoother`); SH and scale
   unknowns of view c are scaled by 1/sqrt(sum of the pair weights 1/|V(i)| of the view).
+* Relaxation (``relax_iterations``): after the last stage the vertices are spread evenly
+  over the refined surface (:mod:`pmvir.refine.relax`) and the albedo solved there again.
 * Stages: :func:`prepare_stage` fixes a stage's data at the current geometry (visibility,
   pairs, E_psm weights, E_pol's DoP mask and DoP weights, n0 and h), :func:`solve_stage`
   minimizes its cost; :func:`refine_surface` is the loop over the two.
@@ -59,6 +61,7 @@ from pmvir.refine.mesh_ops import (
     unique_edges,
     vertex_normals,
 )
+from pmvir.refine.relax import carry_values, relax_tangentially
 from pmvir.refine.sampling import (
     Observation,
     PairSamples,
@@ -678,7 +681,29 @@ def solve_stage(
         stop_reason=res.reason,
         seconds=time.perf_counter() - t0,
     )
-    return _accepted(param, stage.problem, solver, res.x), stage_log
+    accepted = _accepted(param, stage.problem, solver, res.x)
+    if not freeze_motion and opts.relax_iterations > 0 and stage.index == opts.n_stages - 1:
+        accepted = _relaxed(setup, stage.problem, solver, accepted)
+    return accepted, stage_log
+
+
+def _relaxed(
+    setup: _Setup, problem: StageProblem, solver: AlbedoSolver | None, state: _Unknowns
+) -> _Unknowns:
+    """``state`` with its vertices spread evenly over the last stage's surface (``relax_iterations``,
+    :func:`pmvir.refine.relax.relax_tangentially`); the albedo is solved again at the new positions
+    (projected) or interpolated there (joint)."""
+    verts = state.vertices.cpu().numpy().astype(np.float64)
+    relaxed, face_ids, bary = relax_tangentially(verts, setup.faces_np, setup.opts.relax_iterations)
+    vertices = torch.from_numpy(relaxed).to(device=setup.device, dtype=setup.dtype)
+    if solver is not None:
+        with torch.no_grad():
+            energy_terms(vertices, solver, state.sh, state.rgb_scale, problem)
+        albedo = solver.current.detach()
+    else:
+        carried = carry_values(state.albedo.cpu().numpy().astype(np.float64), setup.faces_np, face_ids, bary)
+        albedo = torch.from_numpy(carried).to(device=setup.device, dtype=setup.dtype)
+    return _Unknowns(vertices, albedo, state.sh, state.rgb_scale)
 
 
 def intensity_units(observations: Sequence[Observation], opts: RefineOptions) -> float:

@@ -1,0 +1,129 @@
+"""Tangential relaxation: even out a refined mesh's vertices without changing its surface.
+
+The refinement moves vertices freely in 3D (``vertex_motion='free'``). Motion along the
+surface leaves the surface where it is, so the energy barely resists it, yet per-vertex
+albedo and image sampling give it a pull: vertices crowd and leave long edges behind.
+The surface is then still right, but sampled unevenly, and the spec's completeness
+(true points to their nearest estimated *vertex*) gets worse even where the surface got
+better. On the Mitsuba blob, MVIR's refined surface was 8% closer to the truth than the
+initial one while the vertex completeness lost 4%; the coefficient of variation of the edge
+lengths rose from 0.33 to 0.45.
+
+:func:`relax_tangentially` moves every interior vertex a step toward the centroid of its
+one-ring, with the normal component of that step removed, and projects it back onto the
+surface it started from (the mesh at the end of the stage). Repeated, the vertices spread
+back toward the distribution of the mesh's connectivity; the surface, a fixed mesh they are
+projected onto, does not move. Boundary vertices and vertices on non-manifold edges stay
+put.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from pmvir.errors import ConfigError
+from pmvir.geometry.mesh_ops import ReferenceSurface, edge_topology
+
+#: Fraction of the tangential umbrella step taken per iteration (0.5: stable for any valence).
+RELAX_STEP = 0.5
+
+
+def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    fc = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    n = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(n, f[:, k], fc)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
+def barycentric(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(M, 3) barycentric weights of (M, 3) points on the triangles (a, b, c) (points on their planes).
+
+    Example:
+        >>> barycentric(np.array([[0.25, 0.25, 0.0]]), np.zeros((1, 3)), np.eye(3)[:1], np.eye(3)[1:2])
+        array([[0.5 , 0.25, 0.25]])
+    """
+    e0, e1, d = b - a, c - a, points - a
+    d00 = np.einsum("ij,ij->i", e0, e0)
+    d01 = np.einsum("ij,ij->i", e0, e1)
+    d11 = np.einsum("ij,ij->i", e1, e1)
+    d20 = np.einsum("ij,ij->i", d, e0)
+    d21 = np.einsum("ij,ij->i", d, e1)
+    den = d00 * d11 - d01 * d01
+    den = np.where(np.abs(den) > 0, den, 1.0)
+    w1 = (d11 * d20 - d01 * d21) / den
+    w2 = (d00 * d21 - d01 * d20) / den
+    return np.stack([1.0 - w1 - w2, w1, w2], axis=1)
+
+
+def relax_tangentially(
+    vertices: np.ndarray, faces: np.ndarray, iterations: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Spread a mesh's vertices evenly over its own surface (see the module docstring).
+
+    Args:
+        vertices: (N, 3) positions; faces: (F, 3) int64 indices.
+        iterations: umbrella steps (0: the vertices are returned unchanged).
+
+    Returns:
+        relaxed (N, 3) float64 positions, each on the input surface; face_ids (N,) int64, the
+        input face each lies on; bary (N, 3) float64, its barycentric weights there (to carry
+        per-vertex values over: ``(bary[:, :, None] * values[faces[face_ids]]).sum(1)``).
+
+    Raises:
+        ConfigError: negative ``iterations``.
+    """
+    if iterations < 0:
+        raise ConfigError(f"relaxation iterations must be >= 0, got {iterations}")
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    n = len(v)
+    topo = edge_topology(f, n)
+    e = topo.edges
+    pinned = np.ones(n, dtype=bool)
+    pinned[e.reshape(-1)] = False
+    pinned[e[~topo.interior].reshape(-1)] = True  # boundary or non-manifold: stay put
+    w = sp.coo_matrix(
+        (np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)
+    ).tocsr()
+    degree = np.maximum(np.asarray(w.sum(axis=1)).ravel(), 1.0)
+    reference = ReferenceSurface(v, f)
+    x = v.copy()
+    face_ids = np.empty(0, dtype=np.int64)
+    for _ in range(iterations):
+        normal = _vertex_normals(x, f)
+        step = w @ x / degree[:, None] - x
+        step -= np.einsum("ij,ij->i", step, normal)[:, None] * normal
+        step[pinned] = 0.0
+        x, face_ids = reference.project(x + RELAX_STEP * step)
+        x[pinned] = v[pinned]
+    if iterations == 0 or len(face_ids) != n:
+        return v.copy(), _incident_face(f, n), _corner_weights(f, n)
+    bary = barycentric(x, v[f[face_ids, 0]], v[f[face_ids, 1]], v[f[face_ids, 2]])
+    # A pinned vertex is its own value: point it at a face it is a corner of.
+    if pinned.any():
+        own_face, own_bary = _incident_face(f, n), _corner_weights(f, n)
+        face_ids[pinned], bary[pinned] = own_face[pinned], own_bary[pinned]
+    return x, face_ids, bary
+
+
+def _incident_face(f: np.ndarray, n: int) -> np.ndarray:
+    """(N,) one face each vertex is a corner of (0 for an unused vertex)."""
+    out = np.zeros(n, dtype=np.int64)
+    out[f.reshape(-1)] = np.repeat(np.arange(len(f)), 3)
+    return out
+
+
+def _corner_weights(f: np.ndarray, n: int) -> np.ndarray:
+    """(N, 3) barycentric weights selecting each vertex on the face :func:`_incident_face` gives."""
+    face = _incident_face(f, n)
+    bary = (f[face] == np.arange(n)[:, None]).astype(np.float64)
+    bary[bary.sum(axis=1) == 0, 0] = 1.0  # unused vertex: any weight, its value is never read
+    return bary
+
+
+def carry_values(values: np.ndarray, faces: np.ndarray, face_ids: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """Per-vertex values (N, C) interpolated at the relaxed vertices (``relax_tangentially``'s output)."""
+    vals = np.asarray(values)
+    return np.einsum("nk,nkc->nc", bary, vals[np.asarray(faces)[face_ids]])

@@ -1,0 +1,159 @@
+"""Tangential relaxation (``refine.relax_iterations``): vertices spread out, the surface stays."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from refine_scene import make_scene
+
+from pmvir.config import RefineOptions
+from pmvir.errors import ConfigError
+from pmvir.evaluate import SurfaceQuery
+from pmvir.geometry.mesh_ops import ReferenceSurface
+from pmvir.progress import Progress
+from pmvir.refine import make_visibility_fn, observation_from_decoded
+from pmvir.refine.albedo import AlbedoSolver
+from pmvir.refine.energy import energy_terms
+from pmvir.refine.mesh_ops import unique_edges
+from pmvir.refine.relax import barycentric, carry_values, relax_tangentially
+from pmvir.synth.shapes import geodesic_sphere
+
+ONE_STAGE = {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]}
+
+
+def _edge_cv(v: np.ndarray, f: np.ndarray) -> float:
+    e = unique_edges(f)
+    length = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
+    return float(length.std() / length.mean())
+
+
+def _surface_distance(points: np.ndarray, v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    closest, _, _ = SurfaceQuery(v, f).closest(points)
+    return np.linalg.norm(closest - points, axis=1)
+
+
+def _crowded_sphere() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A geodesic sphere whose vertices slid along its own surface by up to 0.4 edge lengths each, in
+    random directions (as free motion crowds them, vertex by vertex): (even vertices, crowded
+    vertices, faces); the crowded ones lie on the even mesh."""
+    v, f = geodesic_sphere(12)
+    e = unique_edges(f)
+    h = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1).mean()
+    slide = np.random.default_rng(5).uniform(-0.4 * h, 0.4 * h, size=v.shape)
+    slide -= np.einsum("ij,ij->i", slide, v)[:, None] * v  # tangential (v is the unit normal)
+    crowded, _ = ReferenceSurface(v, f).project(v + slide)
+    return v, crowded, f
+
+
+def test_relaxation_evens_out_crowded_vertices_and_keeps_them_on_the_surface() -> None:
+    even, crowded, f = _crowded_sphere()
+    assert _edge_cv(crowded, f) > 1.5 * _edge_cv(even, f)
+    relaxed, face_ids, bary = relax_tangentially(crowded, f, 20)
+    # On the input surface (to float precision) and so still on the sphere's polyhedron.
+    assert _surface_distance(relaxed, crowded, f).max() < 1e-6
+    assert np.abs(np.linalg.norm(relaxed, axis=1) - 1.0).max() < 0.01
+    # Much of the crowding is gone: the edge-length spread falls most of the way back.
+    cv_even, cv_crowded, cv_relaxed = _edge_cv(even, f), _edge_cv(crowded, f), _edge_cv(relaxed, f)
+    assert cv_relaxed < cv_even + 0.35 * (cv_crowded - cv_even)
+    # The returned faces and weights locate each relaxed vertex on the input mesh.
+    located = np.einsum("nk,nkc->nc", bary, crowded[f[face_ids]])
+    assert np.abs(located - relaxed).max() < 1e-9
+    assert np.all(bary > -1e-9)
+
+
+def test_relaxation_pins_the_boundary_and_stays_in_a_plane() -> None:
+    """A planar grid with its interior jittered within the plane relaxes back toward the regular grid;
+    boundary vertices do not move and nothing leaves the plane."""
+    n = 12
+    x, y = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
+    grid = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    f = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    boundary = (grid[:, 0] == 0) | (grid[:, 0] == n - 1) | (grid[:, 1] == 0) | (grid[:, 1] == n - 1)
+    rng = np.random.default_rng(3)
+    jittered = grid.copy()
+    jittered[~boundary, :2] += rng.uniform(-0.3, 0.3, size=(int((~boundary).sum()), 2))
+    relaxed, _, _ = relax_tangentially(jittered, f, 60)
+    assert np.array_equal(relaxed[boundary], jittered[boundary])
+    assert np.abs(relaxed[:, 2]).max() < 1e-12
+    before = np.abs(jittered - grid)[~boundary].max()
+    after = np.abs(relaxed - grid)[~boundary].max()
+    assert after < 0.3 * before
+
+
+def test_carried_values_interpolate_linear_functions_exactly() -> None:
+    _, crowded, f = _crowded_sphere()
+    relaxed, face_ids, bary = relax_tangentially(crowded, f, 10)
+    coef = np.array([[0.2, -1.0, 0.5], [1.5, 0.3, -0.7], [0.0, 0.4, 2.0]])
+    carried = carry_values(crowded @ coef, f, face_ids, bary)
+    assert np.abs(carried - relaxed @ coef).max() < 1e-9
+
+
+def test_zero_iterations_change_nothing_and_negative_ones_are_rejected() -> None:
+    _, crowded, f = _crowded_sphere()
+    same, face_ids, bary = relax_tangentially(crowded, f, 0)
+    assert np.array_equal(same, crowded)
+    assert np.abs(carry_values(crowded, f, face_ids, bary) - crowded).max() < 1e-12
+    with pytest.raises(ConfigError, match="relaxation iterations"):
+        relax_tangentially(crowded, f, -1)
+
+
+def test_barycentric_weights_rebuild_the_point() -> None:
+    rng = np.random.default_rng(0)
+    a, b, c = rng.normal(size=(3, 50, 3))
+    w = rng.dirichlet(np.ones(3), size=50)
+    p = w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c
+    assert np.abs(barycentric(p, a, b, c) - w).max() < 1e-9
+
+
+@pytest.fixture(scope="module")
+def scene_inputs():
+    scene = make_scene(two_colours=True)
+    obs = [observation_from_decoded(fr, intensity="min") for fr in scene.frames]
+    vis = make_visibility_fn(scene.cameras)(scene.vertices, scene.faces)
+    return scene, obs, vis
+
+
+def _first_stage_solved(scene_inputs, **options):
+    """Stage 1 of the test scene solved from the paper's start: (unknowns after it, the stage)."""
+    from pmvir.refine.schedule import _initial_unknowns, _setup, prepare_stage, solve_stage
+
+    scene, obs, vis = scene_inputs
+    opts = RefineOptions(silhouette_margin_px=0, **options)
+    faces = scene.faces.astype(np.int64)
+    setup = _setup(faces, len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None)
+    state = _initial_unknowns(
+        scene.vertices, len(scene.cameras), sh_order=opts.sh_order, device=setup.device, dtype=setup.dtype
+    )
+    stage, state = prepare_stage(setup, state, vis, 0)
+    return solve_stage(setup, stage, state, progress=Progress.none())[0], stage
+
+
+def test_a_relaxed_stage_keeps_its_surface_and_solves_the_albedo_at_the_new_vertices(scene_inputs) -> None:
+    """One short (and last) stage from the same start with and without relaxation: the relaxed
+    vertices lie on the unrelaxed result's surface, spread at least as evenly, and carry the
+    projected albedo's exact minimizer at their own positions."""
+    faces = scene_inputs[0].faces.astype(np.int64)
+    # One stage, so it is the last: the relaxation follows it.
+    plain_state, _ = _first_stage_solved(scene_inputs, relax_iterations=0, max_iterations=15, **ONE_STAGE)
+    relaxed_state, stage = _first_stage_solved(
+        scene_inputs, relax_iterations=20, max_iterations=15, **ONE_STAGE
+    )
+    plain = plain_state.vertices.numpy().astype(np.float64)
+    relaxed = relaxed_state.vertices.numpy().astype(np.float64)
+    assert np.abs(relaxed - plain).max() > 0  # it did move them
+    assert _surface_distance(relaxed, plain, faces).max() < 1e-5
+    assert _edge_cv(relaxed, faces) <= _edge_cv(plain, faces)
+    solver = AlbedoSolver(
+        stage.pairs, unique_edges(faces), stage.psm_weight, stage.weights.tau_psm, relaxed_state.albedo
+    )
+    energy_terms(relaxed_state.vertices, solver, relaxed_state.sh, relaxed_state.rgb_scale, stage.problem)
+    np.testing.assert_allclose(solver.current.numpy(), relaxed_state.albedo.numpy(), atol=2e-3)
+
+
+def test_only_the_last_stage_is_relaxed(scene_inputs) -> None:
+    """Stages before the last end where L-BFGS left them: relaxing between stages measured worse."""
+    plain, _ = _first_stage_solved(scene_inputs, relax_iterations=0, max_iterations=5)
+    relaxed, _ = _first_stage_solved(scene_inputs, relax_iterations=20, max_iterations=5)
+    assert np.array_equal(plain.vertices.numpy(), relaxed.vertices.numpy())
