@@ -26,6 +26,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pmvir.geometry.mesh_ops import barycentric
 from pmvir.io.ply import Mesh, linear_to_srgb, vertex_normals
 
 #: Sub-pixel bits of the rasterizer (OpenCV's ``shift``).
@@ -119,18 +120,7 @@ def rasterize_faces(uv_px: np.ndarray, faces: np.ndarray, size: tuple[int, int])
 
 def _barycentric(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
     """Barycentric coordinates (P, 3) of points p (P, 2) in triangles tri (P, 3, 2), clamped to the triangle."""
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    v0, v1, v2 = b - a, c - a, p - a
-    d00 = (v0 * v0).sum(1)
-    d01 = (v0 * v1).sum(1)
-    d11 = (v1 * v1).sum(1)
-    d20 = (v2 * v0).sum(1)
-    d21 = (v2 * v1).sum(1)
-    den = d00 * d11 - d01 * d01
-    den = np.where(np.abs(den) < 1e-20, 1e-20, den)
-    w1 = (d11 * d20 - d01 * d21) / den
-    w2 = (d00 * d21 - d01 * d20) / den
-    bary = np.clip(np.stack([1.0 - w1 - w2, w1, w2], axis=1), 0.0, None)
+    bary = np.clip(barycentric(p, tri[:, 0], tri[:, 1], tri[:, 2]), 0.0, None)
     return bary / np.maximum(bary.sum(1, keepdims=True), 1e-12)
 
 

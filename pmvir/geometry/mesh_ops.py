@@ -205,6 +205,26 @@ def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: 
     return out
 
 
+def barycentric(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(M, 3) barycentric weights of (M, D) points on the triangles (a, b, c) (points on their planes).
+
+    Example:
+        >>> barycentric(np.array([[0.25, 0.25, 0.0]]), np.zeros((1, 3)), np.eye(3)[:1], np.eye(3)[1:2])
+        array([[0.5 , 0.25, 0.25]])
+    """
+    e0, e1, d = b - a, c - a, points - a
+    d00 = np.einsum("ij,ij->i", e0, e0)
+    d01 = np.einsum("ij,ij->i", e0, e1)
+    d11 = np.einsum("ij,ij->i", e1, e1)
+    d20 = np.einsum("ij,ij->i", d, e0)
+    d21 = np.einsum("ij,ij->i", d, e1)
+    den = d00 * d11 - d01 * d01
+    den = np.where(np.abs(den) > 0, den, 1.0)
+    w1 = (d11 * d20 - d01 * d21) / den
+    w2 = (d00 * d21 - d01 * d20) / den
+    return np.stack([1.0 - w1 - w2, w1, w2], axis=1)
+
+
 def _dot(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", x, y)
 

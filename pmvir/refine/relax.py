@@ -23,38 +23,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from pmvir.errors import ConfigError
-from pmvir.geometry.mesh_ops import ReferenceSurface, edge_topology
+from pmvir.geometry.mesh_ops import ReferenceSurface, barycentric, edge_topology
+from pmvir.io.ply import vertex_normals
 
 #: Fraction of the tangential umbrella step taken per iteration (0.5: stable for any valence).
 RELAX_STEP = 0.5
-
-
-def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    fc = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fc)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-
-
-def barycentric(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """(M, 3) barycentric weights of (M, 3) points on the triangles (a, b, c) (points on their planes).
-
-    Example:
-        >>> barycentric(np.array([[0.25, 0.25, 0.0]]), np.zeros((1, 3)), np.eye(3)[:1], np.eye(3)[1:2])
-        array([[0.5 , 0.25, 0.25]])
-    """
-    e0, e1, d = b - a, c - a, points - a
-    d00 = np.einsum("ij,ij->i", e0, e0)
-    d01 = np.einsum("ij,ij->i", e0, e1)
-    d11 = np.einsum("ij,ij->i", e1, e1)
-    d20 = np.einsum("ij,ij->i", d, e0)
-    d21 = np.einsum("ij,ij->i", d, e1)
-    den = d00 * d11 - d01 * d01
-    den = np.where(np.abs(den) > 0, den, 1.0)
-    w1 = (d11 * d20 - d01 * d21) / den
-    w2 = (d00 * d21 - d01 * d20) / den
-    return np.stack([1.0 - w1 - w2, w1, w2], axis=1)
 
 
 def relax_tangentially(
@@ -92,35 +65,29 @@ def relax_tangentially(
     x = v.copy()
     face_ids = np.empty(0, dtype=np.int64)
     for _ in range(iterations):
-        normal = _vertex_normals(x, f)
+        normal = vertex_normals(x, f)
         step = w @ x / degree[:, None] - x
         step -= np.einsum("ij,ij->i", step, normal)[:, None] * normal
         step[pinned] = 0.0
         x, face_ids = reference.project(x + RELAX_STEP * step)
         x[pinned] = v[pinned]
+    own_face, own_bary = _own_corners(f, n)
     if iterations == 0 or len(face_ids) != n:
-        return v.copy(), _incident_face(f, n), _corner_weights(f, n)
+        return v.copy(), own_face, own_bary
     bary = barycentric(x, v[f[face_ids, 0]], v[f[face_ids, 1]], v[f[face_ids, 2]])
     # A pinned vertex is its own value: point it at a face it is a corner of.
-    if pinned.any():
-        own_face, own_bary = _incident_face(f, n), _corner_weights(f, n)
-        face_ids[pinned], bary[pinned] = own_face[pinned], own_bary[pinned]
+    face_ids[pinned], bary[pinned] = own_face[pinned], own_bary[pinned]
     return x, face_ids, bary
 
 
-def _incident_face(f: np.ndarray, n: int) -> np.ndarray:
-    """(N,) one face each vertex is a corner of (0 for an unused vertex)."""
-    out = np.zeros(n, dtype=np.int64)
-    out[f.reshape(-1)] = np.repeat(np.arange(len(f)), 3)
-    return out
-
-
-def _corner_weights(f: np.ndarray, n: int) -> np.ndarray:
-    """(N, 3) barycentric weights selecting each vertex on the face :func:`_incident_face` gives."""
-    face = _incident_face(f, n)
+def _own_corners(f: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) a face each vertex is a corner of (0 for an unused vertex) and (N, 3) the barycentric
+    weights that select the vertex on it (any weight for an unused vertex: its value is never read)."""
+    face = np.zeros(n, dtype=np.int64)
+    face[f.reshape(-1)] = np.repeat(np.arange(len(f)), 3)
     bary = (f[face] == np.arange(n)[:, None]).astype(np.float64)
-    bary[bary.sum(axis=1) == 0, 0] = 1.0  # unused vertex: any weight, its value is never read
-    return bary
+    bary[bary.sum(axis=1) == 0, 0] = 1.0
+    return face, bary
 
 
 def carry_values(values: np.ndarray, faces: np.ndarray, face_ids: np.ndarray, bary: np.ndarray) -> np.ndarray:

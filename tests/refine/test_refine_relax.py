@@ -9,13 +9,13 @@ from refine_scene import make_scene
 from pmvir.config import RefineOptions
 from pmvir.errors import ConfigError
 from pmvir.evaluate import SurfaceQuery
-from pmvir.geometry.mesh_ops import ReferenceSurface
+from pmvir.geometry.mesh_ops import ReferenceSurface, barycentric
 from pmvir.progress import Progress
 from pmvir.refine import make_visibility_fn, observation_from_decoded
 from pmvir.refine.albedo import AlbedoSolver
 from pmvir.refine.energy import energy_terms
 from pmvir.refine.mesh_ops import unique_edges
-from pmvir.refine.relax import barycentric, carry_values, relax_tangentially
+from pmvir.refine.relax import carry_values, relax_tangentially
 from pmvir.synth.shapes import geodesic_sphere
 
 ONE_STAGE = {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]}
