@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import uuid
+import zipfile
 from typing import Any, BinaryIO
 from urllib.parse import urlsplit
 
@@ -30,12 +31,28 @@ from service.zipped import import_zip, save_upload
 
 
 def fingerprint(spec: JobCreate, capture: BinaryIO | None = None) -> str:
-    """What an Idempotency-Key is bound to: the options, the label, and a zipped capture's bytes."""
+    """What an Idempotency-Key is bound to: the options, the label, and a zipped capture's contents.
+
+    A zip is fingerprinted by its members' names, sizes and CRC-32s (read from its
+    central directory, nothing is inflated), not by its bytes: a rig that retries
+    by zipping the same frames again writes new timestamps, and that is the same
+    request. A file that is not a readable zip falls back to its bytes (the import
+    rejects it anyway).
+    """
     h = hashlib.sha256(spec.model_dump_json().encode())
     if capture is not None:
         capture.seek(0)
-        while chunk := capture.read(1 << 20):
-            h.update(chunk)
+        try:
+            with zipfile.ZipFile(capture) as zf:
+                members = sorted((i.filename, i.file_size, i.CRC) for i in zf.infolist() if not i.is_dir())
+            h.update(b"zip-members\0")
+            for name, size, crc in members:
+                h.update(f"{name}\0{size}\0{crc:08x}\n".encode())
+        except (zipfile.BadZipFile, OSError, ValueError, EOFError):
+            capture.seek(0)
+            h.update(b"raw-bytes\0")
+            while chunk := capture.read(1 << 20):
+                h.update(chunk)
         capture.seek(0)
     return h.hexdigest()
 

@@ -173,13 +173,15 @@ def test_zipped_capture_in_one_request(api: httpx.Client, small_capture: Path, t
 
 
 def test_idempotency_key_with_a_zipped_capture(api: httpx.Client, small_capture: Path) -> None:
-    def zipped(extra: bytes = b"") -> bytes:
+    def zipped(
+        extra: bytes = b"", when: tuple[int, ...] = (2026, 1, 2, 3, 4, 6), reverse: bool = False
+    ) -> bytes:
         buf = io.BytesIO()
-        with zipfile.ZipFile(buf, "w") as zf:
-            for p in sorted(small_capture.rglob("*")):
+        with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+            for p in sorted(small_capture.rglob("*"), reverse=reverse):
                 if p.is_file():
                     zf.writestr(
-                        p.relative_to(small_capture).as_posix(),
+                        zipfile.ZipInfo(p.relative_to(small_capture).as_posix(), date_time=when),
                         p.read_bytes() + (extra if p.suffix == ".png" and "masks" in p.parts else b""),
                     )
         return buf.getvalue()
@@ -191,7 +193,10 @@ def test_idempotency_key_with_a_zipped_capture(api: httpx.Client, small_capture:
             headers={"Idempotency-Key": "zip-7"},
         )
 
-    first, again = post(zipped()), post(zipped())
+    # the retry zips the same frames again: other timestamps, another member order, other bytes
+    rezipped = zipped(when=(2026, 5, 6, 7, 8, 10), reverse=True)
+    assert rezipped != zipped()
+    first, again = post(zipped()), post(rezipped)
     assert (first.status_code, again.status_code) == (201, 200)
     assert again.json()["id"] == first.json()["id"] and len(again.json()["files"]) == 9
     assert post(zipped(b"changed")).status_code == 409
