@@ -27,7 +27,7 @@ from service.errors import ApiError, ErrorItem, conflict, invalid, not_found
 from service.models import JobCreate
 from service.queue import RUN_JOB
 from service.store import Gate, Job, JobStatus
-from service.zipped import import_zip, save_upload
+from service.zipped import ignored_member, import_zip, save_upload
 
 
 def fingerprint(spec: JobCreate, capture: BinaryIO | None = None) -> str:
@@ -36,15 +36,17 @@ def fingerprint(spec: JobCreate, capture: BinaryIO | None = None) -> str:
     A zip is fingerprinted by its members' names, sizes and CRC-32s (read from its
     central directory, nothing is inflated), not by its bytes: a rig that retries
     by zipping the same frames again writes new timestamps, and that is the same
-    request. A file that is not a readable zip falls back to its bytes (the import
-    rejects it anyway).
+    request; so is one that adds the members the import skips (``__MACOSX/``,
+    ``.DS_Store``). A file that is not a readable zip falls back to its bytes (the
+    import rejects it anyway).
     """
     h = hashlib.sha256(spec.model_dump_json().encode())
     if capture is not None:
         capture.seek(0)
         try:
             with zipfile.ZipFile(capture) as zf:
-                members = sorted((i.filename, i.file_size, i.CRC) for i in zf.infolist() if not i.is_dir())
+                kept = [i for i in zf.infolist() if not i.is_dir() and not ignored_member(i.filename)]
+            members = sorted((i.filename, i.file_size, i.CRC) for i in kept)
             h.update(b"zip-members\0")
             for name, size, crc in members:
                 h.update(f"{name}\0{size}\0{crc:08x}\n".encode())

@@ -28,7 +28,8 @@ from service.store import FileInfo, Gate
 from service.uploads import file_limit
 
 
-def _ignored(name: str) -> bool:
+def ignored_member(name: str) -> bool:
+    """A zip member the import skips: macOS metadata (``__MACOSX/``, ``.DS_Store``)."""
     parts = name.rstrip("/").split("/")
     return parts[0] == "__MACOSX" or parts[-1] == ".DS_Store"
 
@@ -53,7 +54,7 @@ def precheck_zip(svc: Services, zip_path: Path) -> None:
         infos = zf.infolist()
         if len(infos) > s.max_zip_members:
             raise too_large(f"the zip has {len(infos)} members, more than the limit of {s.max_zip_members}")
-        members = [i for i in infos if not i.is_dir() and not _ignored(i.filename)]
+        members = [i for i in infos if not i.is_dir() and not ignored_member(i.filename)]
         names = {i.filename for i in members}
         if "capture.json" in names:
             prefix = ""

@@ -184,6 +184,9 @@ def test_idempotency_key_with_a_zipped_capture(api: httpx.Client, small_capture:
                         zipfile.ZipInfo(p.relative_to(small_capture).as_posix(), date_time=when),
                         p.read_bytes() + (extra if p.suffix == ".png" and "masks" in p.parts else b""),
                     )
+            if reverse:  # zipped on a Mac: metadata the import skips
+                zf.writestr("__MACOSX/._capture.json", b"\0\5\26\7")
+                zf.writestr(".DS_Store", b"Bud1")
         return buf.getvalue()
 
     def post(data: bytes) -> httpx.Response:
@@ -193,7 +196,7 @@ def test_idempotency_key_with_a_zipped_capture(api: httpx.Client, small_capture:
             headers={"Idempotency-Key": "zip-7"},
         )
 
-    # the retry zips the same frames again: other timestamps, another member order, other bytes
+    # the retry zips the same frames again: other timestamps, member order and bytes, Mac metadata
     rezipped = zipped(when=(2026, 5, 6, 7, 8, 10), reverse=True)
     assert rezipped != zipped()
     first, again = post(zipped()), post(rezipped)
