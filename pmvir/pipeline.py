@@ -245,6 +245,8 @@ def _stage_report(st: StageLog) -> dict:
         "k": st.k,
         "vertex_view_pairs": st.n_pairs,
         "observed_vertices": st.n_observed,
+        "pol_pairs": st.pol_pairs,
+        "dop_floor": st.dop_floor,
         "iterations": len(st.energies) - 1,
         "evaluations": st.evaluations,
         "stop_reason": st.stop_reason,

@@ -55,6 +55,8 @@ def test_result_files_follow_the_spec(result) -> None:
     assert report["geometry"]["poses"]["mode"] == "known"
     energies = report["refine"]["stages"][0]["energies"]
     assert {"pho", "pol", "gsm", "psm", "total"} <= set(energies[0])
+    for stage in report["refine"]["stages"]:  # a plastic capture: E_pol has pairs above its floor
+        assert stage["dop_floor"] >= 0.05 and 0 < stage["pol_pairs"] < stage["vertex_view_pairs"]
     assert not any(p.name.startswith(".work") for p in out.iterdir())
 
 

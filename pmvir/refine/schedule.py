@@ -31,6 +31,7 @@ per-view SH coefficients L_basis (9) and RGB scales L_scale (3).
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -46,6 +47,8 @@ from pmvir.progress import Progress
 from pmvir.refine.albedo import AlbedoSolver
 from pmvir.refine.energy import (
     StageProblem,
+    azimuth,
+    azimuth_distance,
     energy_terms,
     fresnel_transmittance,
     pair_light,
@@ -85,6 +88,9 @@ class StageLog:
         index: stage number, 0-based.
         tau_pol, tau_gsm, tau_psm, t, k: the stage's parameters (tau_pol is 0 without E_pol).
         n_pairs: usable (vertex, view) pairs; n_observed: vertices with at least one.
+        pol_pairs: the pairs E_pol used (0 without E_pol).
+        dop_floor: E_pol's DoP floor (see :func:`dop_floor`; the median of per-pair floors; 0 when
+            every pair is kept; None when no pair was evidence and E_pol was off).
         energies: per iteration (0 = the stage's start), the unweighted terms
             ``pho``, ``pol`` (only with E_pol), ``gsm``, ``psm`` and the weighted ``total``.
         grad_max: per iteration, the largest gradient component (preconditioned unknowns).
@@ -101,6 +107,8 @@ class StageLog:
     k: float
     n_pairs: int
     n_observed: int
+    pol_pairs: int
+    dop_floor: float | None
     energies: list[dict[str, float]]
     grad_max: list[float]
     evaluations: int
@@ -379,6 +387,8 @@ class _Stage:
     psm_weight: np.ndarray
     n_observed: int
     h: float
+    dop_floor: torch.Tensor | float | None
+    pol_pairs: int
 
 
 def prepare_stage(
@@ -433,7 +443,10 @@ def prepare_stage(
     )
     robust = opts.pho_robust != "none" and s > 0  # stage 1 starts from uniform lighting: no residuals yet
     pho_weight = _robust_pho_weights(setup, state, pairs, samples) if robust else None
-    problem = _stage_problem(setup, pairs, samples, psm_weight, t=weights.t, pho_weight=pho_weight)
+    floor = _stage_dop_floor(samples, opts)
+    problem = _stage_problem(
+        setup, pairs, samples, psm_weight, t=weights.t, pho_weight=pho_weight, floor=floor
+    )
     stage = _Stage(
         index=s,
         weights=weights,
@@ -443,8 +456,37 @@ def prepare_stage(
         psm_weight=psm_weight,
         n_observed=int(observed.sum()),
         h=mean_edge_length(cur_np, setup.topo.edges_np),
+        dop_floor=floor,
+        pol_pairs=_pol_pair_count(samples, problem) if opts.polarimetric else 0,
     )
     return stage, state
+
+
+def _stage_dop_floor(samples: PairSamples, opts: RefineOptions) -> torch.Tensor | float | None:
+    """E_pol's DoP floor for a stage (:func:`dop_floor`), None where every pair is kept (no
+    polarization, or ``dop_min`` 0 with a fixed floor)."""
+    if not opts.polarimetric or samples.dop is None:
+        return None
+    floor = dop_floor(samples, opts)
+    return None if isinstance(floor, float) and floor <= 0.0 else floor
+
+
+def _pol_pair_count(samples: PairSamples, problem: StageProblem) -> int:
+    """The pairs E_pol uses at the stage's start (defined AoP, DoP at or above the floor)."""
+    if samples.aop_defined is None:
+        return 0
+    used = samples.aop_defined if problem.pol_mask is None else samples.aop_defined & problem.pol_mask
+    return int(used.sum())
+
+
+def _floor_summary(floor: torch.Tensor | float | None) -> float | None:
+    """The stage's DoP floor as one number for the log: 0 (every pair kept), the floor, its median
+    (per-pair floors), or None (no pair is evidence: E_pol off)."""
+    if floor is None:
+        return 0.0
+    if isinstance(floor, torch.Tensor):
+        return float(floor.median())
+    return None if math.isinf(floor) else floor
 
 
 def prefit_lighting(
@@ -473,7 +515,13 @@ def prefit_lighting(
     _, _, samples = _stage_observations(state.vertices, setup.topo.faces, setup.views, stage.pairs)
     pho_weight = _robust_pho_weights(setup, state, stage.pairs, samples)
     problem = _stage_problem(
-        setup, stage.pairs, samples, stage.psm_weight, t=stage.weights.t, pho_weight=pho_weight
+        setup,
+        stage.pairs,
+        samples,
+        stage.psm_weight,
+        t=stage.weights.t,
+        pho_weight=pho_weight,
+        floor=stage.dop_floor,
     )
     return replace(stage, problem=problem), state
 
@@ -486,12 +534,14 @@ def _stage_problem(
     *,
     t: float,
     pho_weight: torch.Tensor | None,
+    floor: torch.Tensor | float | None,
 ) -> StageProblem:
-    """A stage's constants; E_pol's pair mask (DoP above ``dop_min``) and DoP weights are taken
-    from the samples at the stage's start and stay fixed, like the pairs."""
+    """A stage's constants; E_pol's pair mask (DoP at or above ``floor``, see :func:`dop_floor`;
+    None keeps every pair) and DoP weights are taken from the samples at the stage's start and
+    stay fixed, like the pairs."""
     opts, topo = setup.opts, setup.topo
     dop = samples.dop
-    pol_mask = None if dop is None or opts.dop_min <= 0.0 else dop >= dop_floor(samples, opts)
+    pol_mask = None if dop is None or floor is None else dop >= floor
     pol_weight = dop if opts.dop_weight and dop is not None else None
     if pol_weight is not None and opts.dop_weight_power != 1.0:
         pol_weight = pol_weight.clamp_min(0.0) ** opts.dop_weight_power
@@ -527,16 +577,65 @@ def dop_floor(samples: PairSamples, opts: RefineOptions) -> torch.Tensor | float
     standard deviation of a DoP measured under shot noise grows as 1 / sqrt(I).
 
     Returns:
-        a float (``'fixed'``) or a (P,) tensor.
+        a float (``'fixed'``; ``'evidence'``, see :func:`evidence_dop_floor`, ``inf`` when no pair
+        is evidence) or a (P,) tensor (``'shot'``).
     """
     if opts.dop_min_noise == "fixed" or samples.dop is None:
         return opts.dop_min
+    if opts.dop_min_noise == "evidence":
+        return evidence_dop_floor(samples, opts)
     i = samples.intensity.mean(dim=-1)
     if opts.intensity == "min":
         i = i / (1.0 - samples.dop).clamp_min(0.05)
     i = i.clamp_min(1e-6)
     ratio = (i.median() / i).clamp_min(1.0)
     return opts.dop_min * torch.sqrt(ratio)
+
+
+#: Mean azimuth distance eta of an AoP unrelated to the surface (eta is uniform on [0, pi/4]).
+CHANCE_ETA = math.pi / 8.0
+
+
+def evidence_dop_floor(samples: PairSamples, opts: RefineOptions) -> float:
+    """The DoP from which the observed AoP is evidence about the current surface ('evidence').
+
+    The pairs at or above ``dop_min`` (with a defined AoP and azimuth) are sorted by DoP, most
+    polarized first, and cut into bins of ``max(dop_evidence_bin, 2% of them)`` pairs (a short
+    remainder joins the last bin). Walking down, a bin is evidence while its mean azimuth distance
+    eta to the samples' normals is at most ``dop_evidence_ratio * pi / 8``: an AoP unrelated to
+    the surface (noise, false polarization at albedo edges) has mean pi/8. The floor is the
+    lowest DoP of the last such bin; the walk stops at the first bin that is not (when none is
+    not, the floor is ``dop_min``).
+
+    Returns:
+        the floor (at least ``dop_min``), or ``inf`` when the most polarized bin is no evidence
+        (E_pol then has no pairs this stage).
+    """
+    if samples.dop is None or samples.aop is None or samples.aop_defined is None:
+        return opts.dop_min
+    alpha, defined = azimuth(samples.normal_cam, samples.ray_cam)
+    usable = defined & samples.aop_defined & (samples.dop >= opts.dop_min)
+    dop = samples.dop[usable]
+    if dop.numel() == 0:
+        return opts.dop_min
+    eta = azimuth_distance(alpha[usable], samples.aop[usable])
+    order = torch.argsort(dop, descending=True)
+    dop, eta = dop[order], eta[order]
+    n = dop.numel()
+    size = min(n, max(opts.dop_evidence_bin, math.ceil(0.02 * n)))
+    starts = list(range(0, n, size))
+    if len(starts) > 1 and n - starts[-1] < size:
+        starts.pop()
+    ends = [*starts[1:], n]
+    bound = opts.dop_evidence_ratio * CHANCE_ETA
+    floor = math.inf
+    for a, b in zip(starts, ends, strict=True):
+        if float(eta[a:b].mean()) > bound:
+            break
+        floor = float(dop[b - 1])
+    else:
+        return opts.dop_min  # every bin is evidence: keep every pair above dop_min
+    return max(floor, opts.dop_min)
 
 
 def _robust_pho_weights(
@@ -675,6 +774,8 @@ def solve_stage(
         k=opts.pol_k,
         n_pairs=stage.pairs.size,
         n_observed=stage.n_observed,
+        pol_pairs=stage.pol_pairs,
+        dop_floor=_floor_summary(stage.dop_floor) if opts.polarimetric else None,
         energies=log.energies,
         grad_max=log.grad_max,
         evaluations=res.evaluations,

@@ -94,6 +94,11 @@ def test_every_term_is_logged_per_iteration_and_the_cost_decreases(plastic_runs)
     assert [st.t for st in full.stages] == [2.2, 2.8, 3.4]
     assert "pol" not in baseline.stages[0].energies[0]
     assert baseline.stages[0].tau_pol == 0.0
+    # the plastic's AoP is evidence about the surface down to the fixed floor: E_pol keeps its pairs
+    for st in full.stages:
+        assert st.dop_floor is not None and st.dop_floor >= DEFAULTS.dop_min
+        assert 0 < st.pol_pairs < st.n_pairs
+    assert all(st.pol_pairs == 0 and st.dop_floor is None for st in baseline.stages)
 
 
 def test_visibility_is_refreshed_between_stages_and_progress_reported(plastic_runs) -> None:
@@ -136,13 +141,14 @@ def test_result_shapes_and_gauge(plastic, plastic_runs) -> None:
     assert np.mean(cap == truth) > 0.95
 
 
-def test_lambert_capture_full_method_agrees_with_the_baseline() -> None:
-    """DoP ~0 (noise only): E_pol has (almost) no usable pairs and the two results agree within 3%."""
-    scene = make_scene(two_colours=True, lambert=True)
+@pytest.mark.parametrize("stokes_noise", [0.01, 0.04])
+def test_lambert_capture_full_method_agrees_with_the_baseline(stokes_noise: float) -> None:
+    """DoP ~0 (noise only): no AoP is evidence about the surface, so E_pol gets no pair in any stage
+    (also where the noise puts most pairs above dop_min) and the full method is the baseline."""
+    scene = make_scene(two_colours=True, lambert=True, stokes_noise=stokes_noise)
     obs, vis_fn, vis = _inputs(scene)
-    accs = []
-    for pol in (True, False):
-        res = refine_surface(
+    runs = [
+        refine_surface(
             scene.vertices,
             scene.faces,
             scene.cameras,
@@ -151,9 +157,23 @@ def test_lambert_capture_full_method_agrees_with_the_baseline() -> None:
             options=RefineOptions(polarimetric=pol, **NO_MOSAIC),
             visibility_fn=vis_fn,
         )
-        accs.append(accuracy(res.vertices, scene.true_vertices, scene.true_faces))
-    assert abs(accs[0] - accs[1]) <= 0.03 * accs[1]
+        for pol in (True, False)
+    ]
+    assert all(st.pol_pairs == 0 for st in runs[0].stages)
+    accs = [accuracy(r.vertices, scene.true_vertices, scene.true_faces) for r in runs]
+    assert abs(accs[0] - accs[1]) <= 0.005 * accs[1]
     assert accs[0] < accuracy(scene.vertices, scene.true_vertices, scene.true_faces)
+    if stokes_noise > 0.03:  # with the fixed floor, the noise above it would pull the normals
+        fixed = refine_surface(
+            scene.vertices,
+            scene.faces,
+            scene.cameras,
+            obs,
+            vis,
+            options=RefineOptions(dop_min_noise="fixed", **NO_MOSAIC),
+            visibility_fn=vis_fn,
+        )
+        assert all(st.pol_pairs > 0 for st in fixed.stages)
 
 
 def test_ablations_run_and_lower_the_cost(plastic) -> None:
@@ -563,3 +583,55 @@ def test_degree_4_lighting_fits_a_view_dependent_shading_that_sh9_cannot() -> No
         tv, tf, cams, obs, vis, options=RefineOptions(sh_order=4, max_iterations=2, **NO_MOSAIC)
     )
     assert result.sh.shape == (len(cams), 9) and result.sh_high.shape == (len(cams), 16)
+
+
+def _evidence_samples(n: int, aligned_above: float | None, *, seed: int = 0):
+    """(n,) pairs with DoP uniform in [0.02, 0.5] seen along the optical axis; where DoP >=
+    ``aligned_above`` the AoP is one of the normal's four candidates (diffuse or specular, 3 deg
+    noise), elsewhere it is unrelated to the surface."""
+    import torch
+
+    from pmvir.refine.energy import azimuth
+    from pmvir.refine.sampling import PairSamples
+
+    rng = np.random.default_rng(seed)
+    normal = rng.normal(size=(n, 3))
+    normal[:, 2] = -np.abs(normal[:, 2])  # facing the camera
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    normal_t = torch.from_numpy(normal)
+    ray = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(n, 3)
+    alpha = azimuth(normal_t, ray)[0].numpy()
+    dop = rng.uniform(0.02, 0.5, n)
+    offset = rng.integers(0, 2, n) * np.pi / 2  # diffuse (alpha) or specular (alpha + pi/2) AoP
+    aop = np.mod(alpha + offset + np.radians(rng.normal(0.0, 3.0, n)), np.pi)
+    random = rng.uniform(0.0, np.pi, n)
+    aop = random if aligned_above is None else np.where(dop >= aligned_above, aop, random)
+    return PairSamples(
+        torch.ones(n, 3, dtype=torch.float64),
+        normal_t,
+        ray,
+        torch.from_numpy(aop),
+        torch.from_numpy(dop),
+        torch.ones(n, dtype=torch.bool),
+    )
+
+
+def test_evidence_dop_floor_is_where_the_aop_stops_agreeing_with_the_surface() -> None:
+    """dop_min_noise='evidence': the floor is the DoP below which the AoP no longer agrees with the
+    surface's azimuth candidates better than chance (within one bin of pairs), never below dop_min;
+    an AoP that agrees nowhere turns E_pol off (inf); one that agrees everywhere keeps dop_min."""
+    from pmvir.refine.schedule import dop_floor
+
+    opts = RefineOptions(dop_min=0.05)
+    assert opts.dop_min_noise == "evidence"
+    floor = dop_floor(_evidence_samples(40000, 0.2), opts)
+    # bins of 1000 pairs span 0.012 of DoP here; the straddling bin may still pass
+    assert 0.2 - 0.013 <= floor <= 0.2 + 1e-3
+    assert dop_floor(_evidence_samples(40000, 0.12, seed=1), opts) == pytest.approx(0.12, abs=0.013)
+    assert dop_floor(_evidence_samples(40000, None), opts) == float("inf")
+    assert dop_floor(_evidence_samples(40000, 0.0), opts) == 0.05
+    assert dop_floor(_evidence_samples(40000, 0.0), RefineOptions(dop_min=0.1)) == 0.1
+    assert dop_floor(_evidence_samples(40000, None), RefineOptions(dop_min_noise="fixed")) == 0.05
+    # a stricter ratio asks for closer agreement: 3 deg noise still passes at 0.3 of chance
+    strict = RefineOptions(dop_min=0.05, dop_evidence_ratio=0.3)
+    assert dop_floor(_evidence_samples(40000, 0.2), strict) == pytest.approx(0.2, abs=0.013)
