@@ -8,14 +8,16 @@
   are the other view's features within ``_EPIPOLAR_MAX_ERROR_PX`` of its epipolar line, then
   Lowe's ratio test and mutual nearest neighbours; no RANSAC, so wide baselines with a handful of
   true matches still count. Points come from ``pycolmap.triangulate_points`` with the poses fixed.
-* SfM: ``pycolmap.incremental_mapping``, then a last robust bundle adjustment
-  (:func:`_refine_sfm`).
+* SfM: ``pycolmap.incremental_mapping`` (or ``global_mapping``), then a last robust bundle
+  adjustment (:func:`_refine_sfm`); then, ``rematch_rounds`` times, the known-pose matching with
+  SfM's poses, triangulation and the robust bundle adjustment (:func:`_rematch_and_refine`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
+import shutil
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -119,6 +121,8 @@ def run_colmap(
         report(0.9, "refining the poses")
         t0 = time.perf_counter()
         _refine_sfm(best, options, constant)
+        if options.rematch_rounds:
+            best = _rematch_and_refine(best, database, image_dir, sparse_dir, files, options, constant)
         timings["refinement"] = time.perf_counter() - t0
     return best, features, partners
 
@@ -180,7 +184,7 @@ def _match(database: Path, n: int, options: SfmOptions) -> None:
         )
 
 
-def _match_known_poses(database: Path, files: list[str], cameras: Sequence[Camera]) -> None:
+def _match_known_poses(database: Path, files: list[str], cameras: Sequence[Camera | None]) -> None:
     """Epipolar-guided matching with the known poses (replaces COLMAP's matching and RANSAC).
 
     For every pair of views whose optical axes differ by at most ``_KNOWN_POSE_MAX_AXIS_DEG``,
@@ -193,20 +197,21 @@ def _match_known_poses(database: Path, files: list[str], cameras: Sequence[Camer
     index = {name: i for i, name in enumerate(files)}
     db = pycolmap.Database.open(str(database))
     try:
-        ids = sorted(im.image_id for im in db.read_all_images())
         view = {im.image_id: index[im.name] for im in db.read_all_images()}
+        posed: dict[int, Camera] = {k: c for k, i in view.items() if (c := cameras[i]) is not None}
+        ids = sorted(posed)
         xy = {k: db.read_keypoints(k)[:, :2].astype(np.float64) for k in ids}
         desc = {}
         for k in ids:
             d = db.read_descriptors(k).data.astype(np.float32)
             desc[k] = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-        axes = {k: cameras[view[k]].R[2] for k in ids}
+        axes = {k: posed[k].R[2] for k in ids}
         min_cos = math.cos(math.radians(_KNOWN_POSE_MAX_AXIS_DEG))
         for a_pos, id1 in enumerate(ids):
             for id2 in ids[a_pos + 1:]:
                 if float(axes[id1] @ axes[id2]) < min_cos or not len(xy[id1]) or not len(xy[id2]):
                     continue
-                F = fundamental_matrix(cameras[view[id1]], cameras[view[id2]])
+                F = fundamental_matrix(posed[id1], posed[id2])
                 m = _guided_matches(xy[id1], xy[id2], desc[id1], desc[id2], F)
                 if len(m) < _KNOWN_POSE_MIN_MATCHES:
                     continue
@@ -386,6 +391,58 @@ def _refine_sfm(rec: pycolmap.Reconstruction, options: SfmOptions, constant_came
     pycolmap.create_default_bundle_adjuster(ba, config, rec).solve()
     filter_observations(rec, options.max_reprojection_error)
     rec.update_point_3d_errors()
+
+
+def _cameras_of(rec: pycolmap.Reconstruction, files: list[str]) -> list[Camera | None]:
+    """Per view (``files`` order) the registered image's Camera, or None."""
+    index = {name: i for i, name in enumerate(files)}
+    cameras: list[Camera | None] = [None] * len(files)
+    for image in rec.images.values():
+        if image.has_pose:
+            pose = image.cam_from_world()
+            cameras[index[image.name]] = Camera(
+                K=image.camera.calibration_matrix(), R=pose.rotation.matrix(), t=pose.translation,
+                width=image.camera.width, height=image.camera.height,
+            )
+    return cameras
+
+
+def _rematch_and_refine(
+    rec: pycolmap.Reconstruction,
+    database: Path,
+    image_dir: Path,
+    sparse_dir: Path,
+    files: list[str],
+    options: SfmOptions,
+    constant_cameras: set[int],
+) -> pycolmap.Reconstruction:
+    """SfM's poses as if known: epipolar-guided matching, triangulation, robust bundle adjustment.
+
+    The features of the registered views are matched again along the epipolar lines of the
+    estimated poses (:func:`_match_known_poses`, in a copy of the database), triangulated
+    with the poses held, and refined by :func:`_refine_sfm` with the poses free: the guided
+    matches between views 30-70 degrees apart, which RANSAC verification loses, make longer
+    tracks. Repeated ``options.rematch_rounds`` times.
+    """
+    guided = database.with_name("guided.db")
+    out = sparse_dir / "guided"
+    out.mkdir(parents=True, exist_ok=True)
+    for _ in range(options.rematch_rounds):
+        shutil.copyfile(database, guided)
+        db = pycolmap.Database.open(str(guided))
+        try:
+            db.clear_matches()
+            db.clear_two_view_geometries()
+        finally:
+            db.close()
+        _match_known_poses(guided, files, _cameras_of(rec, files))
+        rec = pycolmap.triangulate_points(
+            rec, guided, image_dir, out, clear_points=True,
+            options=_pipeline_options(options, constant_cameras, min_matches=_KNOWN_POSE_MIN_MATCHES),
+            refine_intrinsics=False,
+        )
+        _refine_sfm(rec, options, constant_cameras)
+    return rec
 
 
 def _database_stats(database: Path, files: list[str]) -> tuple[list[int], list[int]]:
