@@ -10,7 +10,8 @@
   true matches still count. Points come from ``pycolmap.triangulate_points`` with the poses fixed.
 * SfM: ``pycolmap.incremental_mapping`` (or ``global_mapping``), then a last robust bundle
   adjustment (:func:`_refine_sfm`); then, ``rematch_rounds`` times, the known-pose matching with
-  SfM's poses, triangulation and the robust bundle adjustment (:func:`_rematch_and_refine`).
+  SfM's poses, triangulation and the robust bundle adjustment (:func:`_rematch_and_refine`);
+  where views are missing, the models are completed and joined (:func:`_join_models`).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import pycolmap
 
 from pmvir.camera import Camera
 from pmvir.config import SfmOptions
+from pmvir.geometry.sfm_join import register_by_pnp, similarity_from_shared, transform_camera
 
 Progress = Callable[[float, str], None]
 
@@ -41,6 +43,9 @@ _KNOWN_POSE_MAX_RATIO = 0.8
 
 #: Known poses: largest descriptor distance of a match (unit descriptors; COLMAP: 0.7).
 _MAX_DESCRIPTOR_DISTANCE = 0.7
+
+#: SfM, joining models: passes of absolute-pose registration (and joining) before the last matching.
+_JOIN_PASSES = 3
 
 #: Known poses: view pairs whose optical axes differ by more than this are not matched (degrees).
 _KNOWN_POSE_MAX_AXIS_DEG = 80.0
@@ -72,8 +77,9 @@ def run_colmap(
     """Features, matches, then triangulation (known poses) or incremental SfM.
 
     Returns:
-        The reconstruction (SfM: the model with most registered views; None when SfM made
-        none), per-view feature counts and per-view numbers of verified partner views.
+        The reconstruction (SfM: the model with most registered views, joined with the others
+        where ``options.join_models``; None when SfM made none), per-view feature counts and
+        per-view numbers of verified partner views.
     """
     database = workdir / "database.db"
     database.unlink(missing_ok=True)
@@ -115,15 +121,27 @@ def run_colmap(
         models = pycolmap.incremental_mapping(
             database, image_dir, sparse_dir, options=_pipeline_options(options, constant)
         )
-    best = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
+    ranked = sorted(models.values(), key=lambda r: r.num_reg_images(), reverse=True)
     timings["mapping"] = time.perf_counter() - t0
-    if best is not None:
-        report(0.9, "refining the poses")
-        t0 = time.perf_counter()
-        _refine_sfm(best, options, constant)
+    if not ranked:
+        return None, features, partners
+    report(0.9, "refining the poses")
+    t0 = time.perf_counter()
+    if not options.join_models or ranked[0].num_reg_images() == len(files):
+        ranked = ranked[:1]
+    for k, rec in enumerate(ranked):
+        _refine_sfm(rec, options, constant)
         if options.rematch_rounds:
-            best = _rematch_and_refine(best, database, image_dir, sparse_dir, files, options, constant)
-        timings["refinement"] = time.perf_counter() - t0
+            ranked[k] = _rematch_and_refine(
+                rec, database, image_dir, sparse_dir, files, options, constant, options.rematch_rounds
+            )
+    best = ranked[0]
+    timings["refinement"] = time.perf_counter() - t0
+    if options.join_models and best.num_reg_images() < len(files):
+        report(0.95, "joining the models")
+        t0 = time.perf_counter()
+        best = _join_models(ranked, database, image_dir, sparse_dir, files, options, constant)
+        timings["joining"] = time.perf_counter() - t0
     return best, features, partners
 
 
@@ -310,27 +328,39 @@ def _global_options(options: SfmOptions, constant_cameras: set[int]) -> pycolmap
     return po
 
 
-def _known_pose_reconstruction(database: Path, files: list[str], cameras: Sequence[Camera]) -> pycolmap.Reconstruction:
-    """A reconstruction holding the database's cameras and images with the given poses, registered."""
+def _known_pose_reconstruction(
+    database: Path,
+    files: list[str],
+    cameras: Sequence[Camera | None],
+    intrinsics: pycolmap.Reconstruction | None = None,
+) -> pycolmap.Reconstruction:
+    """A reconstruction holding the database's cameras and images, those with a given pose registered.
+
+    The cameras (intrinsics) are the database's, or ``intrinsics``'s where it holds them.
+    """
     index = {name: i for i, name in enumerate(files)}
     db = pycolmap.Database.open(str(database))
     try:
         rec = pycolmap.Reconstruction()
         for cam in db.read_all_cameras():
-            rec.add_camera(cam)
+            known = intrinsics is not None and cam.camera_id in intrinsics.cameras
+            rec.add_camera(intrinsics.cameras[cam.camera_id] if known else cam)  # type: ignore[union-attr]
         for rig in db.read_all_rigs():
             rec.add_rig(rig)
         images = {im.image_id: im for im in db.read_all_images()}
         frames = db.read_all_frames()
+        posed = []
         for frame in frames:
             (data_id,) = frame.image_ids  # one camera per rig: one image per frame
             pose = cameras[index[images[data_id.id].name]]
-            frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(pose.R), pose.t)
+            if pose is not None:
+                frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(pose.R), pose.t)
+                posed.append(frame.frame_id)
             rec.add_frame(frame)
         for image in images.values():
             rec.add_image(image)
-        for frame in frames:
-            rec.register_frame(frame.frame_id)
+        for frame_id in posed:
+            rec.register_frame(frame_id)
     finally:
         db.close()
     return rec
@@ -415,6 +445,7 @@ def _rematch_and_refine(
     files: list[str],
     options: SfmOptions,
     constant_cameras: set[int],
+    rounds: int,
 ) -> pycolmap.Reconstruction:
     """SfM's poses as if known: epipolar-guided matching, triangulation, robust bundle adjustment.
 
@@ -422,12 +453,12 @@ def _rematch_and_refine(
     estimated poses (:func:`_match_known_poses`, in a copy of the database), triangulated
     with the poses held, and refined by :func:`_refine_sfm` with the poses free: the guided
     matches between views 30-70 degrees apart, which RANSAC verification loses, make longer
-    tracks. Repeated ``options.rematch_rounds`` times.
+    tracks. Repeated ``rounds`` times.
     """
     guided = database.with_name("guided.db")
     out = sparse_dir / "guided"
     out.mkdir(parents=True, exist_ok=True)
-    for _ in range(options.rematch_rounds):
+    for _ in range(rounds):
         shutil.copyfile(database, guided)
         db = pycolmap.Database.open(str(guided))
         try:
@@ -443,6 +474,60 @@ def _rematch_and_refine(
         )
         _refine_sfm(rec, options, constant_cameras)
     return rec
+
+
+def _join_models(
+    ranked: list[pycolmap.Reconstruction],
+    database: Path,
+    image_dir: Path,
+    sparse_dir: Path,
+    files: list[str],
+    options: SfmOptions,
+    constant_cameras: set[int],
+) -> pycolmap.Reconstruction:
+    """The largest model joined with the others and completed by absolute poses (:mod:`.sfm_join`).
+
+    Each pass: every model registers the views it missed by PnP; a model whose poses of two or
+    more common views agree on a similarity with the first's moves into its frame and joins it;
+    every model that gained views is matched again along its poses, triangulated and
+    bundle-adjusted (:func:`_rematch_and_refine`), which gives the next pass more points.
+    At most ``_JOIN_PASSES`` passes, fewer when one changes nothing. Returns the first model.
+    """
+    index = {name: i for i, name in enumerate(files)}
+    models = list(ranked)
+    rounds = max(1, options.rematch_rounds)
+    for _ in range(_JOIN_PASSES):
+        db = pycolmap.Database.open(str(database))
+        try:
+            view_of_image = {im.image_id: index[im.name] for im in db.read_all_images()}
+            db_cameras = {cam.camera_id: cam for cam in db.read_all_cameras()}
+            posed = []
+            for model in models:
+                cameras = {i: c for i, c in enumerate(_cameras_of(model, files)) if c is not None}
+                cameras.update(register_by_pnp(model, db, view_of_image, db_cameras))
+                posed.append(cameras)
+        finally:
+            db.close()
+        kept = [0]
+        for k in range(1, len(models)):
+            similarity = similarity_from_shared(posed[0], posed[k])
+            if similarity is None:
+                kept.append(k)
+                continue
+            for i, camera in posed[k].items():
+                posed[0].setdefault(i, transform_camera(camera, *similarity))
+        changed = False
+        for k in kept:
+            if len(posed[k]) > models[k].num_reg_images():
+                changed = True
+                models[k] = _rematch_and_refine(
+                    _known_pose_reconstruction(database, files, [posed[k].get(i) for i in range(len(files))], models[k]),
+                    database, image_dir, sparse_dir, files, options, constant_cameras, rounds,
+                )
+        models = [models[k] for k in kept]
+        if not changed:
+            break
+    return models[0]
 
 
 def _database_stats(database: Path, files: list[str]) -> tuple[list[int], list[int]]:
