@@ -17,11 +17,10 @@
   held fixed (PINHOLE); missing ones are estimated as SIMPLE_PINHOLE (one focal
   length, principal point at the image centre), shared by the views of one
   image size unless ``sfm.shared_intrinsics`` is off. The result lives in
-  SfM's own frame (known up to a similarity); of several disconnected models
-  the one with most views is kept. With ``sfm.join_models`` (off by default)
-  every model first registers its missed views by absolute pose and models
-  agreeing on two or more common views are joined into the one with most views
-  (:mod:`pmvir.geometry.sfm_join`).
+  SfM's own frame (known up to a similarity). Where views are left out
+  (``sfm.join_models``), every model registers its missed views by absolute
+  pose and models agreeing on two or more common views are joined into the
+  one with most views (:mod:`pmvir.geometry.sfm_join`), which is kept.
 
 The COLMAP plumbing (database, matching, mapping, refinement) is in
 :mod:`pmvir.geometry.sfm_colmap`.

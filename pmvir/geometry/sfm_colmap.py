@@ -487,15 +487,42 @@ def _join_models(
 ) -> pycolmap.Reconstruction:
     """The largest model joined with the others and completed by absolute poses (:mod:`.sfm_join`).
 
-    Each pass: every model registers the views it missed by PnP; a model whose poses of two or
-    more common views agree on a similarity with the first's moves into its frame and joins it;
-    every model that gained views is matched again along its poses, triangulated and
-    bundle-adjusted (:func:`_rematch_and_refine`), which gives the next pass more points.
-    At most ``_JOIN_PASSES`` passes, fewer when one changes nothing. Returns the first model.
+    First with every absolute pose of ``PNP_MIN_INLIERS`` or more inliers (:func:`_grow_and_join`);
+    when that joins no two models, its poses had no second model to confirm them, and the
+    largest model is completed again with only the poses that reach the mapper's own
+    ``options.register_min_inliers``.
+    """
+    args = (database, image_dir, sparse_dir, files, options, constant_cameras)
+    rec, joined = _grow_and_join(ranked, *args, min_inliers=1)
+    if joined:
+        return rec
+    return _grow_and_join(ranked[:1], *args, min_inliers=options.register_min_inliers)[0]
+
+
+def _grow_and_join(
+    ranked: list[pycolmap.Reconstruction],
+    database: Path,
+    image_dir: Path,
+    sparse_dir: Path,
+    files: list[str],
+    options: SfmOptions,
+    constant_cameras: set[int],
+    *,
+    min_inliers: int,
+) -> tuple[pycolmap.Reconstruction, bool]:
+    """Passes of absolute poses and joining; the first model and whether another joined it.
+
+    Each pass: every model registers the views it missed by PnP (at least ``min_inliers``
+    inliers besides :func:`register_by_pnp`'s own tests); a model whose poses of two or more
+    common views agree on a similarity with the first's moves into its frame and joins it; every
+    model that gained views is matched again along its poses, triangulated and bundle-adjusted
+    (:func:`_rematch_and_refine`), which gives the next pass more points. At most
+    ``_JOIN_PASSES`` passes, fewer when one changes nothing.
     """
     index = {name: i for i, name in enumerate(files)}
     models = list(ranked)
     rounds = max(1, options.rematch_rounds)
+    joined_any = False
     for _ in range(_JOIN_PASSES):
         db = pycolmap.Database.open(str(database))
         try:
@@ -504,7 +531,8 @@ def _join_models(
             posed = []
             for model in models:
                 cameras = {i: c for i, c in enumerate(_cameras_of(model, files)) if c is not None}
-                cameras.update(register_by_pnp(model, db, view_of_image, db_cameras))
+                found = register_by_pnp(model, db, view_of_image, db_cameras)
+                cameras.update({i: c for i, (c, n) in found.items() if n >= min_inliers})
                 posed.append(cameras)
         finally:
             db.close()
@@ -514,6 +542,7 @@ def _join_models(
             if similarity is None:
                 kept.append(k)
                 continue
+            joined_any = True
             for i, camera in posed[k].items():
                 posed[0].setdefault(i, transform_camera(camera, *similarity))
         changed = False
@@ -527,7 +556,7 @@ def _join_models(
         models = [models[k] for k in kept]
         if not changed:
             break
-    return models[0]
+    return models[0], joined_any
 
 
 def _database_stats(database: Path, files: list[str]) -> tuple[list[int], list[int]]:

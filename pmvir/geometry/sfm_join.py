@@ -37,7 +37,7 @@ def register_by_pnp(
     database: pycolmap.Database,
     view_of_image: dict[int, int],
     cameras: dict[int, pycolmap.Camera],
-) -> dict[int, Camera]:
+) -> dict[int, tuple[Camera, int]]:
     """Absolute poses of the database's images that ``rec`` does not register.
 
     A feature of the view corresponds to the 3D point its raw matches with the registered
@@ -51,10 +51,10 @@ def register_by_pnp(
         cameras: database camera id -> camera (used where ``rec`` lacks the camera).
 
     Returns:
-        View index -> Camera in ``rec``'s frame, for the views that passed.
+        View index -> (Camera in ``rec``'s frame, number of inliers), for the views that passed.
     """
     registered = set(rec.reg_image_ids())
-    posed: dict[int, Camera] = {}
+    posed: dict[int, tuple[Camera, int]] = {}
     for image in database.read_all_images():
         if image.image_id in registered:
             continue
@@ -86,9 +86,12 @@ def register_by_pnp(
         if inliers < PNP_MIN_INLIERS or inliers < PNP_MIN_INLIER_RATIO * len(features):
             continue
         pose = result["cam_from_world"]
-        posed[view_of_image[image.image_id]] = Camera(
-            K=camera.calibration_matrix(), R=pose.rotation.matrix(), t=pose.translation,
-            width=camera.width, height=camera.height,
+        posed[view_of_image[image.image_id]] = (
+            Camera(
+                K=camera.calibration_matrix(), R=pose.rotation.matrix(), t=pose.translation,
+                width=camera.width, height=camera.height,
+            ),
+            inliers,
         )
     return posed
 
