@@ -7,7 +7,8 @@ For each model of ../shared/data/models (normalized, plastic, pmvir synth's buil
 it synthesizes a capture, decodes I_int (or I_min, ``--grey min``) and runs ``estimate_poses``
 three times: with the capture's cameras (known poses), without them but with the intrinsics
 (``sfm-K``), and with neither (``sfm``, intrinsics estimated); ``--mapper global`` uses COLMAP's
-global mapper, ``--guided`` turns guided matching on. It prints per run the
+global mapper, ``--guided`` turns guided matching on, ``--rematch N`` sets sfm.rematch_rounds. It
+prints per run the
 registered views, sparse points (and their median / 90th-percentile distance to the true
 surface for known poses), the mean reprojection error, the camera-centre errors after a Umeyama
 similarity (largest, in % of the scene size = bounding-box diagonal of the true camera centres,
@@ -118,9 +119,12 @@ def main() -> int:
     ap.add_argument("--mapper", choices=("incremental", "global"), default=SfmOptions().mapper)
     ap.add_argument("--grey", choices=("int", "min"), default=SfmOptions().grey)
     ap.add_argument("--guided", action="store_true", help="guided matching")
+    ap.add_argument("--rematch", type=int, default=SfmOptions().rematch_rounds, help="sfm.rematch_rounds")
     ap.add_argument("--tag", default="", help="results go to bench/results/sfm_poses[-TAG].json")
     args = ap.parse_args()
-    options = SfmOptions(mapper=args.mapper, grey=args.grey, guided_matching=args.guided)
+    options = SfmOptions(
+        mapper=args.mapper, grey=args.grey, guided_matching=args.guided, rematch_rounds=args.rematch
+    )
     models_dir = _shared() / "data" / "models"
     if not models_dir.is_dir():
         print(f"no models at {models_dir}", file=sys.stderr)

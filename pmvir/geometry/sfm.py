@@ -10,12 +10,17 @@
   were mostly wrong: about 60 % in our measurements).
 * **SfM** (otherwise): SIFT features, exhaustive matching (or sequential in
   capture order above ``exhaustive_matching_max_views`` views), COLMAP's
-  incremental mapping and a last robust bundle adjustment. Given intrinsics are
+  incremental mapping and a last robust bundle adjustment, then
+  ``sfm.rematch_rounds`` times the known-pose matching along the estimated
+  poses, triangulation and the robust bundle adjustment again (longer tracks
+  between views 30-70 degrees apart). Given intrinsics are
   held fixed (PINHOLE); missing ones are estimated as SIMPLE_PINHOLE (one focal
   length, principal point at the image centre), shared by the views of one
   image size unless ``sfm.shared_intrinsics`` is off. The result lives in
-  SfM's own frame (known up to a similarity); of several disconnected models
-  the one with most views is kept.
+  SfM's own frame (known up to a similarity). Where views are left out
+  (``sfm.join_models``), every model registers its missed views by absolute
+  pose and models agreeing on two or more common views are joined into the
+  one with most views (:mod:`pmvir.geometry.sfm_join`), which is kept.
 
 The COLMAP plumbing (database, matching, mapping, refinement) is in
 :mod:`pmvir.geometry.sfm_colmap`.
@@ -285,7 +290,8 @@ def estimate_poses(
         intrinsics: per view a known (3, 3) K or None (SfM mode; a given camera's K counts too).
         masks: per view an (H, W) bool foreground mask or None; features only inside.
         options: the ``geometry.sfm`` options.
-        workdir: scratch folder (created; its images/, masks/, sparse/ and database.db are replaced).
+        workdir: scratch folder (created; its images/, masks/, sparse/, database.db and guided.db are
+            replaced).
         progress: called as ``progress(fraction, step)`` between steps; it may raise
             CanceledError to stop.
 

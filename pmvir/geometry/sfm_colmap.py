@@ -8,14 +8,17 @@
   are the other view's features within ``_EPIPOLAR_MAX_ERROR_PX`` of its epipolar line, then
   Lowe's ratio test and mutual nearest neighbours; no RANSAC, so wide baselines with a handful of
   true matches still count. Points come from ``pycolmap.triangulate_points`` with the poses fixed.
-* SfM: ``pycolmap.incremental_mapping``, then a last robust bundle adjustment
-  (:func:`_refine_sfm`).
+* SfM: ``pycolmap.incremental_mapping`` (or ``global_mapping``), then a last robust bundle
+  adjustment (:func:`_refine_sfm`); then, ``rematch_rounds`` times, the known-pose matching with
+  SfM's poses, triangulation and the robust bundle adjustment (:func:`_rematch_and_refine`);
+  where views are missing, the models are completed and joined (:func:`_join_models`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
+import shutil
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -25,6 +28,7 @@ import pycolmap
 
 from pmvir.camera import Camera
 from pmvir.config import SfmOptions
+from pmvir.geometry.sfm_join import register_by_pnp, similarity_from_shared, transform_camera
 
 Progress = Callable[[float, str], None]
 
@@ -39,6 +43,9 @@ _KNOWN_POSE_MAX_RATIO = 0.8
 
 #: Known poses: largest descriptor distance of a match (unit descriptors; COLMAP: 0.7).
 _MAX_DESCRIPTOR_DISTANCE = 0.7
+
+#: SfM, joining models: passes of absolute-pose registration (and joining) before the last matching.
+_JOIN_PASSES = 3
 
 #: Known poses: view pairs whose optical axes differ by more than this are not matched (degrees).
 _KNOWN_POSE_MAX_AXIS_DEG = 80.0
@@ -70,8 +77,9 @@ def run_colmap(
     """Features, matches, then triangulation (known poses) or incremental SfM.
 
     Returns:
-        The reconstruction (SfM: the model with most registered views; None when SfM made
-        none), per-view feature counts and per-view numbers of verified partner views.
+        The reconstruction (SfM: the model with most registered views, joined with the others
+        where ``options.join_models``; None when SfM made none), per-view feature counts and
+        per-view numbers of verified partner views.
     """
     database = workdir / "database.db"
     database.unlink(missing_ok=True)
@@ -113,13 +121,27 @@ def run_colmap(
         models = pycolmap.incremental_mapping(
             database, image_dir, sparse_dir, options=_pipeline_options(options, constant)
         )
-    best = max(models.values(), key=lambda r: r.num_reg_images()) if models else None
+    ranked = sorted(models.values(), key=lambda r: r.num_reg_images(), reverse=True)
     timings["mapping"] = time.perf_counter() - t0
-    if best is not None:
-        report(0.9, "refining the poses")
+    if not ranked:
+        return None, features, partners
+    report(0.9, "refining the poses")
+    t0 = time.perf_counter()
+    if not options.join_models or ranked[0].num_reg_images() == len(files):
+        ranked = ranked[:1]
+    for k, rec in enumerate(ranked):
+        _refine_sfm(rec, options, constant)
+        if options.rematch_rounds:
+            ranked[k] = _rematch_and_refine(
+                rec, database, image_dir, sparse_dir, files, options, constant, options.rematch_rounds
+            )
+    best = ranked[0]
+    timings["refinement"] = time.perf_counter() - t0
+    if options.join_models and best.num_reg_images() < len(files):
+        report(0.95, "joining the models")
         t0 = time.perf_counter()
-        _refine_sfm(best, options, constant)
-        timings["refinement"] = time.perf_counter() - t0
+        best = _join_models(ranked, database, image_dir, sparse_dir, files, options, constant)
+        timings["joining"] = time.perf_counter() - t0
     return best, features, partners
 
 
@@ -180,7 +202,7 @@ def _match(database: Path, n: int, options: SfmOptions) -> None:
         )
 
 
-def _match_known_poses(database: Path, files: list[str], cameras: Sequence[Camera]) -> None:
+def _match_known_poses(database: Path, files: list[str], cameras: Sequence[Camera | None]) -> None:
     """Epipolar-guided matching with the known poses (replaces COLMAP's matching and RANSAC).
 
     For every pair of views whose optical axes differ by at most ``_KNOWN_POSE_MAX_AXIS_DEG``,
@@ -193,20 +215,21 @@ def _match_known_poses(database: Path, files: list[str], cameras: Sequence[Camer
     index = {name: i for i, name in enumerate(files)}
     db = pycolmap.Database.open(str(database))
     try:
-        ids = sorted(im.image_id for im in db.read_all_images())
         view = {im.image_id: index[im.name] for im in db.read_all_images()}
+        posed: dict[int, Camera] = {k: c for k, i in view.items() if (c := cameras[i]) is not None}
+        ids = sorted(posed)
         xy = {k: db.read_keypoints(k)[:, :2].astype(np.float64) for k in ids}
         desc = {}
         for k in ids:
             d = db.read_descriptors(k).data.astype(np.float32)
             desc[k] = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-        axes = {k: cameras[view[k]].R[2] for k in ids}
+        axes = {k: posed[k].R[2] for k in ids}
         min_cos = math.cos(math.radians(_KNOWN_POSE_MAX_AXIS_DEG))
         for a_pos, id1 in enumerate(ids):
             for id2 in ids[a_pos + 1:]:
                 if float(axes[id1] @ axes[id2]) < min_cos or not len(xy[id1]) or not len(xy[id2]):
                     continue
-                F = fundamental_matrix(cameras[view[id1]], cameras[view[id2]])
+                F = fundamental_matrix(posed[id1], posed[id2])
                 m = _guided_matches(xy[id1], xy[id2], desc[id1], desc[id2], F)
                 if len(m) < _KNOWN_POSE_MIN_MATCHES:
                     continue
@@ -305,27 +328,39 @@ def _global_options(options: SfmOptions, constant_cameras: set[int]) -> pycolmap
     return po
 
 
-def _known_pose_reconstruction(database: Path, files: list[str], cameras: Sequence[Camera]) -> pycolmap.Reconstruction:
-    """A reconstruction holding the database's cameras and images with the given poses, registered."""
+def _known_pose_reconstruction(
+    database: Path,
+    files: list[str],
+    cameras: Sequence[Camera | None],
+    intrinsics: pycolmap.Reconstruction | None = None,
+) -> pycolmap.Reconstruction:
+    """A reconstruction holding the database's cameras and images, those with a given pose registered.
+
+    The cameras (intrinsics) are the database's, or ``intrinsics``'s where it holds them.
+    """
     index = {name: i for i, name in enumerate(files)}
     db = pycolmap.Database.open(str(database))
     try:
         rec = pycolmap.Reconstruction()
         for cam in db.read_all_cameras():
-            rec.add_camera(cam)
+            known = intrinsics is not None and cam.camera_id in intrinsics.cameras
+            rec.add_camera(intrinsics.cameras[cam.camera_id] if known else cam)  # type: ignore[union-attr]
         for rig in db.read_all_rigs():
             rec.add_rig(rig)
         images = {im.image_id: im for im in db.read_all_images()}
         frames = db.read_all_frames()
+        posed = []
         for frame in frames:
             (data_id,) = frame.image_ids  # one camera per rig: one image per frame
             pose = cameras[index[images[data_id.id].name]]
-            frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(pose.R), pose.t)
+            if pose is not None:
+                frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(pose.R), pose.t)
+                posed.append(frame.frame_id)
             rec.add_frame(frame)
         for image in images.values():
             rec.add_image(image)
-        for frame in frames:
-            rec.register_frame(frame.frame_id)
+        for frame_id in posed:
+            rec.register_frame(frame_id)
     finally:
         db.close()
     return rec
@@ -386,6 +421,142 @@ def _refine_sfm(rec: pycolmap.Reconstruction, options: SfmOptions, constant_came
     pycolmap.create_default_bundle_adjuster(ba, config, rec).solve()
     filter_observations(rec, options.max_reprojection_error)
     rec.update_point_3d_errors()
+
+
+def _cameras_of(rec: pycolmap.Reconstruction, files: list[str]) -> list[Camera | None]:
+    """Per view (``files`` order) the registered image's Camera, or None."""
+    index = {name: i for i, name in enumerate(files)}
+    cameras: list[Camera | None] = [None] * len(files)
+    for image in rec.images.values():
+        if image.has_pose:
+            pose = image.cam_from_world()
+            cameras[index[image.name]] = Camera(
+                K=image.camera.calibration_matrix(), R=pose.rotation.matrix(), t=pose.translation,
+                width=image.camera.width, height=image.camera.height,
+            )
+    return cameras
+
+
+def _rematch_and_refine(
+    rec: pycolmap.Reconstruction,
+    database: Path,
+    image_dir: Path,
+    sparse_dir: Path,
+    files: list[str],
+    options: SfmOptions,
+    constant_cameras: set[int],
+    rounds: int,
+) -> pycolmap.Reconstruction:
+    """SfM's poses as if known: epipolar-guided matching, triangulation, robust bundle adjustment.
+
+    The features of the registered views are matched again along the epipolar lines of the
+    estimated poses (:func:`_match_known_poses`, in a copy of the database), triangulated
+    with the poses held, and refined by :func:`_refine_sfm` with the poses free: the guided
+    matches between views 30-70 degrees apart, which RANSAC verification loses, make longer
+    tracks. Repeated ``rounds`` times.
+    """
+    guided = database.with_name("guided.db")
+    out = sparse_dir / "guided"
+    out.mkdir(parents=True, exist_ok=True)
+    for _ in range(rounds):
+        shutil.copyfile(database, guided)
+        db = pycolmap.Database.open(str(guided))
+        try:
+            db.clear_matches()
+            db.clear_two_view_geometries()
+        finally:
+            db.close()
+        _match_known_poses(guided, files, _cameras_of(rec, files))
+        rec = pycolmap.triangulate_points(
+            rec, guided, image_dir, out, clear_points=True,
+            options=_pipeline_options(options, constant_cameras, min_matches=_KNOWN_POSE_MIN_MATCHES),
+            refine_intrinsics=False,
+        )
+        _refine_sfm(rec, options, constant_cameras)
+    return rec
+
+
+def _join_models(
+    ranked: list[pycolmap.Reconstruction],
+    database: Path,
+    image_dir: Path,
+    sparse_dir: Path,
+    files: list[str],
+    options: SfmOptions,
+    constant_cameras: set[int],
+) -> pycolmap.Reconstruction:
+    """The largest model joined with the others and completed by absolute poses (:mod:`.sfm_join`).
+
+    First with every absolute pose of ``PNP_MIN_INLIERS`` or more inliers (:func:`_grow_and_join`);
+    when that joins no two models, its poses had no second model to confirm them, and the
+    largest model is completed again with only the poses that reach the mapper's own
+    ``options.register_min_inliers``.
+    """
+    args = (database, image_dir, sparse_dir, files, options, constant_cameras)
+    rec, joined = _grow_and_join(ranked, *args, min_inliers=1)
+    if joined:
+        return rec
+    return _grow_and_join(ranked[:1], *args, min_inliers=options.register_min_inliers)[0]
+
+
+def _grow_and_join(
+    ranked: list[pycolmap.Reconstruction],
+    database: Path,
+    image_dir: Path,
+    sparse_dir: Path,
+    files: list[str],
+    options: SfmOptions,
+    constant_cameras: set[int],
+    *,
+    min_inliers: int,
+) -> tuple[pycolmap.Reconstruction, bool]:
+    """Passes of absolute poses and joining; the first model and whether another joined it.
+
+    Each pass: every model registers the views it missed by PnP (at least ``min_inliers``
+    inliers besides :func:`register_by_pnp`'s own tests); a model whose poses of two or more
+    common views agree on a similarity with the first's moves into its frame and joins it; every
+    model that gained views is matched again along its poses, triangulated and bundle-adjusted
+    (:func:`_rematch_and_refine`), which gives the next pass more points. At most
+    ``_JOIN_PASSES`` passes, fewer when one changes nothing.
+    """
+    index = {name: i for i, name in enumerate(files)}
+    models = list(ranked)
+    rounds = max(1, options.rematch_rounds)
+    joined_any = False
+    for _ in range(_JOIN_PASSES):
+        db = pycolmap.Database.open(str(database))
+        try:
+            view_of_image = {im.image_id: index[im.name] for im in db.read_all_images()}
+            db_cameras = {cam.camera_id: cam for cam in db.read_all_cameras()}
+            posed = []
+            for model in models:
+                cameras = {i: c for i, c in enumerate(_cameras_of(model, files)) if c is not None}
+                found = register_by_pnp(model, db, view_of_image, db_cameras)
+                cameras.update({i: c for i, (c, n) in found.items() if n >= min_inliers})
+                posed.append(cameras)
+        finally:
+            db.close()
+        kept = [0]
+        for k in range(1, len(models)):
+            similarity = similarity_from_shared(posed[0], posed[k])
+            if similarity is None:
+                kept.append(k)
+                continue
+            joined_any = True
+            for i, camera in posed[k].items():
+                posed[0].setdefault(i, transform_camera(camera, *similarity))
+        changed = False
+        for k in kept:
+            if len(posed[k]) > models[k].num_reg_images():
+                changed = True
+                models[k] = _rematch_and_refine(
+                    _known_pose_reconstruction(database, files, [posed[k].get(i) for i in range(len(files))], models[k]),
+                    database, image_dir, sparse_dir, files, options, constant_cameras, rounds,
+                )
+        models = [models[k] for k in kept]
+        if not changed:
+            break
+    return models[0], joined_any
 
 
 def _database_stats(database: Path, files: list[str]) -> tuple[list[int], list[int]]:

@@ -323,3 +323,24 @@ def test_match_ratio_option_reaches_colmap_matching(sfm_views: dict, tmp_path: P
         counts[ratio] = db.num_matches()
         db.close()
     assert 0 < counts[0.7] < counts[0.95]
+
+
+def test_rematch_rounds_lengthen_tracks_with_sfm_poses(sfm_views: dict, tmp_path: Path) -> None:
+    """sfm.rematch_rounds: SfM's poses guide a second matching (as known poses do). The level and upper
+    rings' 24 views, intrinsics given: more points seen in 3 or more views (measured 868 -> 1203), centres
+    still within 0.5 % (measured 0.23 -> 0.30 %)."""
+    ring = list(range(12, 36))
+    true = [sfm_views["cameras"][i] for i in ring]
+    results = {}
+    for rounds in (0, 1):
+        model = estimate_poses(
+            [sfm_views["images"][i] for i in ring], [sfm_views["names"][i] for i in ring],
+            intrinsics=[true[0].K] * len(ring), masks=[sfm_views["masks"][i] for i in ring],
+            options=SfmOptions(rematch_rounds=rounds), workdir=tmp_path / f"r{rounds}",
+        )
+        assert model.num_registered == len(ring)
+        assert model.point_views is not None
+        err, scene = _centre_errors(model, true)
+        results[rounds] = (sum(len(v) >= 3 for v in model.point_views), err.max() / scene)
+    assert results[1][0] >= 1.2 * results[0][0], results
+    assert results[1][1] <= 0.005, results
