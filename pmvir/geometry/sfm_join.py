@@ -88,8 +88,11 @@ def register_by_pnp(
         pose = result["cam_from_world"]
         posed[view_of_image[image.image_id]] = (
             Camera(
-                K=camera.calibration_matrix(), R=pose.rotation.matrix(), t=pose.translation,
-                width=camera.width, height=camera.height,
+                K=camera.calibration_matrix(),
+                R=pose.rotation.matrix(),
+                t=pose.translation,
+                width=camera.width,
+                height=camera.height,
             ),
             inliers,
         )
