@@ -615,7 +615,7 @@ class RefineOptions(_Options):
         description="With dop_min_noise 'evidence': a bin of pairs counts as polarized evidence while its mean "
         "azimuth distance to the current surface is at most this fraction of chance's (pi/8, 22.5 deg: the "
         "mean for an AoP unrelated to the surface). Measured: an unpolarized Mitsuba surface's bins sit at "
-        "0.90-1.0 below DoP 0.1; an environment-lit plastic's at 0.64 (DoP 0.05-0.065) and 0.45 above 0.1.",
+        "0.90-1.0 below DoP 0.1; an environment-lit plastic's at 0.64 (DoP 0.05-0.065) and 0.35-0.47 above 0.1.",
     )
     dop_evidence_bin: int = Field(
         default=1000,
