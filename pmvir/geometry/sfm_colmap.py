@@ -21,6 +21,7 @@ import math
 import shutil
 import time
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +29,12 @@ import pycolmap
 
 from pmvir.camera import Camera
 from pmvir.config import SfmOptions
-from pmvir.geometry.sfm_join import register_by_pnp, similarity_from_shared, transform_camera
+from pmvir.geometry.sfm_join import (
+    PNP_MIN_INLIERS,
+    register_by_pnp,
+    similarity_from_shared,
+    transform_camera,
+)
 
 Progress = Callable[[float, str], None]
 
@@ -129,18 +135,17 @@ def run_colmap(
     t0 = time.perf_counter()
     if not options.join_models or ranked[0].num_reg_images() == len(files):
         ranked = ranked[:1]
+    run = _SfmRun(database, image_dir, sparse_dir, files, options, constant)
     for k, rec in enumerate(ranked):
         _refine_sfm(rec, options, constant)
         if options.rematch_rounds:
-            ranked[k] = _rematch_and_refine(
-                rec, database, image_dir, sparse_dir, files, options, constant, options.rematch_rounds
-            )
+            ranked[k] = _rematch_and_refine(rec, run, options.rematch_rounds)
     best = ranked[0]
     timings["refinement"] = time.perf_counter() - t0
     if options.join_models and best.num_reg_images() < len(files):
         report(0.95, "joining the models")
         t0 = time.perf_counter()
-        best = _join_models(ranked, database, image_dir, sparse_dir, files, options, constant)
+        best = _join_models(ranked, run)
         timings["joining"] = time.perf_counter() - t0
     return best, features, partners
 
@@ -437,16 +442,20 @@ def _cameras_of(rec: pycolmap.Reconstruction, files: list[str]) -> list[Camera |
     return cameras
 
 
-def _rematch_and_refine(
-    rec: pycolmap.Reconstruction,
-    database: Path,
-    image_dir: Path,
-    sparse_dir: Path,
-    files: list[str],
-    options: SfmOptions,
-    constant_cameras: set[int],
-    rounds: int,
-) -> pycolmap.Reconstruction:
+@dataclass(frozen=True)
+class _SfmRun:
+    """What the steps after SfM's mapping share: the database, the image and model folders, the
+    views' file names, the options and the cameras whose intrinsics are held."""
+
+    database: Path
+    image_dir: Path
+    sparse_dir: Path
+    files: list[str]
+    options: SfmOptions
+    constant_cameras: set[int]
+
+
+def _rematch_and_refine(rec: pycolmap.Reconstruction, run: _SfmRun, rounds: int) -> pycolmap.Reconstruction:
     """SfM's poses as if known: epipolar-guided matching, triangulation, robust bundle adjustment.
 
     The features of the registered views are matched again along the epipolar lines of the
@@ -455,36 +464,32 @@ def _rematch_and_refine(
     matches between views 30-70 degrees apart, which RANSAC verification loses, make longer
     tracks. Repeated ``rounds`` times.
     """
-    guided = database.with_name("guided.db")
-    out = sparse_dir / "guided"
+    guided = run.database.with_name("guided.db")
+    out = run.sparse_dir / "guided"
     out.mkdir(parents=True, exist_ok=True)
     for _ in range(rounds):
-        shutil.copyfile(database, guided)
+        shutil.copyfile(run.database, guided)
         db = pycolmap.Database.open(str(guided))
         try:
             db.clear_matches()
             db.clear_two_view_geometries()
         finally:
             db.close()
-        _match_known_poses(guided, files, _cameras_of(rec, files))
+        _match_known_poses(guided, run.files, _cameras_of(rec, run.files))
         rec = pycolmap.triangulate_points(
-            rec, guided, image_dir, out, clear_points=True,
-            options=_pipeline_options(options, constant_cameras, min_matches=_KNOWN_POSE_MIN_MATCHES),
+            rec,
+            guided,
+            run.image_dir,
+            out,
+            clear_points=True,
+            options=_pipeline_options(run.options, run.constant_cameras, min_matches=_KNOWN_POSE_MIN_MATCHES),
             refine_intrinsics=False,
         )
-        _refine_sfm(rec, options, constant_cameras)
+        _refine_sfm(rec, run.options, run.constant_cameras)
     return rec
 
 
-def _join_models(
-    ranked: list[pycolmap.Reconstruction],
-    database: Path,
-    image_dir: Path,
-    sparse_dir: Path,
-    files: list[str],
-    options: SfmOptions,
-    constant_cameras: set[int],
-) -> pycolmap.Reconstruction:
+def _join_models(ranked: list[pycolmap.Reconstruction], run: _SfmRun) -> pycolmap.Reconstruction:
     """The largest model joined with the others and completed by absolute poses (:mod:`.sfm_join`).
 
     First with every absolute pose of ``PNP_MIN_INLIERS`` or more inliers (:func:`_grow_and_join`);
@@ -492,23 +497,14 @@ def _join_models(
     largest model is completed again with only the poses that reach the mapper's own
     ``options.register_min_inliers``.
     """
-    args = (database, image_dir, sparse_dir, files, options, constant_cameras)
-    rec, joined = _grow_and_join(ranked, *args, min_inliers=1)
+    rec, joined = _grow_and_join(ranked, run, min_inliers=PNP_MIN_INLIERS)
     if joined:
         return rec
-    return _grow_and_join(ranked[:1], *args, min_inliers=options.register_min_inliers)[0]
+    return _grow_and_join(ranked[:1], run, min_inliers=run.options.register_min_inliers)[0]
 
 
 def _grow_and_join(
-    ranked: list[pycolmap.Reconstruction],
-    database: Path,
-    image_dir: Path,
-    sparse_dir: Path,
-    files: list[str],
-    options: SfmOptions,
-    constant_cameras: set[int],
-    *,
-    min_inliers: int,
+    ranked: list[pycolmap.Reconstruction], run: _SfmRun, *, min_inliers: int
 ) -> tuple[pycolmap.Reconstruction, bool]:
     """Passes of absolute poses and joining; the first model and whether another joined it.
 
@@ -519,12 +515,13 @@ def _grow_and_join(
     (:func:`_rematch_and_refine`), which gives the next pass more points. At most
     ``_JOIN_PASSES`` passes, fewer when one changes nothing.
     """
+    files = run.files
     index = {name: i for i, name in enumerate(files)}
     models = list(ranked)
-    rounds = max(1, options.rematch_rounds)
+    rounds = max(1, run.options.rematch_rounds)
     joined_any = False
     for _ in range(_JOIN_PASSES):
-        db = pycolmap.Database.open(str(database))
+        db = pycolmap.Database.open(str(run.database))
         try:
             view_of_image = {im.image_id: index[im.name] for im in db.read_all_images()}
             db_cameras = {cam.camera_id: cam for cam in db.read_all_cameras()}
@@ -549,10 +546,9 @@ def _grow_and_join(
         for k in kept:
             if len(posed[k]) > models[k].num_reg_images():
                 changed = True
-                models[k] = _rematch_and_refine(
-                    _known_pose_reconstruction(database, files, [posed[k].get(i) for i in range(len(files))], models[k]),
-                    database, image_dir, sparse_dir, files, options, constant_cameras, rounds,
-                )
+                poses = [posed[k].get(i) for i in range(len(files))]
+                known = _known_pose_reconstruction(run.database, files, poses, models[k])
+                models[k] = _rematch_and_refine(known, run, rounds)
         models = [models[k] for k in kept]
         if not changed:
             break
