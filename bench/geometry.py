@@ -145,6 +145,7 @@ def run(
         completeness=metrics.completeness,
         accuracy_p90=metrics.accuracy_p90,
         completeness_p90=metrics.completeness_p90,
+        signed_offset=metrics.signed_offset,
         vertices=len(result.vertices),
     )
     return row

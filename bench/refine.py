@@ -235,6 +235,7 @@ def metrics_row(result, seconds: float) -> dict:
         "completeness": result.completeness,
         "accuracy_p90": result.accuracy_p90,
         "completeness_p90": result.completeness_p90,
+        "signed_offset": result.signed_offset,
         "albedo_rmse": result.albedo_rmse,
         "illumination_error": result.illumination_error,
         "seconds": seconds,

@@ -62,6 +62,11 @@ class EvaluationResult:
         alignment_rmse: camera-centre RMSE after alignment, in GT diagonals (None unless aligned).
         alignment: the applied similarity as a dict (scale, R, t), None unless aligned.
         notes: why a metric is None, which frames did not match, etc.
+        signed_offset, signed_offset_median: mean / median signed distance from the estimated
+            vertices to the true surface along the normal of the closest true face (the face's
+            winding: outward on a consistently oriented closed mesh), so negative means inside.
+            Not a spec metric: a diagnostic that tells a shrunk or swollen surface (a bias every
+            vertex shares) from a noisy one.
     """
 
     accuracy: float
@@ -81,6 +86,8 @@ class EvaluationResult:
     alignment_rmse: float | None = None
     alignment: dict | None = None
     notes: tuple[str, ...] = ()
+    signed_offset: float | None = None
+    signed_offset_median: float | None = None
 
     def to_dict(self) -> dict:
         """The JSON object ``pmvir evaluate`` prints: flat metrics plus a ``details`` object."""
@@ -93,6 +100,8 @@ class EvaluationResult:
             "accuracy_p90": self.accuracy_p90,
             "completeness_median": self.completeness_median,
             "completeness_p90": self.completeness_p90,
+            "signed_offset": self.signed_offset,
+            "signed_offset_median": self.signed_offset_median,
             "n_vertices": self.n_vertices,
             "n_gt_samples": self.n_gt_samples,
             "aligned": self.aligned,
@@ -305,6 +314,7 @@ def evaluate(
     query = SurfaceQuery(gt_mesh.vertices, gt_mesh.faces)
     closest, face_ids, bary = query.closest(est_v)
     acc = np.linalg.norm(est_v - closest, axis=1) / diag
+    signed = signed_distances(est_v - closest, gt_mesh.vertices, gt_mesh.faces[face_ids]) / diag
 
     from scipy.spatial import cKDTree
 
@@ -339,7 +349,28 @@ def evaluate(
         alignment_rmse=None if alignment is None else alignment.rmse / diag,
         alignment=None if alignment is None else alignment.transform.to_dict(),
         notes=tuple(notes),
+        signed_offset=float(signed.mean()),
+        signed_offset_median=float(np.median(signed)),
     )
+
+
+def signed_distances(offsets: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Offsets from closest surface points, signed along those faces' normals.
+
+    Args:
+        offsets: (N, 3) query point minus its closest point on the surface.
+        vertices: (V, 3) the surface's vertices.
+        faces: (N, 3) the face holding each closest point.
+
+    Returns:
+        (N,) float64: ``|offset|`` with the sign of ``offset . n`` (n by the face's winding,
+        counter-clockwise seen from its front); 0 for a point on the surface.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    d = np.asarray(offsets, dtype=np.float64)
+    return np.linalg.norm(d, axis=1) * np.sign(np.einsum("ij,ij->i", d, n))
 
 
 def _illumination(

@@ -164,6 +164,31 @@ def test_sphere_offset_same_tessellation_gives_exact_accuracy():
     diag = bbox_diagonal(gt_mesh.vertices)
     np.testing.assert_allclose([res.accuracy, res.accuracy_median, res.accuracy_p90], d / diag, rtol=1e-5)
     assert res.albedo_rmse is None and res.illumination_error is None
+    np.testing.assert_allclose([res.signed_offset, res.signed_offset_median], d / diag, rtol=1e-5)
+
+
+def test_signed_offset_tells_a_shrunk_surface_from_a_swollen_one():
+    """A sphere inside the true one has a negative signed offset, one outside a positive one, equal
+    in size to the accuracy (every vertex on one side); turning the true faces' winding over turns
+    the sign (it follows the winding). A surface that is noisy about the truth has |signed| far
+    below its accuracy."""
+    gt_mesh = icosphere(1.0, 3)
+    diag = bbox_diagonal(gt_mesh.vertices)
+    inner = evaluate(icosphere(0.95, 3), gt_mesh, n_samples=SAMPLES)
+    outer = evaluate(icosphere(1.05, 3), gt_mesh, n_samples=SAMPLES)
+    # inner vertices are nearest to a face (inside the inradius), outer ones to a vertex: 1 %
+    np.testing.assert_allclose(inner.signed_offset, -0.05 / diag, rtol=1e-2)
+    np.testing.assert_allclose(outer.signed_offset, 0.05 / diag, rtol=1e-4)
+    np.testing.assert_allclose(
+        [-inner.signed_offset, outer.signed_offset], [inner.accuracy, outer.accuracy], rtol=1e-6
+    )
+    flipped = Mesh(gt_mesh.vertices, gt_mesh.faces[:, ::-1].copy())
+    flipped_inner = evaluate(icosphere(0.95, 3), flipped, n_samples=SAMPLES)
+    np.testing.assert_allclose(flipped_inner.signed_offset, -inner.signed_offset, rtol=1e-6)
+    v = icosphere(1.0, 3).vertices
+    radial = 1.0 + 0.05 * np.where(np.arange(len(v)) % 2 == 0, 1.0, -1.0)
+    noisy = evaluate(Mesh(v * radial[:, None], icosphere(1.0, 3).faces), gt_mesh, n_samples=SAMPLES)
+    assert noisy.accuracy > 0.04 / diag and abs(noisy.signed_offset) < 0.2 * noisy.accuracy
 
 
 def test_sphere_offset_bounds_from_tessellation():
@@ -381,6 +406,8 @@ def test_cli_prints_json_on_stdout_and_table_on_stderr(capture_and_result, tmp_p
         "accuracy_p90",
         "completeness_median",
         "completeness_p90",
+        "signed_offset",
+        "signed_offset_median",
         "n_vertices",
         "n_gt_samples",
         "aligned",
@@ -390,6 +417,7 @@ def test_cli_prints_json_on_stdout_and_table_on_stderr(capture_and_result, tmp_p
     assert doc["aligned"] is True and doc["n_gt_samples"] == 20000 and doc["accuracy"] < 1e-5
     assert json.loads(out.read_text()) == doc
     assert "accuracy (mean / median / p90)" in captured.err and "{" not in captured.err
+    assert "signed offset (mean / median; < 0: inside)" in captured.err
 
 
 def test_cli_bare_mesh_in_a_subprocess(capture_and_result):

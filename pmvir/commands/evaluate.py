@@ -66,6 +66,10 @@ def format_table(result: EvaluationResult) -> str:
             "completeness (mean / median / p90)",
             f"{_fmt(r.completeness)} / {_fmt(r.completeness_median)} / {_fmt(r.completeness_p90)}",
         ),
+        (
+            "signed offset (mean / median; < 0: inside)",
+            f"{_fmt(r.signed_offset)} / {_fmt(r.signed_offset_median)}",
+        ),
         ("albedo RMSE (scale-corrected)", _fmt(r.albedo_rmse)),
         ("illumination error (relative)", _fmt(r.illumination_error)),
         ("estimated vertices", f"{r.n_vertices:,}"),
