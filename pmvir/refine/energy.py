@@ -97,10 +97,12 @@ def pair_light(
         rgb_scale: (V, 3) L_scale per view.
         pairs: the stage's pairs.
     """
-    sizes = [b - a for a, b in zip(pairs.offsets[:-1], pairs.offsets[1:], strict=True)]
     order = sh_order_of(sh.shape[1])
-    basis = torch.split(sh_basis(normals.index_select(0, pairs.vertex), order), sizes)
-    shading = torch.cat([b @ sh[c] for c, b in enumerate(basis)])
+    # The shading of every vertex under every view's lighting, (N, V), then one value gathered per
+    # pair: the basis is evaluated per vertex, not per pair (P is about 12 N), and no (P, T) basis is
+    # gathered or scattered back (N V is far below P T).
+    per_vertex = sh_basis(normals, order) @ sh.T
+    shading = per_vertex.reshape(-1).index_select(0, pairs.flat)
     return shading[:, None] * rgb_scale.index_select(0, pairs.view)
 
 

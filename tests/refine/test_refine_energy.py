@@ -36,6 +36,7 @@ from pmvir.refine.sampling import (
     sample_pairs,
     select_pairs,
 )
+from pmvir.sh import sh_basis
 from pmvir.synth.shapes import geodesic_sphere
 
 F64 = torch.float64
@@ -449,6 +450,24 @@ def test_gradient_of_the_fresnel_weighted_photometric_term(small_problem) -> Non
     assert torch.autograd.gradcheck(
         lambda *a: _pho_options(problem, *a) / value, inputs, eps=1e-6, atol=1e-7, rtol=1e-4
     )
+
+
+def test_pair_light_is_each_pairs_basis_times_its_views_lighting(small_problem) -> None:
+    """pair_light evaluates the SH basis per vertex and gathers one shading per pair: it must equal
+    the basis of the pair's own normal times its own view's coefficients and colour scale."""
+    problem, inputs = small_problem
+    rng = np.random.default_rng(11)
+    x = inputs[0].detach()
+    n = vertex_normals(x, problem.faces)
+    sc = inputs[3].detach()
+    for order, terms in ((2, 9), (4, 25)):
+        sh = torch.from_numpy(rng.normal(0.0, 0.3, (sc.shape[0], terms)))
+        got = pair_light(n, sh, sc, problem.pairs).numpy()
+        v, c = problem.pairs.vertex.numpy(), problem.pairs.view.numpy()
+        basis = sh_basis(n.numpy()[v], order)
+        want = (basis * sh.numpy()[c]).sum(1)[:, None] * sc.numpy()[c]
+        assert len(np.unique(c)) > 1
+        np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
 
 
 def test_gradient_of_the_photometric_term_with_degree_4_lighting(small_problem) -> None:
