@@ -16,7 +16,7 @@ reconstruction's.
 
 Prints a markdown table and writes bench/results/refine_from_truth.json (or --out).
 Run: .venv/bin/python bench/refine_from_truth.py CAPTURE [--subdivide 1] [--iterations 40]
-     [--variant NAME key=value ...] [--samples 200000]
+     [--variant NAME key=value ...] [--samples 200000] [--offset D]
      e.g. --variant mvir polarimetric=false --variant full --variant rho1 dop_weight_power=1
 """
 
@@ -37,7 +37,7 @@ from pmvir.errors import PmvirError
 from pmvir.evaluate import evaluate
 from pmvir.geometry.subdivision import sqrt3_subdivide
 from pmvir.geometry.visibility import vertex_visibility
-from pmvir.io.ply import Mesh, read_mesh
+from pmvir.io.ply import Mesh, read_mesh, vertex_normals
 from pmvir.pipeline import decode_views
 from pmvir.refine import make_visibility_fn, observation_from_decoded, refine_surface
 
@@ -74,38 +74,68 @@ def main() -> None:
         help="refine options of a variant",
     )
     parser.add_argument("--samples", type=int, default=200_000, help="ground-truth samples for the metrics")
+    parser.add_argument(
+        "--offset",
+        type=float,
+        default=0.0,
+        help="start from the true surface moved along its vertex normals by this many GT diagonals "
+        "(negative: inward), to see whether the refinement removes an offset every vertex shares",
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "refine_from_truth.json")
     args = parser.parse_args()
     variants = parse_variants(args.variant or [["mvir", "polarimetric=false"], ["full"]])
     try:
         rows = run(
-            args.capture, variants, subdivide=args.subdivide, iterations=args.iterations, samples=args.samples
+            args.capture,
+            variants,
+            subdivide=args.subdivide,
+            iterations=args.iterations,
+            samples=args.samples,
+            offset=args.offset,
         )
     except PmvirError as e:
         sys.exit(f"error: {e}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(
-        json.dumps({"capture": str(args.capture), "subdivide": args.subdivide, "rows": rows}, indent=1)
+        json.dumps(
+            {"capture": str(args.capture), "subdivide": args.subdivide, "offset": args.offset, "rows": rows},
+            indent=1,
+        )
     )
-    print(f"\n{args.capture}: refinement started from the true surface ({rows[0]['vertices']:,} vertices)\n")
-    print("| variant | options | accuracy (x1e-2) | completeness (x1e-2) | time (s) |")
-    print("|---|---|---:|---:|---:|")
+    start = "the true surface" + (
+        f" moved {args.offset:+g} diagonals along its normals" if args.offset else ""
+    )
+    print(f"\n{args.capture}: refinement started from {start} ({rows[0]['vertices']:,} vertices)\n")
+    print(
+        "| variant | options | accuracy (x1e-2) | signed offset (x1e-2) | completeness (x1e-2) | time (s) |"
+    )
+    print("|---|---|---:|---:|---:|---:|")
     for r in rows:
         print(
             f"| {r['variant']} | {r['options'] or 'defaults'} | {100 * r['accuracy']:.4f} "
-            f"| {100 * r['completeness']:.4f} | {r['time']:.0f} |"
+            f"| {100 * r['signed_offset']:+.4f} | {100 * r['completeness']:.4f} | {r['time']:.0f} |"
         )
 
 
 def run(
-    capture: Path, variants: dict[str, dict], *, subdivide: int, iterations: int, samples: int
+    capture: Path,
+    variants: dict[str, dict],
+    *,
+    subdivide: int,
+    iterations: int,
+    samples: int,
+    offset: float = 0.0,
 ) -> list[dict]:
-    """Refine every variant from the capture's true surface; one row per variant."""
+    """Refine every variant from the capture's true surface (moved ``offset`` GT diagonals along its
+    vertex normals); one row per variant, the unrefined start first."""
     truth = read_mesh(capture / "gt" / "mesh.ply")
     vertices, faces = truth.vertices.astype(np.float64), truth.faces.astype(np.int64)
     for _ in range(subdivide):
         step = sqrt3_subdivide(vertices, faces)
         vertices, faces = step.vertices, step.faces
+    if offset:
+        diag = float(np.linalg.norm(truth.vertices.max(0) - truth.vertices.min(0)))
+        vertices = vertices + offset * diag * vertex_normals(vertices, faces)
     config = PipelineConfig()
     with open_capture(capture) as cap:
         known = [frame.camera for frame in cap.frames]
@@ -119,7 +149,18 @@ def run(
         vertices, faces, cameras, masks, min_cos=vis_opts.min_cos, rel_tol=vis_opts.rel_tol
     )
     visibility_fn = make_visibility_fn(cameras, masks, min_cos=vis_opts.min_cos, rel_tol=vis_opts.rel_tol)
-    rows = []
+    start = evaluate(Mesh(vertices, faces), truth, n_samples=samples)
+    rows = [
+        {
+            "variant": "start",
+            "options": "(not refined)",
+            "vertices": len(vertices),
+            "accuracy": start.accuracy,
+            "signed_offset": start.signed_offset,
+            "completeness": start.completeness,
+            "time": 0.0,
+        }
+    ]
     for name, overrides in variants.items():
         opts = RefineOptions.model_validate(
             {**config.refine.model_dump(), "max_iterations": iterations, **overrides}
@@ -137,6 +178,7 @@ def run(
                 "options": " ".join(f"{k}={v}" for k, v in overrides.items()),
                 "vertices": len(vertices),
                 "accuracy": ev.accuracy,
+                "signed_offset": ev.signed_offset,
                 "completeness": ev.completeness,
                 "time": elapsed,
             }
