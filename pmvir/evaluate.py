@@ -313,8 +313,9 @@ def evaluate(
     est_v = est_mesh.vertices if alignment is None else alignment.transform.apply(est_mesh.vertices)
     query = SurfaceQuery(gt_mesh.vertices, gt_mesh.faces)
     closest, face_ids, bary = query.closest(est_v)
-    acc = np.linalg.norm(est_v - closest, axis=1) / diag
-    signed = signed_distances(est_v - closest, gt_mesh.vertices, gt_mesh.faces[face_ids]) / diag
+    offsets = est_v - closest
+    acc = np.linalg.norm(offsets, axis=1) / diag
+    signed = acc * outward_sign(offsets, gt_mesh.vertices, gt_mesh.faces[face_ids])
 
     from scipy.spatial import cKDTree
 
@@ -354,8 +355,8 @@ def evaluate(
     )
 
 
-def signed_distances(offsets: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Offsets from closest surface points, signed along those faces' normals.
+def outward_sign(offsets: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Which side of the surface each query point lies on.
 
     Args:
         offsets: (N, 3) query point minus its closest point on the surface.
@@ -363,14 +364,13 @@ def signed_distances(offsets: np.ndarray, vertices: np.ndarray, faces: np.ndarra
         faces: (N, 3) the face holding each closest point.
 
     Returns:
-        (N,) float64: ``|offset|`` with the sign of ``offset . n`` (n by the face's winding,
-        counter-clockwise seen from its front); 0 for a point on the surface.
+        (N,) float64 sign of ``offset . n``, n by the face's winding (counter-clockwise seen from
+        its front): +1 in front, -1 behind, 0 on the surface.
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    d = np.asarray(offsets, dtype=np.float64)
-    return np.linalg.norm(d, axis=1) * np.sign(np.einsum("ij,ij->i", d, n))
+    return np.sign(np.einsum("ij,ij->i", np.asarray(offsets, dtype=np.float64), n))
 
 
 def _illumination(
