@@ -34,7 +34,7 @@ import numpy as np
 from pmvir.capture import open_capture
 from pmvir.config import PipelineConfig, RefineOptions
 from pmvir.errors import PmvirError
-from pmvir.evaluate import evaluate
+from pmvir.evaluate import bbox_diagonal, evaluate
 from pmvir.geometry.subdivision import sqrt3_subdivide
 from pmvir.geometry.visibility import vertex_visibility
 from pmvir.io.ply import Mesh, read_mesh, vertex_normals
@@ -134,8 +134,7 @@ def run(
         step = sqrt3_subdivide(vertices, faces)
         vertices, faces = step.vertices, step.faces
     if offset:
-        diag = float(np.linalg.norm(truth.vertices.max(0) - truth.vertices.min(0)))
-        vertices = vertices + offset * diag * vertex_normals(vertices, faces)
+        vertices = vertices + offset * bbox_diagonal(truth.vertices) * vertex_normals(vertices, faces)
     config = PipelineConfig()
     with open_capture(capture) as cap:
         known = [frame.camera for frame in cap.frames]
