@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from pmvir.errors import ConfigError
+from pmvir.errors import ConfigError, ShapeError
 from pmvir.polarization.azimuth import perspective_azimuth
 from pmvir.refine.mesh_ops import face_normals, normalize, vertex_normals
 from pmvir.refine.sampling import PairSamples, PairSet, ViewStack, sample_pairs
@@ -97,6 +97,8 @@ def pair_light(
         rgb_scale: (V, 3) L_scale per view.
         pairs: the stage's pairs.
     """
+    if sh.shape[0] != len(pairs.offsets) - 1:  # pairs.flat indexes (N, V) with the pairs' V
+        raise ShapeError(f"lighting for {sh.shape[0]} views, but the pairs are of {len(pairs.offsets) - 1}")
     order = sh_order_of(sh.shape[1])
     # The shading of every vertex under every view's lighting, (N, V), then one value gathered per
     # pair: the basis is evaluated per vertex, not per pair (P is about 12 N), and no (P, T) basis is

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from pmvir.camera import Camera, look_at
-from pmvir.errors import ConfigError
+from pmvir.errors import ConfigError, ShapeError
 from pmvir.refine.energy import (
     ETA_OFFSETS,
     StageProblem,
@@ -468,6 +468,8 @@ def test_pair_light_is_each_pairs_basis_times_its_views_lighting(small_problem) 
         want = (basis * sh.numpy()[c]).sum(1)[:, None] * sc.numpy()[c]
         assert len(np.unique(c)) > 1
         np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
+    with pytest.raises(ShapeError, match="lighting for"):
+        pair_light(n, sh[:-1], sc[:-1], problem.pairs)
 
 
 def test_gradient_of_the_photometric_term_with_degree_4_lighting(small_problem) -> None:
