@@ -1,0 +1,87 @@
+"""The photo-consistent offset scan (pmvir.refine.offset): it finds a shrunk or swollen surface's offset."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from refine_scene import RGB_SCALE, SH, ring_cameras
+
+from pmvir.errors import ConfigError
+from pmvir.refine import observation_from_decoded
+from pmvir.refine.forward import render_decoded
+from pmvir.refine.offset import neighbour_views, photo_consistent_offset
+from pmvir.synth.shapes import geodesic_sphere
+
+
+def _textured(vertices: np.ndarray) -> np.ndarray:
+    """A 3D checker-like albedo (features of about 10 pixels at the test's image size)."""
+    x, y, z = vertices.T
+    t = np.sin(13 * x) * np.sin(13 * y + 1.0) * np.sin(13 * z + 2.0)
+    a = 0.45 + 0.3 * np.tanh(4 * t)
+    return np.stack([a, 0.8 * a + 0.1, 0.6 * a + 0.15], axis=1)
+
+
+@pytest.fixture(scope="module")
+def sphere_views():
+    tv, tf = geodesic_sphere(48)
+    cams = ring_cameras(12, 128)
+    frames = render_decoded(
+        tv, tf, _textured(tv), cams, np.tile(SH, (12, 1)), RGB_SCALE, dop_scale=0.0, intensity_noise=0.002
+    )
+    return tv, tf, cams, [observation_from_decoded(f) for f in frames]
+
+
+def _gsd(cams, vertices) -> float:
+    return float(np.mean([np.median(c.world_to_cam(vertices)[:, 2]) / c.K[0, 0] for c in cams]))
+
+
+@pytest.mark.parametrize("shift_px", [-0.6, 0.6])
+def test_the_scan_finds_a_shrunk_or_swollen_spheres_offset(sphere_views, shift_px):
+    tv, tf, cams, obs = sphere_views
+    gsd = _gsd(cams, tv)
+    start = tv * (1.0 + shift_px * gsd)  # the unit sphere moved shift_px pixels along its normals
+    scan = photo_consistent_offset(start, tf, cams, obs, min_cos=0.7)
+    assert scan.applied, scan.reason
+    # the offset brings the surface back within a quarter of the shift
+    assert abs(scan.offset + shift_px * gsd) < 0.25 * abs(shift_px) * gsd, scan.to_dict()
+    assert scan.pixels > 2000
+
+
+def test_the_true_surface_stays_where_it_is(sphere_views):
+    tv, tf, cams, obs = sphere_views
+    scan = photo_consistent_offset(tv, tf, cams, obs, min_cos=0.7)
+    assert scan.applied
+    assert abs(scan.offset) < 0.15 * _gsd(cams, tv), scan.to_dict()
+    assert np.argmin(scan.costs) == len(scan.costs) // 2  # the scan's minimum is at zero offset
+
+
+def test_no_texture_no_offset(sphere_views):
+    tv, tf, cams, _ = sphere_views
+    flat = [
+        observation_from_decoded(f)
+        for f in render_decoded(
+            tv, tf, np.full((len(tv), 3), 0.5), cams, np.tile([1.0] + [0.0] * 8, (12, 1)), 1.0
+        )
+    ]
+    scan = photo_consistent_offset(tv * 0.99, tf, cams, flat)
+    assert not scan.applied and scan.offset == 0.0
+    assert "usable windows" in scan.reason
+
+
+def test_neighbours_are_the_nearest_views_apart_from_the_view_itself():
+    cams = ring_cameras(12, 64)
+    nb = neighbour_views(cams, 2)
+    assert all(i not in n and len(n) == 2 for i, n in enumerate(nb))
+    # on a ring alternately above and below the equator, view i's nearest are i - 1 and i + 1
+    assert sorted(nb[5]) == [4, 6]
+
+
+def test_bad_options_are_refused(sphere_views):
+    tv, tf, cams, obs = sphere_views
+    with pytest.raises(ConfigError, match="odd"):
+        photo_consistent_offset(tv, tf, cams, obs, window=4)
+    with pytest.raises(ConfigError, match="observations"):
+        photo_consistent_offset(tv, tf, cams, obs[:-1])
+    with pytest.raises(ConfigError, match="step_px"):
+        photo_consistent_offset(tv, tf, cams, obs, step_px=2.0, max_px=1.0)
+
