@@ -798,6 +798,24 @@ class RefineOptions(_Options):
     refresh_visibility: bool = Field(
         default=True, description="Recompute visibility from the refined surface between stages."
     )
+    offset_scan: Literal["off", "start", "stages"] = Field(
+        default="stages",
+        description="Move the whole mesh along its vertex normals by the offset (within +-1.5 pixels of ground "
+        "sampling distance; +-0.75 in the later scans) at which the views agree best: each view's pixels are "
+        "carried into its two nearest views through the mesh and compared by ZNCC over 5x5 windows. 'start': "
+        "before stage 1; 'stages' "
+        "(default): before every stage and after the last; 'off': never. The stages' terms see normals, not "
+        "absolute position, so they keep the inward bias the plane sweep leaves on thin and curved parts "
+        "(knot: accuracy gain +11.4% -> +20.1% on the built-in renderer, +14.7% -> +21.2% on Mitsuba; "
+        "Mitsuba blob: +24.8% -> +28.7%); measured in the README.",
+    )
+    offset_scan_min_cos: float = Field(
+        default=0.8,
+        gt=0.0,
+        lt=1.0,
+        description="With offset_scan: only pixels whose triangle both views see at least at this viewing cosine "
+        "count (grazing pairs pull the scan's minimum inward, as they do the plane sweep's depths).",
+    )
     device: str = Field(
         default="auto",
         pattern=r"^(auto|cpu|cuda(:[0-9]+)?)$",

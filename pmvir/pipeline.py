@@ -264,6 +264,7 @@ def refine_report(refined: RefineResult) -> dict:
         "intensity_factor": refined.intensity_factor,
         "timings": {k: float(v) for k, v in refined.timings.items()},
         "stages": [_stage_report(st) for st in refined.stages],
+        "offset_scans": [scan.to_dict() for scan in refined.offset_scans],
     }
 
 

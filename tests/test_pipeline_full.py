@@ -57,6 +57,14 @@ def test_result_files_follow_the_spec(result) -> None:
     assert {"pho", "pol", "gsm", "psm", "total"} <= set(energies[0])
     for stage in report["refine"]["stages"]:  # a plastic capture: E_pol has pairs above its floor
         assert stage["dop_floor"] >= 0.05 and 0 < stage["pol_pairs"] < stage["vertex_view_pairs"]
+    # the photo-consistent offsets: before each stage and after the last; the first scan covers
+    # +-1.5 px, the later ones +-0.75 px, in 0.25 px steps
+    scans = report["refine"]["offset_scans"]
+    assert len(scans) == len(report["refine"]["stages"]) + 1
+    for k, scan in enumerate(scans):
+        assert len(scan["scan_px"]) == len(scan["scan_cost"]) == (13 if k == 0 else 7)
+        assert scan["pixel_size"] > 0
+        assert scan["applied"] == (scan["reason"] == "") and abs(scan["offset_px"]) <= scan["scan_px"][-1]
     assert not any(p.name.startswith(".work") for p in out.iterdir())
 
 

@@ -85,3 +85,26 @@ def test_bad_options_are_refused(sphere_views):
     with pytest.raises(ConfigError, match="step_px"):
         photo_consistent_offset(tv, tf, cams, obs, step_px=2.0, max_px=1.0)
 
+
+@pytest.mark.parametrize("mode", ["off", "start", "stages"])
+def test_the_refinement_scans_where_it_is_told_and_keeps_the_scans(sphere_views, mode):
+    from refine_scene import accuracy
+
+    from pmvir.config import RefineOptions
+    from pmvir.geometry.visibility import vertex_visibility
+    from pmvir.refine import refine_surface
+
+    tv, tf, cams, obs = sphere_views
+    start = tv * (1.0 - 0.6 * _gsd(cams, tv))  # shrunk by 0.6 px
+    opts = RefineOptions(
+        max_iterations=1, polarimetric=False, offset_scan=mode, offset_scan_min_cos=0.7, device="cpu"
+    )
+    res = refine_surface(start, tf, cams, obs, vertex_visibility(start, tf, cams), options=opts)
+    assert len(res.offset_scans) == {"off": 0, "start": 1, "stages": 4}[mode]
+    assert all(scan.applied for scan in res.offset_scans)
+    assert "offset_scan" in res.timings
+    if mode != "off":  # one refinement iteration per stage hardly moves it: the scan brings it back
+        assert accuracy(res.vertices, tv, tf) < 0.3 * accuracy(start, tv, tf)
+    if mode == "stages":  # the first scan found the shrink; after it, nothing is left to find
+        assert abs(res.offset_scans[0].offset - 0.6 * _gsd(cams, tv)) < 0.1 * _gsd(cams, tv)
+        assert all(abs(scan.offset) < 0.1 * _gsd(cams, tv) for scan in res.offset_scans[1:])

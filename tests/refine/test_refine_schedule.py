@@ -123,7 +123,7 @@ def test_result_shapes_and_gauge(plastic, plastic_runs) -> None:
     np.testing.assert_array_equal(full.sh[:, 0], 1.0)  # gauge: L0 = 1
     np.testing.assert_array_equal(full.rgb_scale[0], 1.0)  # gauge: view 0's scale
     assert full.visibility.shape == (n, v) and full.visibility.dtype == bool
-    assert set(full.timings) == {"setup", "stage_1", "stage_2", "stage_3", "total"}
+    assert set(full.timings) == {"setup", "offset_scan", "stage_1", "stage_2", "stage_3", "total"}
     # lighting: the shading ratio between views 1 and 0, over the normals both see, matches the
     # truth's (the ratio of rgb_scale alone is not identified: the SH's higher orders can trade
     # with the DC term over a hemisphere of normals)
@@ -213,21 +213,23 @@ def test_cancel_raises_at_an_iteration_boundary(plastic) -> None:
             scene.cameras,
             obs,
             vis,
-            options=RefineOptions(max_iterations=10),
+            options=RefineOptions(max_iterations=10, offset_scan="off"),
             progress=Progress(should_cancel=cancel),
         )
     assert len(polls) == 6
 
 
-def test_cancel_before_the_first_stage(plastic) -> None:
+@pytest.mark.parametrize(("scan", "first_step"), [("off", "stage 1"), ("stages", "offset scan")])
+def test_cancel_before_the_first_step(plastic, scan, first_step) -> None:
     scene, obs, _, vis = plastic
-    with pytest.raises(CanceledError, match="before stage 1"):
+    with pytest.raises(CanceledError, match=f"before {first_step}"):
         refine_surface(
             scene.vertices,
             scene.faces,
             scene.cameras,
             obs,
             vis,
+            options=RefineOptions(offset_scan=scan),
             progress=Progress(should_cancel=lambda: True),
         )
 
