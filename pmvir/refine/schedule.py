@@ -939,8 +939,8 @@ def _offset_scan(
     """Move the whole surface along its normals to the most photo-consistent offset (:mod:`pmvir.refine.offset`).
 
     A uniform offset along the normals leaves the normals, so the albedo and lighting stay valid.
-    The first scan covers +-1.5 pixels; the later ones (``offset_scan`` "stages"), which found a few
-    hundredths of a pixel on every capture measured, +-0.75 pixels at half the cost.
+    The first scan covers +-1.5 pixels; the later ones (``offset_scan`` "stages"), which found at most
+    0.25 pixels on the captures measured (README), +-0.75 pixels at half the cost.
     """
     progress.update(0.0, "photo-consistent offset along the normals")
     v = state.vertices.detach().cpu().numpy().astype(np.float64)
