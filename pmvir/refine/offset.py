@@ -30,6 +30,7 @@ from scipy.ndimage import uniform_filter
 
 from pmvir.camera import Camera
 from pmvir.errors import ConfigError
+from pmvir.geometry.mesh_ops import face_normals
 from pmvir.io.ply import vertex_normals
 from pmvir.refine.sampling import Observation
 
@@ -148,10 +149,7 @@ def _pairs(
     scene.add_triangles(
         o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32))
     )
-    fn = np.cross(
-        vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]]
-    )
-    fn /= np.linalg.norm(fn, axis=1, keepdims=True) + 1e-300
+    fn = face_normals(vertices, faces)
     pairs = []
     for i, cam in enumerate(cameras):
         if not neighbours[i]:
