@@ -68,6 +68,36 @@ def test_no_texture_no_offset(sphere_views):
     assert "usable windows" in scan.reason
 
 
+def test_noise_without_texture_gives_no_offset(sphere_views):
+    """Windows that hold only noise pass the variance test, but the cost is flat: nothing applied."""
+    tv, tf, cams, _ = sphere_views
+    noisy = [
+        observation_from_decoded(f)
+        for f in render_decoded(
+            tv,
+            tf,
+            np.full((len(tv), 3), 0.5),
+            cams,
+            np.tile([1.0] + [0.0] * 8, (12, 1)),
+            1.0,
+            dop_scale=0.0,
+            intensity_noise=0.01,
+        )
+    ]
+    scan = photo_consistent_offset(tv * 0.99, tf, cams, noisy, min_cos=0.7)
+    assert scan.pixels >= 500  # enough windows: what refuses it is the flat cost
+    assert not scan.applied and scan.offset == 0.0, scan.to_dict()
+    costs = scan.costs
+    assert (max(costs) - min(costs)) / min(costs) < 0.05  # noise: the cost barely moves
+    # the textured sphere's cost rises far more than the 1% asked for; asked for more, it is refused
+    tv, tf, cams, obs = sphere_views
+    scan = photo_consistent_offset(tv * 0.99, tf, cams, obs, min_cos=0.7)
+    costs = scan.costs
+    assert scan.applied and (min(costs[0], costs[-1]) - min(costs)) / min(costs) > 0.1
+    scan = photo_consistent_offset(tv * 0.99, tf, cams, obs, min_cos=0.7, min_contrast=10.0)
+    assert not scan.applied and "too little texture" in scan.reason
+
+
 def test_neighbours_are_the_nearest_views_apart_from_the_view_itself():
     cams = ring_cameras(12, 64)
     nb = neighbour_views(cams, 2)
@@ -78,6 +108,8 @@ def test_neighbours_are_the_nearest_views_apart_from_the_view_itself():
 
 def test_bad_options_are_refused(sphere_views):
     tv, tf, cams, obs = sphere_views
+    with pytest.raises(ConfigError, match="min_contrast"):
+        photo_consistent_offset(tv, tf, cams, obs, min_contrast=-0.1)
     with pytest.raises(ConfigError, match="odd"):
         photo_consistent_offset(tv, tf, cams, obs, window=4)
     with pytest.raises(ConfigError, match="observations"):
