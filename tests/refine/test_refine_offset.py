@@ -68,27 +68,24 @@ def test_no_texture_no_offset(sphere_views):
     assert "usable windows" in scan.reason
 
 
-def test_noise_without_texture_gives_no_offset(sphere_views):
-    """Windows that hold only noise pass the variance test, but the cost is flat: nothing applied."""
+def test_a_barely_textured_surface_gets_no_offset(sphere_views):
+    """Texture 100x fainter than the noise: the cost is nearly flat and its minimum is chance.
+
+    Without the contrast rule the scan would move the TRUE sphere by about a pixel; with it, nothing.
+    """
     tv, tf, cams, _ = sphere_views
+    faint = 0.5 + 0.005 * (_textured(tv) - 0.5)
     noisy = [
         observation_from_decoded(f)
         for f in render_decoded(
-            tv,
-            tf,
-            np.full((len(tv), 3), 0.5),
-            cams,
-            np.tile([1.0] + [0.0] * 8, (12, 1)),
-            1.0,
-            dop_scale=0.0,
-            intensity_noise=0.01,
+            tv, tf, faint, cams, np.tile([1.0] + [0.0] * 8, (12, 1)), 1.0, dop_scale=0.0, intensity_noise=0.01
         )
     ]
-    scan = photo_consistent_offset(tv * 0.99, tf, cams, noisy, min_cos=0.7)
-    assert scan.pixels >= 500  # enough windows: what refuses it is the flat cost
-    assert not scan.applied and scan.offset == 0.0, scan.to_dict()
-    costs = scan.costs
-    assert (max(costs) - min(costs)) / min(costs) < 0.05  # noise: the cost barely moves
+    unguarded = photo_consistent_offset(tv, tf, cams, noisy, min_cos=0.7, min_contrast=0.0)
+    assert unguarded.applied and abs(unguarded.offset) > 0.5 * _gsd(cams, tv), unguarded.to_dict()
+    scan = photo_consistent_offset(tv, tf, cams, noisy, min_cos=0.7)
+    assert scan.pixels >= 500 and 0 < np.argmin(scan.costs) < len(scan.costs) - 1  # the contrast refuses it
+    assert not scan.applied and scan.offset == 0.0 and "too little texture" in scan.reason, scan.to_dict()
     # the textured sphere's cost rises far more than the 1% asked for; asked for more, it is refused
     tv, tf, cams, obs = sphere_views
     scan = photo_consistent_offset(tv * 0.99, tf, cams, obs, min_cos=0.7)
