@@ -4,7 +4,8 @@ Usage: .venv/bin/python bench/sfm_poses.py [--models bunny dragon armadillo] [--
        [--size 612x512] [--focal-factor 1.2] [--keep DIR]
 
 For each model of ../shared/data/models (normalized, plastic, pmvir synth's built-in renderer)
-it synthesizes a capture, decodes I_int (or I_min, ``--grey min``) and runs ``estimate_poses``
+it synthesizes a capture, decodes I_int and I_min and runs ``estimate_poses`` on the images
+``--grey`` names (default ``auto``, as the geometric stage: SfM on I_min, again on I_int when that leaves views out)
 three times: with the capture's cameras (known poses), without them but with the intrinsics
 (``sfm-K``), and with neither (``sfm``, intrinsics estimated); ``--mapper global`` uses COLMAP's
 global mapper, ``--guided`` turns guided matching on, ``--rematch N`` sets sfm.rematch_rounds. It
@@ -60,13 +61,18 @@ def _run(capture: Path, mode: str, workdir: Path, options: SfmOptions) -> dict:
     known = mode == "known"
     with open_capture(capture) as cap:
         t0 = time.perf_counter()
-        images, masks = [], []
+        i_int, i_min, masks = [], [], []
         for i in range(len(cap)):
             raw = cap.read_raw(i)
             mask = cap.read_mask(i)
             decoded = decode_frame(raw.mosaic, cap.layout, saturated=raw.saturated, mask=mask)
-            images.append(decoded.i_int if options.grey == "int" else decoded.i_min)
+            i_int.append(decoded.i_int)
+            i_min.append(decoded.i_min)
             masks.append(mask)
+        # as the geometric stage does: I_min for SfM with I_int as the fallback ('auto'), I_int with known poses
+        use_min = options.grey == "min" or (options.grey == "auto" and not known)
+        images = i_min if use_min else i_int
+        fallback = i_int if options.grey == "auto" and not known else None
         decode_s = time.perf_counter() - t0
         true = [f.camera for f in cap.frames]
         names = [f.name for f in cap.frames]
@@ -74,13 +80,14 @@ def _run(capture: Path, mode: str, workdir: Path, options: SfmOptions) -> dict:
     cpu0 = time.process_time()
     model = estimate_poses(
         images, names, cameras=true if known else None, masks=masks, options=options, workdir=workdir,
-        intrinsics=[c.K for c in true] if mode == "sfm-K" else None,
+        intrinsics=[c.K for c in true] if mode == "sfm-K" else None, fallback_images=fallback,
     )
     row: dict = {
         "mode": mode,
         "registered": model.num_registered,
         "views": len(names),
         "points": len(model.points),
+        "sift_images": "I_int" if not use_min or model.fallback else "I_min",
         "reprojection_px": model.mean_reprojection_error,
         "wall_s": time.perf_counter() - t0,
         "cpu_s": time.process_time() - cpu0,
@@ -117,7 +124,7 @@ def main() -> int:
     ap.add_argument("--keep", type=Path, help="keep the captures and work folders here")
     ap.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
     ap.add_argument("--mapper", choices=("incremental", "global"), default=SfmOptions().mapper)
-    ap.add_argument("--grey", choices=("int", "min"), default=SfmOptions().grey)
+    ap.add_argument("--grey", choices=("auto", "int", "min"), default=SfmOptions().grey)
     ap.add_argument("--guided", action="store_true", help="guided matching")
     ap.add_argument("--rematch", type=int, default=SfmOptions().rematch_rounds, help="sfm.rematch_rounds")
     ap.add_argument("--tag", default="", help="results go to bench/results/sfm_poses[-TAG].json")
@@ -159,7 +166,8 @@ def main() -> int:
                     f"{row['scene_size']:.2f}) mean {row['centre_err_mean']:.4f}; focal {row['focal_err_pct']:+.2f} %"
                 )
                 print(
-                    f"{name:10s} {row['mode']:5s} reg {row['registered']:2d}/{row['views']} pts {row['points']:5d} "
+                    f"{name:10s} {row['mode']:5s} {row['sift_images']} reg {row['registered']:2d}/{row['views']} "
+                    f"pts {row['points']:5d} "
                     f"reproj {row['reprojection_px']:.2f}px | {quality} | total {t['total']:.1f}s "
                     f"(cpu {row['cpu_s']:.1f}s; {steps})",
                     flush=True,

@@ -189,10 +189,17 @@ class SfmOptions(_Options):
         "intrinsics given, 20 -> 26 views (3.12 -> 3.09 %) estimating them. Captures that register whole "
         "never reach it.",
     )
-    grey: Literal["int", "min"] = Field(
-        default="int",
-        description="The image SIFT sees: 'int' = I_int, 'min' = I_min = (1 - DoP) I_int, the unpolarized "
-        "part, in which specular highlights (strongly polarized on dielectrics) are dimmed.",
+    grey: Literal["auto", "int", "min"] = Field(
+        default="auto",
+        description="The image SIFT sees: 'int' = I_int, 'min' = I_min = (1 - DoP) I_int, the "
+        "unpolarized part, in which specular highlights (strongly polarized on dielectrics) are dimmed; "
+        "'auto' = I_min for SfM, and I_int again when SfM on I_min leaves views out (the model with more "
+        "views is kept), I_int with known poses. Highlights move with the view, so their features are no "
+        "fixed surface points and bend SfM's model: on the armadillo (36 views 612x512, plastic, "
+        "intrinsics given) 3.2 % of the I_int tracks miss the true poses by more than 2 px against 0.3 % "
+        "of the I_min tracks, and the largest centre error drops from 1.51 % to 0.60 % of the rig. I_min "
+        "holds fewer features, and on the dragon SfM on I_min registers 14 of 36 views against 32 on "
+        "I_int, hence the fallback.",
     )
 
 

@@ -97,6 +97,8 @@ class SparseModel:
         num_features: SIFT features per view.
         point_observations: per point a (k, 3) float64 array of its observations: view index,
             x, y (pixels, COLMAP convention), or None.
+        fallback: True when SfM on the first images left views out or failed and the
+            ``fallback_images`` of :func:`estimate_poses` gave this model.
     """
 
     cameras: list[Camera | None]
@@ -110,6 +112,7 @@ class SparseModel:
     names: list[str] = field(default_factory=list)
     num_features: list[int] = field(default_factory=list)
     point_observations: list[np.ndarray] | None = None
+    fallback: bool = False
 
     @property
     def num_registered(self) -> int:
@@ -279,6 +282,7 @@ def estimate_poses(
     options: SfmOptions,
     workdir: str | Path,
     progress: Progress | None = None,
+    fallback_images: Sequence[np.ndarray] | None = None,
 ) -> SparseModel:
     """Cameras and sparse points of a set of views (module docstring: the two modes).
 
@@ -294,6 +298,11 @@ def estimate_poses(
             replaced).
         progress: called as ``progress(fraction, step)`` between steps; it may raise
             CanceledError to stop.
+        fallback_images: per view a second image of the same kind as ``images`` (e.g. I_int
+            when ``images`` are I_min), or None. In SfM mode, when SfM on ``images`` registers
+            fewer than every view (or fails), it runs again on these (in ``workdir/fallback``)
+            and the model with more registered views is kept (ties: the first); the result's
+            ``fallback`` says which. Ignored with known poses.
 
     Returns:
         The SparseModel; in known-pose mode its cameras are the given objects.
@@ -304,6 +313,53 @@ def estimate_poses(
         ReconstructionError: fewer views than ``min_registered_views``; too few registered
             views; too few 3D points. The message names the views that failed.
     """
+    known = cameras is not None and all(c is not None for c in cameras) and len(cameras) == len(images)
+    if fallback_images is None or known:
+        return _estimate_poses(images, names, cameras, intrinsics, masks, options, workdir, progress)
+    if len(fallback_images) != len(images):
+        raise ShapeError(f"expected {len(images)} fallback images (one per view), got {len(fallback_images)}")
+    report = progress or (lambda fraction, step: None)
+    t0 = time.perf_counter()
+    first: SparseModel | None = None
+    try:
+        first = _estimate_poses(
+            images, names, cameras, intrinsics, masks, options, workdir, lambda f, s: report(0.5 * f, s)
+        )
+    except ReconstructionError as exc:
+        first_error = exc
+    if first is not None and first.num_registered == len(images):
+        report(1.0, "poses done")
+        return first
+    try:
+        second = _estimate_poses(
+            fallback_images, names, cameras, intrinsics, masks, options, Path(workdir) / "fallback",
+            lambda f, s: report(0.5 + 0.5 * f, f"{s} (second images)"),
+        )
+    except ReconstructionError as exc:
+        if first is not None:
+            report(1.0, "poses done")
+            return first
+        raise ReconstructionError(f"{first_error}; on the second images: {exc}") from exc
+    if first is not None and first.num_registered >= second.num_registered:
+        return first
+    second.fallback = True
+    # the total counts both runs; "first_images" is the time of the first one
+    second.timings["first_images"] = time.perf_counter() - t0 - second.timings["total"]
+    second.timings["total"] = time.perf_counter() - t0
+    return second
+
+
+def _estimate_poses(
+    images: Sequence[np.ndarray],
+    names: Sequence[str],
+    cameras: Sequence[Camera | None] | None,
+    intrinsics: Sequence[np.ndarray | None] | None,
+    masks: Sequence[np.ndarray | None] | None,
+    options: SfmOptions,
+    workdir: str | Path,
+    progress: Progress | None,
+) -> SparseModel:
+    """:func:`estimate_poses` on one set of images."""
     t_start = time.perf_counter()
     n = len(images)
     _check_inputs(images, names, cameras, intrinsics, masks)

@@ -2,9 +2,10 @@
 
 :func:`run_geometry` runs, timing and counting each step:
 
-1. ``poses``: :func:`pmvir.geometry.sfm.estimate_poses` on the I_int images
-   (known-pose triangulation when the capture has intrinsics and every
-   ``cam_from_world``, else incremental SfM);
+1. ``poses``: :func:`pmvir.geometry.sfm.estimate_poses`
+   (known-pose triangulation on I_int when the capture has intrinsics and every
+   ``cam_from_world``, else incremental SfM, by default on I_min with I_int as the
+   fallback: ``sfm.grey``);
 2. ``depth_maps`` and ``fusion``: :func:`pmvir.geometry.mvs_dense.dense_stereo`;
 3. ``surface``: :func:`pmvir.geometry.surface.initial_surface` (screened
    Poisson, trimmed, simplified, cleaned to one manifold component);
@@ -139,8 +140,9 @@ def run_geometry(
     with progress.step("poses", _STEP_WEIGHTS["poses"]) as p:
         known = capture.has_all_poses
         intrinsics = [None if f.intrinsics is None else _k_matrix(f.intrinsics) for f in capture.frames]
+        sift, fallback = sift_inputs(views, options.sfm.grey, known=known)
         sparse = estimate_poses(
-            images if options.sfm.grey == "int" else [np.asarray(v.i_min, np.float32) for v in views],
+            sift,
             names,
             cameras=[f.camera for f in capture.frames] if known else None,
             intrinsics=intrinsics if any(k is not None for k in intrinsics) else None,
@@ -148,6 +150,7 @@ def run_geometry(
             options=options.sfm,
             workdir=workdir / "sfm",
             progress=p.update,
+            fallback_images=fallback,
         )
     cameras = list(sparse.cameras)
     reg = [i for i in range(n) if cameras[i] is not None]
@@ -248,6 +251,21 @@ def write_geometry(result: ResultFolder, geometry: GeometryResult) -> None:
     result.write_file("dense.ply", lambda path: write_points_ply(path, dense.points, colours, dense.normals))
 
 
+def sift_inputs(
+    views: Sequence[PolarizationImages], grey: str, *, known: bool
+) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
+    """The images the poses step's SIFT sees, and its fallback images (``sfm.grey``).
+
+    'int' and 'min': I_int or I_min, no fallback; 'auto': I_int with known poses, else I_min
+    with I_int as the fallback (:func:`~pmvir.geometry.sfm.estimate_poses`).
+    """
+    i_int = [np.asarray(v.i_int, np.float32) for v in views]
+    if grey == "int" or (grey == "auto" and known):
+        return i_int, None
+    i_min = [np.asarray(v.i_min, np.float32) for v in views]
+    return i_min, (i_int if grey == "auto" else None)
+
+
 def geometry_report(result: GeometryResult) -> dict[str, Any]:
     """The stage's part of ``report.json``: counts per step and timings (seconds), JSON-ready."""
     sparse, dense = result.sparse, result.dense
@@ -260,6 +278,7 @@ def geometry_report(result: GeometryResult) -> dict[str, Any]:
             "unregistered": failed,
             "sparse_points": len(sparse.points),
             "mean_reprojection_error_px": float(sparse.mean_reprojection_error),
+            "fallback_images": bool(sparse.fallback),  # sfm.grey 'auto': SfM on I_int after I_min left views out
             "timings": {k: float(v) for k, v in sparse.timings.items()},
         },
         "dense": {

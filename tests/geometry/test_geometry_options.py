@@ -83,3 +83,25 @@ def test_stereo_window_is_small_on_dense_rigs_and_wider_on_sparse_ones():
     assert stereo_window(auto, 12) == 7 and stereo_window(auto, 8) == 7  # at most sparse_rig_views
     assert stereo_window(MvsOptions(window=5), 36) == 5 and stereo_window(MvsOptions(window=9), 8) == 9
     assert stereo_window(MvsOptions(sparse_rig_views=0), 8) == 3
+
+
+def test_sift_sees_i_min_in_sfm_with_i_int_as_fallback_by_default():
+    """sfm.grey 'auto' (the default): SfM on I_min, then I_int; known poses on I_int; 'int'/'min' no fallback."""
+    import numpy as np
+
+    from pmvir.geometry.stage import sift_inputs
+    from pmvir.polarization.stokes import PolarizationImages
+
+    z = np.zeros((4, 4), np.float32)
+    views = [
+        PolarizationImages(
+            i_int=np.full((4, 4, 3), 0.8, np.float32), i_min=np.full((4, 4, 3), 0.2, np.float32),
+            aop=z, dop=z, valid=z > 0,
+        )
+    ] * 3
+    assert GeometryOptions().sfm.grey == "auto"
+    sift, fallback = sift_inputs(views, "auto", known=False)
+    assert all(np.all(im == 0.2) for im in sift) and fallback is not None and all(np.all(im == 0.8) for im in fallback)
+    for grey, known, level in (("auto", True, 0.8), ("int", False, 0.8), ("min", False, 0.2), ("min", True, 0.2)):
+        sift, fallback = sift_inputs(views, grey, known=known)
+        assert fallback is None and all(np.all(im == level) for im in sift), (grey, known)

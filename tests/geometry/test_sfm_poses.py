@@ -31,7 +31,7 @@ from pmvir.camera import Camera
 from pmvir.capture import open_capture
 from pmvir.config import SfmOptions
 from pmvir.decode import decode_frame
-from pmvir.errors import ReconstructionError
+from pmvir.errors import ReconstructionError, ShapeError
 from pmvir.evaluate import SurfaceQuery
 from pmvir.geometry.align import umeyama
 from pmvir.geometry.sfm import (
@@ -344,3 +344,40 @@ def test_rematch_rounds_lengthen_tracks_with_sfm_poses(sfm_views: dict, tmp_path
         results[rounds] = (sum(len(v) >= 3 for v in model.point_views), err.max() / scene)
     assert results[1][0] >= 1.2 * results[0][0], results
     assert results[1][1] <= 0.005, results
+
+
+def test_fallback_images_register_the_views_the_first_ones_leave_out(sfm_views: dict, tmp_path: Path) -> None:
+    """estimate_poses(fallback_images=...): the lower ring's 12 views blanked in the first images (no
+    features: they register in no model, 24 of 36 do) are registered from the second images, and the
+    model says it came from them; first images that register every view are kept without a second run."""
+    true = sfm_views["cameras"]
+    blanked = [np.full_like(im, 0.3) if i < 12 else im for i, im in enumerate(sfm_views["images"])]
+    model = estimate_poses(
+        blanked, sfm_views["names"], intrinsics=[true[0].K] * 36, masks=sfm_views["masks"],
+        options=SfmOptions(), workdir=tmp_path / "a", fallback_images=sfm_views["images"],
+    )
+    assert model.fallback and model.registered == [True] * 36
+    err, scene = _centre_errors(model, true)
+    assert err.max() <= 0.005 * scene
+    assert (tmp_path / "a" / "fallback" / "database.db").is_file()
+
+    ring = list(range(12, 36))
+    calls: list[tuple[float, str]] = []
+    model = estimate_poses(
+        [sfm_views["images"][i] for i in ring], [sfm_views["names"][i] for i in ring],
+        intrinsics=[true[0].K] * len(ring), masks=[sfm_views["masks"][i] for i in ring], options=SfmOptions(),
+        workdir=tmp_path / "b", fallback_images=[np.full_like(sfm_views["images"][i], 0.3) for i in ring],
+        progress=lambda f, s: calls.append((f, s)),
+    )
+    assert not model.fallback and model.num_registered == len(ring)
+    assert not (tmp_path / "b" / "fallback").exists()
+    fractions = [f for f, _ in calls]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+
+
+def test_fallback_images_must_match_the_views(sfm_views: dict, tmp_path: Path) -> None:
+    with pytest.raises(ShapeError, match="fallback images"):
+        estimate_poses(
+            sfm_views["images"], sfm_views["names"], options=SfmOptions(), workdir=tmp_path,
+            fallback_images=sfm_views["images"][:3],
+        )
