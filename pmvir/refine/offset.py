@@ -248,7 +248,7 @@ def photo_consistent_offset(
     max_px: float = 1.5,
     step_px: float = 0.25,
     min_pixels: int = 500,
-    min_contrast: float = 0.01,
+    min_curvature: float = 0.01,
 ) -> OffsetScan:
     """Scan offsets of the whole mesh along its vertex normals for the most photo-consistent one.
 
@@ -260,9 +260,13 @@ def photo_consistent_offset(
         window: ZNCC window side, pixels (odd).
         max_px, step_px: the scan covers [-max_px, max_px] mean ground sampling distances.
         min_pixels: fewer usable windows than this: no offset is applied.
-        min_contrast: least rise of the cost from its minimum to the lower of the scan's two ends,
-            relative to the minimum; below it the views barely tell the offsets apart (little
-            texture: the windows hold noise and smooth shading) and no offset is applied.
+        min_curvature: least curvature of the scan, relative to its minimum cost, per px^2 (the
+            quadratic coefficient of a parabola fitted to the whole scan, divided by the
+            minimum); below it the views barely tell the offsets apart (little texture: the
+            windows hold noise and smooth shading) and no offset is applied. A curvature, not
+            the rise to the scan's ends, so that it does not depend on the scan's range or on
+            where in it the minimum lies (the refinement's later scans cover +-0.75 px). 0: no such
+            rule.
 
     Returns:
         :class:`OffsetScan`; move the vertices by ``offset`` along ``vertex_normals``.
@@ -276,8 +280,8 @@ def photo_consistent_offset(
         raise ConfigError(f"the ZNCC window must be odd and at least 3 pixels, got {window}")
     if not 0.0 < step_px <= max_px:
         raise ConfigError(f"expected 0 < step_px <= max_px, got {step_px} and {max_px}")
-    if min_contrast < 0.0:
-        raise ConfigError(f"min_contrast must be >= 0, got {min_contrast}")
+    if min_curvature < 0.0:
+        raise ConfigError(f"min_curvature must be >= 0, got {min_curvature}")
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     normals = vertex_normals(vertices, faces).astype(np.float64)
@@ -307,13 +311,13 @@ def photo_consistent_offset(
     best = int(np.argmin(costs_a))
     if best == 0 or best == len(costs_a) - 1:
         return scan(0.0, False, f"the minimum is at the scan's end ({offsets_px[best]:+.2f} px)")
-    contrast = (min(costs_a[0], costs_a[-1]) - costs_a[best]) / max(costs_a[best], 1e-12)
-    if contrast < min_contrast:
+    curvature = float(np.polyfit(offsets_px, costs_a, 2)[0]) / max(float(costs_a[best]), 1e-12)
+    if min_curvature > 0.0 and curvature < min_curvature:
         return scan(
             0.0,
             False,
-            f"the cost rises only {100 * contrast:.2f}% from its minimum to the scan's ends (at least "
-            f"{100 * min_contrast:.0f}% needed): too little texture to tell the offsets apart",
+            f"the cost's curvature is only {100 * curvature:.3f}% of its minimum per px^2 (at least "
+            f"{100 * min_curvature:.3f}% needed): too little texture to tell the offsets apart",
         )
     # a parabola through the minimum and up to two samples on each side (least squares)
     near = slice(max(best - 2, 0), min(best + 3, len(costs_a)))
