@@ -24,6 +24,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import open3d as o3d
 from scipy.ndimage import uniform_filter
@@ -48,6 +49,8 @@ class OffsetScan:
         pixels: windows that entered the cost (per offset, the same set).
         applied: whether an offset was chosen.
         reason: why not, when not applied.
+        blurred_costs: with ``deblur_px``, the costs of the scan on the images blurred by it.
+        blurred_offset_px: with ``deblur_px``, that scan's minimum, pixels (None when it has none).
     """
 
     offsets_px: np.ndarray
@@ -57,9 +60,17 @@ class OffsetScan:
     pixels: int
     applied: bool
     reason: str = ""
+    blurred_costs: np.ndarray | None = None
+    blurred_offset_px: float | None = None
 
     def to_dict(self) -> dict:
-        return {
+        extra = {}
+        if self.blurred_costs is not None:
+            extra = {
+                "blurred_scan_cost": [round(float(x), 6) for x in self.blurred_costs],
+                "blurred_offset_px": self.blurred_offset_px,
+            }
+        return extra | {
             "offset": self.offset,
             "offset_px": self.offset / self.pixel_size if self.pixel_size > 0 else 0.0,
             "pixel_size": self.pixel_size,
@@ -249,6 +260,7 @@ def photo_consistent_offset(
     step_px: float = 0.25,
     min_pixels: int = 500,
     min_curvature: float = 0.01,
+    deblur_px: float = 0.0,
 ) -> OffsetScan:
     """Scan offsets of the whole mesh along its vertex normals for the most photo-consistent one.
 
@@ -268,6 +280,12 @@ def photo_consistent_offset(
             where in it the minimum lies (the refinement's later scans cover +-0.75 px). 0: no such
             rule.
 
+        deblur_px: 0, or the Gaussian blur (pixels) the images are taken to hold: the scan runs
+            again on the images blurred by it and the offset is extrapolated to no blur,
+            ``2 o - o_blurred``. Image blur (demosaicing's above all) moves the scan's minimum
+            inward in proportion to its variance (README: 1.6 px matches the default
+            demosaicing on the synthetic captures).
+
     Returns:
         :class:`OffsetScan`; move the vertices by ``offset`` along ``vertex_normals``.
 
@@ -282,6 +300,8 @@ def photo_consistent_offset(
         raise ConfigError(f"expected 0 < step_px <= max_px, got {step_px} and {max_px}")
     if min_curvature < 0.0:
         raise ConfigError(f"min_curvature must be >= 0, got {min_curvature}")
+    if deblur_px < 0.0:
+        raise ConfigError(f"deblur_px must be >= 0, got {deblur_px}")
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     normals = vertex_normals(vertices, faces).astype(np.float64)
@@ -292,16 +312,18 @@ def photo_consistent_offset(
     offsets_px = np.arange(-k, k + 1) * step_px
     greys = [_grey(o) for o in observations]
     valid = [o.valid for o in observations]
-    pairs = _pairs(
-        vertices, faces, cameras, valid, neighbour_views(cameras, neighbours), min_cos, greys, window
-    )
-    costs, counts = [], []
-    for d in offsets_px:
-        cost, count = _zncc_cost(vertices + d * pixel_size * normals, faces, cameras, greys, pairs)
-        costs.append(cost)
-        counts.append(count)
-    costs_a = np.asarray(costs)
-    pixels = int(min(counts)) if counts else 0
+    nearest = neighbour_views(cameras, neighbours)
+
+    def costs_of(images: list[np.ndarray]) -> tuple[np.ndarray, int]:
+        pairs = _pairs(vertices, faces, cameras, valid, nearest, min_cos, images, window)
+        costs, counts = [], []
+        for d in offsets_px:
+            cost, count = _zncc_cost(vertices + d * pixel_size * normals, faces, cameras, images, pairs)
+            costs.append(cost)
+            counts.append(count)
+        return np.asarray(costs), (int(min(counts)) if counts else 0)
+
+    costs_a, pixels = costs_of(greys)
 
     def scan(offset: float, applied: bool, reason: str = "") -> OffsetScan:
         return OffsetScan(offsets_px, costs_a, pixel_size, offset, pixels, applied, reason)
@@ -319,8 +341,26 @@ def photo_consistent_offset(
             f"the cost's curvature is only {100 * curvature:.3f}% of its minimum per px^2 (at least "
             f"{100 * min_curvature:.3f}% needed): too little texture to tell the offsets apart",
         )
-    # a parabola through the minimum and up to two samples on each side (least squares)
-    near = slice(max(best - 2, 0), min(best + 3, len(costs_a)))
-    a2, a1, _ = np.polyfit(offsets_px[near] - offsets_px[best], costs_a[near], 2)
+    found = _minimum_px(offsets_px, costs_a, step_px)
+    if deblur_px <= 0.0:
+        return scan(found * pixel_size, True)
+    blurred = [cv2.GaussianBlur(g, (0, 0), deblur_px) for g in greys]
+    blurred_costs, _ = costs_of(blurred)
+    b = int(np.argmin(blurred_costs))
+    at_end = b in (0, len(blurred_costs) - 1) or not np.all(np.isfinite(blurred_costs))
+    blurred_px = None if at_end else _minimum_px(offsets_px, blurred_costs, step_px)
+    # no interior minimum on the blurred images: keep the plain scan's
+    deblurred = found if blurred_px is None else 2.0 * found - blurred_px
+    deblurred = float(np.clip(deblurred, offsets_px[0], offsets_px[-1]))
+    return OffsetScan(
+        offsets_px, costs_a, pixel_size, deblurred * pixel_size, pixels, True, "", blurred_costs, blurred_px
+    )
+
+
+def _minimum_px(offsets_px: np.ndarray, costs: np.ndarray, step_px: float) -> float:
+    """The scan's minimum in pixels: a parabola through the lowest sample and up to two on each side."""
+    best = int(np.argmin(costs))
+    near = slice(max(best - 2, 0), min(best + 3, len(costs)))
+    a2, a1, _ = np.polyfit(offsets_px[near] - offsets_px[best], costs[near], 2)
     sub = -a1 / (2.0 * a2) if a2 > 0 else 0.0
-    return scan(float((offsets_px[best] + np.clip(sub, -step_px, step_px)) * pixel_size), True)
+    return float(offsets_px[best] + np.clip(sub, -step_px, step_px))

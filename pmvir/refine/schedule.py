@@ -951,6 +951,7 @@ def _offset_scan(
         setup.observations,
         min_cos=opts.offset_scan_min_cos,
         max_px=0.75 if scans else 1.5,
+        deblur_px=opts.offset_scan_deblur_px,
     )
     if not scan.applied:
         return state, [*scans, scan]
