@@ -112,6 +112,7 @@ class _Pair:
     ref_mean: np.ndarray  # (n,) window mean and variance of the reference grey
     ref_var: np.ndarray
     window: int
+    origin: tuple[int, int] = (0, 0)  # the box's top-left pixel (row, column) in the reference view
 
 
 def _pair(
@@ -137,7 +138,14 @@ def _pair(
     safe = np.maximum(cover, 1e-12)
     mean = uniform_filter(ref_masked, window, mode="constant") / safe
     var = uniform_filter(ref_masked * ref_masked, window, mode="constant") / safe - mean * mean
-    return _Pair(ref, src, faces, rays, r, c, shape, ref_masked, cover[r, c], mean[r, c], var[r, c], window)
+    return _Pair(
+        ref, src, faces, rays, r, c, shape, ref_masked, cover[r, c], mean[r, c], var[r, c], window, (r0, c0)
+    )
+
+
+def _with_grey(p: _Pair, grey: np.ndarray) -> _Pair:
+    """The same pixels and rays with another reference image's window statistics (no new ray casting)."""
+    return _pair(p.ref, p.src, p.rows + p.origin[0], p.cols + p.origin[1], p.faces, p.rays, grey, p.window)
 
 
 def _grey(obs: Observation) -> np.ndarray:
@@ -279,7 +287,6 @@ def photo_consistent_offset(
             the rise to the scan's ends, so that it does not depend on the scan's range or on
             where in it the minimum lies (the refinement's later scans cover +-0.75 px). 0: no such
             rule.
-
         deblur_px: 0, or the Gaussian blur (pixels) the images are taken to hold: the scan runs
             again on the images blurred by it and the offset is extrapolated to no blur,
             ``2 o - o_blurred``. Image blur (demosaicing's above all) moves the scan's minimum
@@ -314,8 +321,9 @@ def photo_consistent_offset(
     valid = [o.valid for o in observations]
     nearest = neighbour_views(cameras, neighbours)
 
-    def costs_of(images: list[np.ndarray]) -> tuple[np.ndarray, int]:
-        pairs = _pairs(vertices, faces, cameras, valid, nearest, min_cos, images, window)
+    pairs = _pairs(vertices, faces, cameras, valid, nearest, min_cos, greys, window)
+
+    def costs_of(images: list[np.ndarray], pairs: list[_Pair]) -> tuple[np.ndarray, int]:
         costs, counts = [], []
         for d in offsets_px:
             cost, count = _zncc_cost(vertices + d * pixel_size * normals, faces, cameras, images, pairs)
@@ -323,7 +331,7 @@ def photo_consistent_offset(
             counts.append(count)
         return np.asarray(costs), (int(min(counts)) if counts else 0)
 
-    costs_a, pixels = costs_of(greys)
+    costs_a, pixels = costs_of(greys, pairs)
 
     def scan(offset: float, applied: bool, reason: str = "") -> OffsetScan:
         return OffsetScan(offsets_px, costs_a, pixel_size, offset, pixels, applied, reason)
@@ -345,7 +353,7 @@ def photo_consistent_offset(
     if deblur_px <= 0.0:
         return scan(found * pixel_size, True)
     blurred = [cv2.GaussianBlur(g, (0, 0), deblur_px) for g in greys]
-    blurred_costs, _ = costs_of(blurred)
+    blurred_costs, _ = costs_of(blurred, [_with_grey(p, blurred[p.ref]) for p in pairs])
     b = int(np.argmin(blurred_costs))
     at_end = b in (0, len(blurred_costs) - 1) or not np.all(np.isfinite(blurred_costs))
     blurred_px = None if at_end else _minimum_px(offsets_px, blurred_costs, step_px)
