@@ -338,15 +338,22 @@ def estimate_poses(
     except ReconstructionError as exc:
         if first is not None:
             report(1.0, "poses done")
-            return first
+            return _with_both_times(first, t0)
         raise ReconstructionError(f"{first_error}; on the second images: {exc}") from exc
     if first is not None and first.num_registered >= second.num_registered:
-        return first
+        return _with_both_times(first, t0)
     second.fallback = True
     # the total counts both runs; "first_images" is the time of the first one
     second.timings["first_images"] = time.perf_counter() - t0 - second.timings["total"]
     second.timings["total"] = time.perf_counter() - t0
     return second
+
+
+def _with_both_times(first: SparseModel, t0: float) -> SparseModel:
+    """The first images' model kept after a second run: its total counts both, "second_images" the second."""
+    first.timings["second_images"] = time.perf_counter() - t0 - first.timings["total"]
+    first.timings["total"] = time.perf_counter() - t0
+    return first
 
 
 def _estimate_poses(

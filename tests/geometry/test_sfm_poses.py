@@ -357,6 +357,7 @@ def test_fallback_images_register_the_views_the_first_ones_leave_out(sfm_views: 
         options=SfmOptions(), workdir=tmp_path / "a", fallback_images=sfm_views["images"],
     )
     assert model.fallback and model.registered == [True] * 36
+    assert model.timings["first_images"] > 0 and model.timings["total"] > model.timings["first_images"]
     err, scene = _centre_errors(model, true)
     assert err.max() <= 0.005 * scene
     assert (tmp_path / "a" / "fallback" / "database.db").is_file()
