@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import os
+import random
 import shutil
 import signal
 import socket
@@ -34,11 +35,41 @@ import numpy as np
 from pmvir.io.frames import write_frame
 
 
+def _ephemeral_range() -> tuple[int, int]:
+    """The kernel's range for outgoing connections' local ports (Linux; the IANA range elsewhere)."""
+    try:
+        lo, hi = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
+        return int(lo), int(hi)
+    except (OSError, ValueError):
+        return 49152, 65535
+
+
 def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nothing listens on right now."""
+    """A TCP port on 127.0.0.1 that nothing listens on right now, outside the ephemeral range.
+
+    A port the kernel hands out for ``bind(0)`` lies in the ephemeral range, where
+    any outgoing connection (a Redis client, an HTTP poll) may be given it again
+    between this check and the server's own bind ("address already in use"; seen
+    in CI). Ports below that range are only ever taken by an explicit bind.
+    """
+    lo, _ = _ephemeral_range()
+    rng = random.Random(os.getpid() ^ time.monotonic_ns())
+    for _ in range(200):
+        port = rng.randrange(max(1024, lo - 12000), lo)
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def _lost_bind(proc: Proc) -> bool:
+    """Whether ``proc`` exited because its port was taken after :func:`free_port` chose it."""
+    return proc.popen.poll() is not None and "already in use" in proc.tail().lower()
 
 
 def _wait(pred, timeout: float, what: str, proc: Proc | None = None) -> None:
@@ -164,10 +195,25 @@ class ServiceStack:
         self.api: Proc | None = None
         self.workers: list[Proc] = []
         self._n = 0
+        self._redis_started = self._api_started = False
 
     # -- parts
 
     def start_redis(self) -> Proc:
+        """Start redis-server; a first start whose port was taken meanwhile moves to another port."""
+        for attempt in range(3):
+            try:
+                return self._start_redis()
+            except (RuntimeError, TimeoutError):
+                if self.redis is None or not _lost_bind(self.redis) or self._redis_started or attempt == 2:
+                    raise
+                self.redis.stop()
+                self.redis_port = free_port()
+                self.redis_url = f"redis://127.0.0.1:{self.redis_port}/0"
+                self.env["PMVIR_REDIS_URL"] = self.redis_url
+        raise AssertionError("unreachable")
+
+    def _start_redis(self) -> Proc:
         argv = [
             "redis-server",
             "--port",
@@ -193,9 +239,26 @@ class ServiceStack:
         client = redis_py.Redis(host="127.0.0.1", port=self.redis_port, socket_connect_timeout=0.5)
         _wait(client.ping, 15, "redis-server", self.redis)
         client.close()
+        self._redis_started = True
         return self.redis
 
     def start_api(self) -> Proc:
+        """Start uvicorn; a first start whose port was taken meanwhile moves to another port.
+
+        A restart keeps the port (clients hold the URL), so it is not moved.
+        """
+        for attempt in range(3):
+            try:
+                return self._start_api()
+            except (RuntimeError, TimeoutError):
+                if self.api is None or not _lost_bind(self.api) or self._api_started or attempt == 2:
+                    raise
+                self.api.stop()
+                self.api_port = free_port()
+                self.url = f"http://127.0.0.1:{self.api_port}"
+        raise AssertionError("unreachable")
+
+    def _start_api(self) -> Proc:
         argv = [
             sys.executable,
             "-m",
@@ -214,6 +277,7 @@ class ServiceStack:
         import httpx
 
         _wait(lambda: httpx.get(self.url + "/healthz", timeout=1).status_code == 200, 30, "uvicorn", self.api)
+        self._api_started = True
         return self.api
 
     def start_worker(self, *, pool: str = "prefork", wait: bool = True) -> Proc:
