@@ -27,7 +27,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -199,19 +199,31 @@ class ServiceStack:
 
     # -- parts
 
-    def start_redis(self) -> Proc:
-        """Start redis-server; a first start whose port was taken meanwhile moves to another port."""
+    def _first_start(
+        self, start: Callable[[], Proc], part: str, started: bool, move: Callable[[], None]
+    ) -> Proc:
+        """Run ``start``; a first start whose port was taken meanwhile moves (``move``) and tries again.
+
+        A restart keeps its port (clients hold the URL), so it is never moved.
+        """
         for attempt in range(3):
             try:
-                return self._start_redis()
+                return start()
             except (RuntimeError, TimeoutError):
-                if self.redis is None or not _lost_bind(self.redis) or self._redis_started or attempt == 2:
+                proc = getattr(self, part)
+                if started or proc is None or not _lost_bind(proc) or attempt == 2:
                     raise
-                self.redis.stop()
-                self.redis_port = free_port()
-                self.redis_url = f"redis://127.0.0.1:{self.redis_port}/0"
-                self.env["PMVIR_REDIS_URL"] = self.redis_url
+                proc.stop()
+                move()
         raise AssertionError("unreachable")
+
+    def start_redis(self) -> Proc:
+        def move() -> None:
+            self.redis_port = free_port()
+            self.redis_url = f"redis://127.0.0.1:{self.redis_port}/0"
+            self.env["PMVIR_REDIS_URL"] = self.redis_url
+
+        return self._first_start(self._start_redis, "redis", self._redis_started, move)
 
     def _start_redis(self) -> Proc:
         argv = [
@@ -243,20 +255,11 @@ class ServiceStack:
         return self.redis
 
     def start_api(self) -> Proc:
-        """Start uvicorn; a first start whose port was taken meanwhile moves to another port.
+        def move() -> None:
+            self.api_port = free_port()
+            self.url = f"http://127.0.0.1:{self.api_port}"
 
-        A restart keeps the port (clients hold the URL), so it is not moved.
-        """
-        for attempt in range(3):
-            try:
-                return self._start_api()
-            except (RuntimeError, TimeoutError):
-                if self.api is None or not _lost_bind(self.api) or self._api_started or attempt == 2:
-                    raise
-                self.api.stop()
-                self.api_port = free_port()
-                self.url = f"http://127.0.0.1:{self.api_port}"
-        raise AssertionError("unreachable")
+        return self._first_start(self._start_api, "api", self._api_started, move)
 
     def _start_api(self) -> Proc:
         argv = [
