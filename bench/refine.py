@@ -222,10 +222,28 @@ class Case:
 
 
 def refine_options(variant: str, args: argparse.Namespace) -> RefineOptions:
-    values = {**VARIANTS[variant]}
+    values = {**args.refine_option, **VARIANTS[variant]}
     if args.iterations is not None:
         values["max_iterations"] = args.iterations
     return RefineOptions(**values)
+
+
+def parse_refine_options(parser: argparse.ArgumentParser, items: list[str]) -> dict:
+    """``KEY=VALUE`` pairs (VALUE as JSON, else a string), each key a RefineOptions field, validated."""
+    out: dict = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or key not in RefineOptions.model_fields:
+            parser.error(f"--refine-option {item!r}: expected KEY=VALUE with KEY a refine option")
+        try:
+            out[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            out[key] = raw
+    try:
+        RefineOptions(**out)
+    except ValueError as exc:
+        parser.error(f"--refine-option: {exc}")
+    return out
 
 
 def metrics_row(result, seconds: float) -> dict:
@@ -508,9 +526,18 @@ def main() -> None:
         default=Path(tempfile.gettempdir()) / "pmvir-bench" / "refine",
         help="cache of captures, initial surfaces and measured rows",
     )
+    parser.add_argument(
+        "--refine-option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a refine option for every refined row (JSON value, e.g. offset_scan_deblur_px=1.6); the rows' own "
+        "variant wins where both set a key. Repeatable",
+    )
     parser.add_argument("--fresh", action="store_true", help="measure every row again (captures stay cached)")
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "refine.json")
     args = parser.parse_args()
+    args.refine_option = parse_refine_options(parser, args.refine_option)
     models_dir = shared_dir() / "data" / "models"
     if not models_dir.is_dir():
         raise SystemExit(
@@ -551,6 +578,7 @@ def main() -> None:
             "iterations": args.iterations,
             "subdivision_max_area_px": args.subdivision_area,
             "samples": args.samples,
+            "refine_options": args.refine_option,
             "poses": "true (from capture.json)",
         },
         "units": "accuracy/completeness in GT bounding-box diagonals; albedo RMSE linear; illumination error "
@@ -558,7 +586,8 @@ def main() -> None:
         "tables": {},
     }
     text = []
-    by = f" ({args.renderer} renderer, {args.views} views {args.size[0]}x{args.size[1]})"
+    extra = "".join(f", {k}={json.dumps(v)}" for k, v in args.refine_option.items())
+    by = f" ({args.renderer} renderer, {args.views} views {args.size[0]}x{args.size[1]}{extra})"
     if "main" in args.tables:
         rows = {m: rows_for(m, "plastic", ROWS["main"]) for m in args.models}
         doc["tables"]["main"] = {
