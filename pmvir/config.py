@@ -817,13 +817,14 @@ class RefineOptions(_Options):
         "Mitsuba blob: +24.8% -> +28.7%); measured in the README.",
     )
     offset_scan_deblur_px: float = Field(
-        default=0.0,
+        default=1.6,
         ge=0.0,
-        description="With offset_scan: 0, or the Gaussian blur (pixels) the decoded images are taken to hold; "
-        "each scan runs again on the images blurred by it and extrapolates its offset to no blur (2 o - "
+        description="With offset_scan: the Gaussian blur (pixels) the decoded images are taken to hold, or 0 "
+        "(off); each scan runs again on the images blurred by it and extrapolates its offset to no blur (2 o - "
         "o_blurred). Blur moves the scan's minimum inward in proportion to its variance; the default "
         "demosaicing acts like 1.6 px: at the true surfaces this takes the scan from -0.08..-0.27 px to "
-        "-0.01..-0.14 px (README). Doubles the scans' time.",
+        "-0.01..-0.14 px, and it raised the refined accuracy on all five measured captures (built-in bunny, "
+        "dragon, armadillo; Mitsuba knot and blob; README). Doubles the scans' time.",
     )
     offset_scan_min_cos: float = Field(
         default=0.8,
