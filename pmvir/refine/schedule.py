@@ -50,8 +50,8 @@ from pmvir.refine.energy import (
     StageProblem,
     azimuth,
     azimuth_distance,
+    diffuse_view_factor,
     energy_terms,
-    fresnel_transmittance,
     pair_light,
     psm_weights,
     total_energy,
@@ -573,7 +573,14 @@ def _stage_problem(
         units=setup.units,
         pho_weight=pho_weight,
         diffuse_fresnel_ior=opts.diffuse_fresnel_ior,
+        diffuse_dop_ior=_diffuse_dop_ior(opts),
     )
+
+
+def _diffuse_dop_ior(opts: RefineOptions) -> float:
+    """``diffuse_dop_ior`` where E_pho observes I_min, 0 where it observes I_int (which keeps the
+    diffuse light's polarized part)."""
+    return opts.diffuse_dop_ior if opts.intensity == "min" else 0.0
 
 
 def dop_floor(samples: PairSamples, opts: RefineOptions) -> torch.Tensor | float:
@@ -658,9 +665,14 @@ def _robust_pho_weights(
     with torch.no_grad():
         normals = vertex_normals(state.vertices, setup.topo.faces)
         light = pair_light(normals, state.sh, state.rgb_scale, pairs)
-        if setup.opts.diffuse_fresnel_ior > 0.0:
-            cos_o = -(samples.normal_cam * samples.ray_cam).sum(-1)
-            light = light * fresnel_transmittance(cos_o, setup.opts.diffuse_fresnel_ior)[:, None]
+        factor = diffuse_view_factor(
+            samples.normal_cam,
+            samples.ray_cam,
+            fresnel_ior=setup.opts.diffuse_fresnel_ior,
+            dop_ior=_diffuse_dop_ior(setup.opts),
+        )
+        if factor is not None:
+            light = light * factor[:, None]
         diff = samples.intensity - state.albedo.index_select(0, pairs.vertex) * light
         r = torch.linalg.vector_norm(diff, dim=1)
         scale = setup.opts.pho_robust_scale * r.median().clamp_min(1e-12)

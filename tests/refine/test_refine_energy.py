@@ -15,6 +15,8 @@ from pmvir.refine.energy import (
     StageProblem,
     azimuth,
     azimuth_distance,
+    diffuse_min_fraction,
+    diffuse_view_factor,
     energy_terms,
     fresnel_transmittance,
     geometric_smoothness_term,
@@ -433,22 +435,77 @@ def test_fresnel_transmittance_against_brewster_and_the_synth_fresnel_code() -> 
     )
 
 
-def _pho_options(problem, x, k, sh, sc):
-    """E_pho with the Fresnel-transmission diffuse factor and fixed per-pair weights."""
+def test_diffuse_min_fraction_is_one_minus_the_synth_diffuse_dop_and_with_fresnel_t_s() -> None:
+    """1 - rho_d from pmvir.synth.materials' diffuse DoP (the renderer's), and times the unpolarized
+    transmittance it is T_s / T_s(0): the s-polarized transmittance alone is what I_min keeps."""
+    from pmvir.synth.materials import diffuse_dop, fresnel_reflectance
+
+    n = 1.5
+    cos = np.linspace(0.05, 1.0, 50)
+    got = diffuse_min_fraction(torch.from_numpy(cos), n).numpy()
+    np.testing.assert_allclose(got, 1.0 - diffuse_dop(cos, n), rtol=1e-9)
+    assert got[-1] == pytest.approx(1.0, abs=1e-12)
+    assert float(diffuse_min_fraction(torch.tensor(0.5, dtype=F64), n)) == pytest.approx(0.9041, abs=1e-4)
+    r_s, _ = fresnel_reflectance(cos, n)
+    t_s0 = 1.0 - ((n - 1) / (n + 1)) ** 2
+    both = got * fresnel_transmittance(torch.from_numpy(cos), n).numpy()
+    np.testing.assert_allclose(both, (1.0 - r_s) / t_s0, rtol=1e-9)
+
+
+def test_diffuse_dop_factor_fits_the_renderers_i_min_at_the_true_surface() -> None:
+    """The built-in renderer's plastic I_min of a diffuse surface is K E (1 - rho_d): with the
+    factor E_pho's rendering equals it at every emission angle, without it the residual grows
+    toward grazing (what pulls normals off the truth)."""
+    from pmvir.synth.materials import material_stokes
+
+    cos = np.linspace(0.3, 1.0, 30)
+    n_pts = len(cos)
+    k, e = np.full((n_pts, 3), 0.5), np.full((n_pts, 3), 0.8)
+    stokes = material_stokes(
+        "plastic",
+        albedo=k,
+        diffuse_shading=e,
+        mirror_radiance=np.zeros((n_pts, 3)),
+        cos_zenith=cos,
+        azimuth=np.zeros(n_pts),
+        ior=1.5,
+        extinction=0.0,
+        specular=1.0,
+    ).astype(np.float64)
+    i_min = stokes[:, :, 0] - np.hypot(stokes[:, :, 1], stokes[:, :, 2])
+    normal = torch.from_numpy(np.stack([np.sqrt(1 - cos**2), np.zeros(n_pts), -cos], 1))
+    ray = torch.tensor([0.0, 0.0, 1.0], dtype=F64).expand(n_pts, 3)
+    factor = diffuse_view_factor(normal, ray, fresnel_ior=0.0, dop_ior=1.5)
+    assert factor is not None
+    assert diffuse_view_factor(normal, ray, fresnel_ior=0.0, dop_ior=0.0) is None
+    np.testing.assert_allclose(k * e * factor.numpy()[:, None], i_min, rtol=1e-5)
+    lambert_err = np.abs(k * e - i_min).max(1)
+    assert lambert_err[0] > 0.05 * i_min[0, 0] and lambert_err[-1] < 1e-6
+
+
+def _pho_options(problem, x, k, sh, sc, *, fresnel=1.5, dop=0.0):
+    """E_pho with the diffuse view factors and fixed per-pair weights."""
     from dataclasses import replace
 
     weight = torch.linspace(0.2, 1.0, problem.pairs.size, dtype=F64)
-    opt = replace(problem, diffuse_fresnel_ior=1.5, pho_weight=weight, polarimetric=False)
+    opt = replace(
+        problem, diffuse_fresnel_ior=fresnel, diffuse_dop_ior=dop, pho_weight=weight, polarimetric=False
+    )
     return energy_terms(x, k, sh, sc, opt)["pho"]
 
 
-def test_gradient_of_the_fresnel_weighted_photometric_term(small_problem) -> None:
+@pytest.mark.parametrize("fresnel, dop", [(1.5, 0.0), (0.0, 1.5), (1.5, 1.4)])
+def test_gradient_of_the_diffuse_factor_photometric_term(small_problem, fresnel, dop) -> None:
     problem, inputs = small_problem
-    value = float(_pho_options(problem, *inputs).detach())
+    value = float(_pho_options(problem, *inputs, fresnel=fresnel, dop=dop).detach())
     plain = float(_pho(problem, *inputs).detach())
     assert value > 0.0 and value != pytest.approx(plain)
     assert torch.autograd.gradcheck(
-        lambda *a: _pho_options(problem, *a) / value, inputs, eps=1e-6, atol=1e-7, rtol=1e-4
+        lambda *a: _pho_options(problem, *a, fresnel=fresnel, dop=dop) / value,
+        inputs,
+        eps=1e-6,
+        atol=1e-7,
+        rtol=1e-4,
     )
 
 
