@@ -757,7 +757,7 @@ class RefineOptions(_Options):
     diffuse_dop_ior: float = Field(
         default=0.0,
         ge=0.0,
-        description="With intensity 'min': n > 1 multiplies the rendered colour of each (vertex, view) pair by "
+        description="Only with intensity 'min' (rejected with 'int'): n > 1 multiplies the rendered colour of each (vertex, view) pair by "
         "1 - rho_d, the fraction of a dielectric's diffuse light I_min keeps (its diffuse DoP rho_d = (T_p - "
         "T_s) / (T_p + T_s) at the emission angle, index n): a diffuse surface is darker in I_min toward grazing "
         "(0.96 at 45 degrees, 0.90 at 60 for n = 1.5), which the Lambertian model reads as a tilted normal. "
@@ -862,6 +862,11 @@ class RefineOptions(_Options):
             raise ValueError("the tau weights must be >= 0")
         if min(self.gsm_exponent) < 1.0:
             raise ValueError(f"gsm_exponent entries must be >= 1, got {self.gsm_exponent}")
+        if self.diffuse_dop_ior > 0.0 and self.intensity != "min":
+            raise ValueError(
+                f"diffuse_dop_ior {self.diffuse_dop_ior} models I_min (the part of the diffuse light I_min "
+                "keeps) but intensity is 'int', which keeps all of it; set diffuse_dop_ior 0 or intensity 'min'"
+            )
         return self
 
     @property

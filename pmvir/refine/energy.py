@@ -173,14 +173,12 @@ def diffuse_view_factor(
         (P,) factor or None when both are off.
     """
     if fresnel_ior <= 0.0 and dop_ior <= 0.0:
-        return None
+        return None  # the default: no work in the energy's hot path
     cos_o = -(normal_cam * ray_cam).sum(-1)
-    factor = torch.ones_like(cos_o)
-    if fresnel_ior > 0.0:
-        factor = factor * fresnel_transmittance(cos_o, fresnel_ior)
-    if dop_ior > 0.0:
-        factor = factor * diffuse_min_fraction(cos_o, dop_ior)
-    return factor
+    if dop_ior <= 0.0:
+        return fresnel_transmittance(cos_o, fresnel_ior)
+    keep = diffuse_min_fraction(cos_o, dop_ior)
+    return keep if fresnel_ior <= 0.0 else keep * fresnel_transmittance(cos_o, fresnel_ior)
 
 
 def photometric_term(
@@ -339,8 +337,8 @@ class StageProblem:
         diffuse_fresnel_ior: > 0: the rendered colour of each pair is multiplied by the Fresnel
             transmittance toward its camera (:func:`fresnel_transmittance`); 0: Lambertian.
         diffuse_dop_ior: > 0: the rendered colour of each pair is multiplied by the fraction of
-            diffuse light I_min keeps (:func:`diffuse_min_fraction`); 0: off (E_pho on I_int must
-            leave it 0).
+            diffuse light I_min keeps (:func:`diffuse_min_fraction`); 0: off (RefineOptions rejects
+            it with E_pho on I_int).
         k, t, units: term parameters.
     """
 

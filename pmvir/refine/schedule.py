@@ -573,14 +573,8 @@ def _stage_problem(
         units=setup.units,
         pho_weight=pho_weight,
         diffuse_fresnel_ior=opts.diffuse_fresnel_ior,
-        diffuse_dop_ior=_diffuse_dop_ior(opts),
+        diffuse_dop_ior=opts.diffuse_dop_ior,
     )
-
-
-def _diffuse_dop_ior(opts: RefineOptions) -> float:
-    """``diffuse_dop_ior`` where E_pho observes I_min, 0 where it observes I_int (which keeps the
-    diffuse light's polarized part)."""
-    return opts.diffuse_dop_ior if opts.intensity == "min" else 0.0
 
 
 def dop_floor(samples: PairSamples, opts: RefineOptions) -> torch.Tensor | float:
@@ -669,7 +663,7 @@ def _robust_pho_weights(
             samples.normal_cam,
             samples.ray_cam,
             fresnel_ior=setup.opts.diffuse_fresnel_ior,
-            dop_ior=_diffuse_dop_ior(setup.opts),
+            dop_ior=setup.opts.diffuse_dop_ior,
         )
         if factor is not None:
             light = light * factor[:, None]

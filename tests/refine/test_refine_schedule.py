@@ -639,10 +639,10 @@ def test_evidence_dop_floor_is_where_the_aop_stops_agreeing_with_the_surface() -
     assert dop_floor(_evidence_samples(40000, 0.2), strict) == pytest.approx(0.2, abs=0.013)
 
 
-def test_diffuse_dop_factor_applies_only_where_e_pho_observes_i_min() -> None:
-    """I_int keeps the diffuse light's polarized part, so the I_min factor must not darken it."""
-    from pmvir.refine.schedule import _diffuse_dop_ior
-
-    assert _diffuse_dop_ior(RefineOptions(diffuse_dop_ior=1.5)) == 1.5
-    assert _diffuse_dop_ior(RefineOptions(diffuse_dop_ior=1.5, intensity="int")) == 0.0
-    assert _diffuse_dop_ior(RefineOptions()) == 0.0
+def test_diffuse_dop_factor_is_refused_where_e_pho_observes_i_int() -> None:
+    """I_int keeps the diffuse light's polarized part: the I_min factor with intensity 'int' would
+    darken it wrongly, so the options refuse the pair with a message naming both."""
+    assert RefineOptions(diffuse_dop_ior=1.5).diffuse_dop_ior == 1.5
+    with pytest.raises(ValidationError, match=r"diffuse_dop_ior.*intensity"):
+        RefineOptions(diffuse_dop_ior=1.5, intensity="int")
+    assert RefineOptions(intensity="int").diffuse_dop_ior == 0.0
