@@ -46,21 +46,20 @@ import platform
 import sys
 import tempfile
 import time
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from pmvir.camera import Camera
 from pmvir.capture import open_capture
-from pmvir.config import GeometryOptions, PipelineConfig, RefineOptions
+from pmvir.config import DecodeOptions, GeometryOptions, PipelineConfig, RefineOptions
 from pmvir.errors import PmvirError
 from pmvir.evaluate import evaluate
 from pmvir.geometry.stage import run_geometry
 from pmvir.io.illumination import illumination_from_arrays, read_illumination
 from pmvir.io.ply import Mesh, read_mesh, write_mesh_ply
-from pmvir.pipeline import decode_views
-from pmvir.refine import make_visibility_fn, observation_from_decoded, refine_surface
+from pmvir.pipeline import decode_views, refinement_observations
+from pmvir.refine import make_visibility_fn, refine_surface
 
 ROOT = Path(__file__).resolve().parent
 MODELS = {"bunny": "bunny.ply", "dragon": "dragon.ply", "armadillo": "armadillo.obj"}
@@ -287,9 +286,8 @@ def measure(case: Case, row: str, args: argparse.Namespace) -> dict:
         views = case.views()
         reg = [i for i, c in enumerate(geo["cameras"]) if c is not None]
         cameras = [geo["cameras"][i] for i in reg]
-        observations = [
-            observation_from_decoded(asdict(views[i].images), intensity=opts.intensity) for i in reg
-        ]
+        with open_capture(case.capture) as cap:  # refine.demosaic may decode the frames once more
+            observations = refinement_observations(cap, views, reg, DecodeOptions(), opts)
         gopts = case.geometry_options
         t = time.perf_counter()
         visibility_fn = make_visibility_fn(

@@ -26,7 +26,6 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -38,8 +37,8 @@ from pmvir.evaluate import bbox_diagonal, evaluate
 from pmvir.geometry.subdivision import sqrt3_subdivide
 from pmvir.geometry.visibility import vertex_visibility
 from pmvir.io.ply import Mesh, read_mesh, vertex_normals
-from pmvir.pipeline import decode_views
-from pmvir.refine import make_visibility_fn, observation_from_decoded, refine_surface
+from pmvir.pipeline import decode_views, refinement_observations
+from pmvir.refine import make_visibility_fn, refine_surface
 
 ROOT = Path(__file__).resolve().parent
 
@@ -164,7 +163,8 @@ def run(
         opts = RefineOptions.model_validate(
             {**config.refine.model_dump(), "max_iterations": iterations, **overrides}
         )
-        observations = [observation_from_decoded(asdict(v.images), intensity=opts.intensity) for v in views]
+        with open_capture(capture) as cap:  # refine.demosaic may decode the frames once more
+            observations = refinement_observations(cap, views, list(range(len(views))), config.decode, opts)
         t0 = time.perf_counter()
         refined = refine_surface(
             vertices, faces, cameras, observations, visibility, options=opts, visibility_fn=visibility_fn

@@ -34,6 +34,10 @@ class _Options(BaseModel):
         return value
 
 
+#: The demosaicing methods (:mod:`pmvir.polarization.demosaic`), for decode.demosaic and refine.demosaic.
+DemosaicMethod = Literal["bilinear", "edge-aware", "guided", "eari", "eari-guided"]
+
+
 class DecodeOptions(_Options):
     """Demosaicing and polarization quantities (pipeline stage 1)."""
 
@@ -44,7 +48,7 @@ class DecodeOptions(_Options):
         description="Pixels whose mean intensity (I_int averaged over colours, = s0 / 2, normalized "
         "units) is at or below this are invalid: AoP/DoP are undefined there.",
     )
-    demosaic: Literal["bilinear", "edge-aware", "guided", "eari", "eari-guided"] = Field(
+    demosaic: DemosaicMethod = Field(
         default="guided",
         description="Demosaicing method: 'bilinear' (per-angle Bayer then polarization interpolation, "
         "float32), 'edge-aware' (OpenCV's edge-aware Bayer step, 16-bit, then bilinear), 'guided' "
@@ -649,6 +653,13 @@ class RefineOptions(_Options):
         "saturated) are not sampled: demosaicing mixes the background into them, so a vertex seen there "
         "looks darker (or brighter) than it is and E_pho pulls it toward the image's interior, i.e. into "
         "the object. Measured in the README.",
+    )
+    demosaic: Literal["same"] | DemosaicMethod = Field(
+        default="same",
+        description="Demosaicing of the frames the refinement fits (E_pho, E_pol, E_psm): 'same' uses the decode "
+        "stage's images (decode.demosaic); a method name decodes the registered frames once more with it, for "
+        "the refinement only (SfM, dense stereo, previews and exports keep decode.demosaic's). 'eari' keeps "
+        "pixel-scale relief that 'guided' smooths out of the AoP. Measured in the README.",
     )
     intensity: Literal["min", "int"] = Field(
         default="min",

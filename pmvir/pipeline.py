@@ -20,12 +20,12 @@ from __future__ import annotations
 import platform
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from pmvir import __version__, stage_cache
 from pmvir.capture import Capture, open_capture
-from pmvir.config import PipelineConfig
+from pmvir.config import DecodeOptions, PipelineConfig, RefineOptions
 from pmvir.decode import decode_frame, write_decoded, write_previews
 from pmvir.errors import ConfigError, PmvirError
 from pmvir.export import write_previews as write_view_previews
@@ -36,6 +36,7 @@ from pmvir.io.ply import Mesh
 from pmvir.polarization.stokes import PolarizationImages
 from pmvir.progress import Progress
 from pmvir.refine import RefineResult, make_visibility_fn, observation_from_decoded, refine_surface
+from pmvir.refine.sampling import Observation
 from pmvir.refine.schedule import StageLog
 from pmvir.result import ResultFolder
 from pmvir.stages import STAGES, Stage
@@ -86,6 +87,38 @@ def decode_views(cap: Capture, config: PipelineConfig, progress: Progress | None
         views.append(DecodedView(index=i, name=frame.name, file=frame.file, images=images))
         progress.update((i + 1) / n, f"decoded {frame.file}")
     return views
+
+
+def refinement_observations(
+    cap: Capture,
+    views: list[DecodedView],
+    indices: list[int],
+    decode: DecodeOptions,
+    refine: RefineOptions,
+    progress: Progress | None = None,
+) -> list[Observation]:
+    """The images the refinement fits, for the views ``indices`` of an open capture.
+
+    With ``refine.demosaic`` 'same' (or the decode stage's method) these are the decoded
+    ``views``; otherwise each frame is decoded once more with ``refine.demosaic`` (the decode
+    stage's noise floor, saturation and mask), one at a time, so only the observations stay
+    in memory.
+    """
+    progress = progress or Progress.none()
+    if refine.demosaic in ("same", decode.demosaic):
+        return [
+            observation_from_decoded(vars(views[i].images), intensity=refine.intensity) for i in indices
+        ]
+    options = decode.model_copy(update={"demosaic": refine.demosaic})
+    observations = []
+    for k, i in enumerate(indices):
+        raw = cap.read_raw(i)
+        images = decode_frame(
+            raw.mosaic, cap.layout, saturated=raw.saturated, mask=cap.read_mask(i), options=options
+        )
+        observations.append(observation_from_decoded(vars(images), intensity=refine.intensity))
+        progress.update((k + 1) / len(indices), f"decoded {cap.frames[i].file} with {refine.demosaic}")
+    return observations
 
 
 def run(
@@ -170,8 +203,7 @@ def run(
                 sections["geometry"] = geometry_report(geometry)
         if Stage.REFINE in stages:
             with progress.step(Stage.REFINE, weight[Stage.REFINE]) as p:
-                with p.step("optimize", 0.85) as q:
-                    refined, registered = _refine_stage(cap, views, geometry, config, q)
+                refined, registered = _refine_stage(cap, views, geometry, config, p, share=0.85)
                 mesh = _write_refined(result, geometry, refined, [views[i].file for i in registered])
                 sections["refine"] = refine_report(refined)
                 with p.step("exports", 0.15) as q:
@@ -201,28 +233,36 @@ def _refine_stage(
     geometry: GeometryResult,
     config: PipelineConfig,
     progress: Progress,
+    share: float,
 ) -> tuple[RefineResult, list[int]]:
-    """Polarimetric MVIR on the registered views (stage 3). Returns the result and those views' indices."""
+    """Polarimetric MVIR on the registered views (stage 3), ``share`` of ``progress``.
+
+    Returns the result and those views' indices.
+    """
     registered = [i for i, cam in enumerate(geometry.cameras) if cam is not None]
     cameras = [cam for cam in geometry.cameras if cam is not None]  # in the order of registered
-    observations = [
-        observation_from_decoded(asdict(views[i].images), intensity=config.refine.intensity)
-        for i in registered
-    ]
+    decode_share = 0.0
+    if config.refine.demosaic in ("same", config.decode.demosaic):
+        observations = refinement_observations(cap, views, registered, config.decode, config.refine)
+    else:  # the frames are decoded once more: a timed step of its own
+        decode_share = 0.1 * share
+        with progress.step("images", decode_share) as q:
+            observations = refinement_observations(cap, views, registered, config.decode, config.refine, q)
     masks = [cap.read_mask(i) for i in registered]
     visibility_fn = make_visibility_fn(
         cameras, masks, min_cos=config.geometry.visibility.min_cos, rel_tol=config.geometry.visibility.rel_tol
     )
-    refined = refine_surface(
-        geometry.vertices,
-        geometry.faces,
-        cameras,
-        observations,
-        geometry.visibility[:, registered],
-        options=config.refine,
-        visibility_fn=visibility_fn,
-        progress=progress,
-    )
+    with progress.step("optimize", share - decode_share) as q:
+        refined = refine_surface(
+            geometry.vertices,
+            geometry.faces,
+            cameras,
+            observations,
+            geometry.visibility[:, registered],
+            options=config.refine,
+            visibility_fn=visibility_fn,
+            progress=q,
+        )
     return refined, registered
 
 

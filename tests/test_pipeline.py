@@ -8,12 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pmvir.capture import CaptureManifest, FrameEntry, SensorSpec, write_capture_manifest
+from pmvir.capture import CaptureManifest, FrameEntry, SensorSpec, open_capture, write_capture_manifest
 from pmvir.cli import main
-from pmvir.config import PipelineConfig
+from pmvir.config import DecodeOptions, PipelineConfig
+from pmvir.decode import decode_frame
 from pmvir.errors import CanceledError, ConfigError
 from pmvir.io.frames import write_frame
-from pmvir.pipeline import run
+from pmvir.pipeline import decode_views, refinement_observations, run
 from pmvir.polarization.layout import ANGLES_DEG, IMX250MYR, mosaic
 from pmvir.progress import Progress
 
@@ -106,3 +107,31 @@ def test_reconstruct_cli_runs_and_reports_errors_in_one_line(capture: Path, tmp_
     assert main(["reconstruct", str(capture), "--out", str(tmp_path / "o2"), "--stop-after", "decode", "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert "capture.json" in err and "Traceback" not in err
+
+
+def test_refinement_images_can_come_from_another_demosaicing(capture: Path) -> None:
+    """refine.demosaic decodes the frames once more for the refinement; 'same' reuses the decode stage's."""
+    config = PipelineConfig(decode={"demosaic": "guided", "noise_floor": 0.24})
+    with open_capture(capture) as cap:
+        views = decode_views(cap, config)
+        indices = [2, 0]
+        same = refinement_observations(cap, views, indices, config.decode, config.refine)
+        also_same = refinement_observations(
+            cap, views, indices, config.decode, config.refine.model_copy(update={"demosaic": "guided"})
+        )
+        eari = refinement_observations(
+            cap, views, indices, config.decode, config.refine.model_copy(update={"demosaic": "eari"})
+        )
+        for k, i in enumerate(indices):
+            assert same[k].aop is views[i].images.aop and also_same[k].aop is views[i].images.aop
+            raw = cap.read_raw(i)
+            expected = decode_frame(
+                raw.mosaic, cap.layout, saturated=raw.saturated, options=DecodeOptions(demosaic="eari", noise_floor=0.24)
+            )
+            np.testing.assert_array_equal(eari[k].aop, expected.aop)
+            np.testing.assert_array_equal(eari[k].intensity, expected.i_min)  # refine.intensity 'min'
+            np.testing.assert_array_equal(eari[k].valid, expected.valid)  # the decode stage's noise floor
+            # the sensor noise of the frames makes the two methods' estimates differ pixel by pixel
+            assert np.abs(eari[k].dop - views[i].images.dop).max() > 1e-3
+    # frame 0's mean I_int (0.2) sits under the noise floor 0.24, frame 2's (0.28) above it
+    assert not eari[1].valid.any() and eari[0].valid.mean() > 0.8
