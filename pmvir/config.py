@@ -655,11 +655,13 @@ class RefineOptions(_Options):
         "the object. Measured in the README.",
     )
     demosaic: Literal["same"] | DemosaicMethod = Field(
-        default="same",
+        default="eari",
         description="Demosaicing of the frames the refinement fits (E_pho, E_pol, E_psm): 'same' uses the decode "
         "stage's images (decode.demosaic); a method name decodes the registered frames once more with it, for "
-        "the refinement only (SfM, dense stereo, previews and exports keep decode.demosaic's). 'eari' keeps "
-        "pixel-scale relief that 'guided' smooths out of the AoP. Measured in the README.",
+        "the refinement only (SfM, dense stereo, previews and exports keep decode.demosaic's). 'eari' (default) "
+        "keeps the pixel-scale relief that 'guided' smooths out of the AoP: accuracy gain on the built-in "
+        "Stanford captures +26.7% -> +42.9% on average (armadillo +22.8% -> +44.0%), on Mitsuba-rendered ones "
+        "+24.9% -> +30.9%. Measured in the README.",
     )
     intensity: Literal["min", "int"] = Field(
         default="min",

@@ -115,7 +115,9 @@ def test_refinement_images_can_come_from_another_demosaicing(capture: Path) -> N
     with open_capture(capture) as cap:
         views = decode_views(cap, config)
         indices = [2, 0]
-        same = refinement_observations(cap, views, indices, config.decode, config.refine)
+        same = refinement_observations(
+            cap, views, indices, config.decode, config.refine.model_copy(update={"demosaic": "same"})
+        )
         also_same = refinement_observations(
             cap, views, indices, config.decode, config.refine.model_copy(update={"demosaic": "guided"})
         )

@@ -73,6 +73,12 @@ def test_progress_covers_every_stage_and_never_goes_back(result) -> None:
     fractions = [f for _, f, _ in events]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
     assert {"decode", "geometry", "refine"} <= {s for s, _, _ in events}
+    # the refinement fits its own decoding of every frame (refine.demosaic, eari by default), not the
+    # decode stage's guided images, which fed the geometry
+    capture, _, _ = result
+    files = [f["file"] for f in json.loads((capture / "capture.json").read_text())["frames"]]
+    redecoded = [m for s, _, m in events if s == "refine" and m.endswith(" with eari")]
+    assert len(redecoded) == len(files) and all(any(f in m for m in redecoded) for f in files)
 
 
 def test_result_measures_close_to_the_ground_truth(result) -> None:

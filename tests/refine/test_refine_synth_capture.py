@@ -8,18 +8,16 @@ The initial surface is what the geometric stage makes of it (true poses).
 
 from __future__ import annotations
 
-from dataclasses import asdict
-
 import numpy as np
 import pytest
 
 from pmvir.capture import open_capture
-from pmvir.config import GeometryOptions, PipelineConfig, RefineOptions
+from pmvir.config import DecodeOptions, GeometryOptions, PipelineConfig, RefineOptions
 from pmvir.evaluate import evaluate
 from pmvir.geometry.stage import run_geometry
 from pmvir.io.ply import Mesh, read_mesh
-from pmvir.pipeline import decode_views
-from pmvir.refine import make_visibility_fn, observation_from_decoded, refine_surface
+from pmvir.pipeline import decode_views, refinement_observations
+from pmvir.refine import make_visibility_fn, refine_surface
 from pmvir.synth import synthesize
 
 #: Fewer iterations than the default keep the test short.
@@ -35,9 +33,10 @@ def capture_run(tmp_path_factory: pytest.TempPathFactory):
         views = decode_views(cap, PipelineConfig())
         masks = [cap.read_mask(i) for i in range(len(cap.frames))]
         geo = run_geometry(cap, [v.images for v in views], options=gopts, workdir=root / "work")
-    reg = [i for i, c in enumerate(geo.cameras) if c is not None]
+        reg = [i for i, c in enumerate(geo.cameras) if c is not None]
+        # the images the pipeline's refinement fits (refine.demosaic's, by default)
+        obs = refinement_observations(cap, views, reg, DecodeOptions(), RefineOptions(**OPTIONS))
     cameras = [geo.cameras[i] for i in reg]
-    obs = [observation_from_decoded(asdict(views[i].images)) for i in reg]
     vis_fn = make_visibility_fn(
         cameras, [masks[i] for i in reg], min_cos=gopts.visibility.min_cos, rel_tol=gopts.visibility.rel_tol
     )
