@@ -660,8 +660,8 @@ class RefineOptions(_Options):
         "stage's images (decode.demosaic); a method name decodes the registered frames once more with it, for "
         "the refinement only (SfM, dense stereo, previews and exports keep decode.demosaic's). 'eari' (default) "
         "keeps the pixel-scale relief that 'guided' smooths out of the AoP: accuracy gain on the built-in "
-        "Stanford captures +26.7% -> +42.9% on average (armadillo +22.8% -> +44.0%), on Mitsuba-rendered ones "
-        "+24.9% -> +30.9%. Measured in the README.",
+        "Stanford captures +26.7% -> +42.4% on average (armadillo +22.8% -> +44.0%), on Mitsuba-rendered ones "
+        "+24.9% -> +30.6%. Measured in the README.",
     )
     intensity: Literal["min", "int"] = Field(
         default="min",
