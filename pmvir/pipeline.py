@@ -80,13 +80,23 @@ def decode_views(cap: Capture, config: PipelineConfig, progress: Progress | None
     views = []
     n = len(cap.frames)
     for i, frame in enumerate(cap.frames):
-        raw = cap.read_raw(i)
-        images = decode_frame(
-            raw.mosaic, cap.layout, saturated=raw.saturated, mask=cap.read_mask(i), options=config.decode
-        )
+        images = _decode_frame(cap, i, config.decode)
         views.append(DecodedView(index=i, name=frame.name, file=frame.file, images=images))
         progress.update((i + 1) / n, f"decoded {frame.file}")
     return views
+
+
+def _decode_frame(cap: Capture, i: int, options: DecodeOptions) -> PolarizationImages:
+    """Frame ``i`` of an open capture demosaiced with ``options`` (its saturation and mask applied)."""
+    raw = cap.read_raw(i)
+    return decode_frame(
+        raw.mosaic, cap.layout, saturated=raw.saturated, mask=cap.read_mask(i), options=options
+    )
+
+
+def redecodes_for_refinement(decode: DecodeOptions, refine: RefineOptions) -> bool:
+    """Whether the refinement decodes the frames again (``refine.demosaic`` names another method)."""
+    return refine.demosaic not in ("same", decode.demosaic)
 
 
 def refinement_observations(
@@ -105,17 +115,12 @@ def refinement_observations(
     in memory.
     """
     progress = progress or Progress.none()
-    if refine.demosaic in ("same", decode.demosaic):
-        return [
-            observation_from_decoded(vars(views[i].images), intensity=refine.intensity) for i in indices
-        ]
+    if not redecodes_for_refinement(decode, refine):
+        return [observation_from_decoded(vars(views[i].images), intensity=refine.intensity) for i in indices]
     options = decode.model_copy(update={"demosaic": refine.demosaic})
     observations = []
     for k, i in enumerate(indices):
-        raw = cap.read_raw(i)
-        images = decode_frame(
-            raw.mosaic, cap.layout, saturated=raw.saturated, mask=cap.read_mask(i), options=options
-        )
+        images = _decode_frame(cap, i, options)
         observations.append(observation_from_decoded(vars(images), intensity=refine.intensity))
         progress.update((k + 1) / len(indices), f"decoded {cap.frames[i].file} with {refine.demosaic}")
     return observations
@@ -242,7 +247,7 @@ def _refine_stage(
     registered = [i for i, cam in enumerate(geometry.cameras) if cam is not None]
     cameras = [cam for cam in geometry.cameras if cam is not None]  # in the order of registered
     decode_share = 0.0
-    if config.refine.demosaic in ("same", config.decode.demosaic):
+    if not redecodes_for_refinement(config.decode, config.refine):
         observations = refinement_observations(cap, views, registered, config.decode, config.refine)
     else:  # the frames are decoded once more: a timed step of its own
         decode_share = 0.1 * share
