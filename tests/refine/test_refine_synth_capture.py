@@ -73,8 +73,11 @@ def test_leaving_out_grazing_pairs_costs_no_accuracy(capture_run) -> None:
     """With every visible pair (min_view_cos -1) the refinement does no better than with the default rule.
 
     The rule once made the difference (bunny at 408x340: -15% with every pair, +46% without the
-    grazing ones); with the robust E_pho and eari frames the two are close on this small capture
-    (Nov 27: 0.000925 against 0.000920 / 0.000946 with 2 / 1 torch threads; guided frames 0.00104
-    against 0.00105 / 0.00106), so the test keeps the default from falling behind.
+    grazing ones); with the robust E_pho and eari frames the two are close on this small capture,
+    and which is ahead changes with the initial surface: the geometric stage's sparse points differ
+    in the last matches from run to run (the refinement itself repeats to the last digit), and the
+    default's accuracy over every pair's was measured at 1.005, 1.012, 1.017, 1.030 and 1.046 in
+    five runs (Nov 27). So the test keeps the default from falling clearly behind (8%), as it
+    once did by tens of percent.
     """
-    assert capture_run["full"] < 1.03 * capture_run["all_pairs"]
+    assert capture_run["full"] < 1.08 * capture_run["all_pairs"]
