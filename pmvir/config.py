@@ -777,6 +777,29 @@ class RefineOptions(_Options):
         "0: off (default: no gain measured on the built-in or Mitsuba bunny, since each view's SH shading already "
         "absorbs a darkening that depends on the normal; README).",
     )
+    shadowing: Literal["none", "cast"] = Field(
+        default="none",
+        description="E_pho's shading. 'none': every vertex sees the whole hemisphere above it (the paper's). "
+        "'cast': at each stage's start, rays along shadow_directions directions from every vertex find the "
+        "part of the hemisphere the surface itself blocks, and each (vertex, view) pair's rendered colour is "
+        "multiplied by the unblocked share of its irradiance under the view's lighting (fixed for the stage, "
+        "like the pairs), so concavities are not read as tilted normals. Off: no gain on the Mitsuba dragon "
+        "(accuracy gain +25.8% -> +25.6%), whose per-vertex albedo absorbs shadows that its nearly "
+        "world-fixed lighting casts alike in every view (README).",
+    )
+    shadow_directions: int = Field(
+        default=128,
+        ge=8,
+        le=4096,
+        description="With shadowing 'cast': directions over the sphere (Fibonacci) tested from each vertex.",
+    )
+    shadow_bounce: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=1.0,
+        description="With shadowing 'cast': the share of the blocked light that the blocking surface sends "
+        "back (inter-reflection, not otherwise modelled); 0: none.",
+    )
     pho_robust: Literal["none", "cauchy", "specular"] = Field(
         default="cauchy",
         description="E_pho's loss. 'none': least squares (the paper's). 'cauchy': from stage 2 on, each pair's "

@@ -339,6 +339,8 @@ class StageProblem:
         diffuse_dop_ior: > 0: the rendered colour of each pair is multiplied by the fraction of
             diffuse light I_min keeps (:func:`diffuse_min_fraction`); 0: off (RefineOptions rejects
             it with E_pho on I_int).
+        light_factor: (P,) each pair's rendered colour is multiplied by it, fixed for the stage
+            (the unblocked share of its irradiance, :mod:`pmvir.refine.shadowing`); None: 1.
         k, t, units: term parameters.
     """
 
@@ -358,6 +360,7 @@ class StageProblem:
     pho_weight: torch.Tensor | None = None
     diffuse_fresnel_ior: float = 0.0
     diffuse_dop_ior: float = 0.0
+    light_factor: torch.Tensor | None = None
 
 
 def energy_terms(
@@ -387,6 +390,8 @@ def energy_terms(
     )
     if factor is not None:
         light = light * factor[:, None]
+    if problem.light_factor is not None:
+        light = light * problem.light_factor[:, None]
     if callable(albedo):
         albedo = albedo(samples.intensity.detach(), light.detach())
     terms = {

@@ -76,6 +76,7 @@ from pmvir.refine.sampling import (
     sample_pairs,
     select_pairs,
 )
+from pmvir.refine.shadowing import shadow_factors
 from pmvir.sh import sh_term_count
 
 #: vertices (N, 3) float64, faces (F, 3) int64 -> (N, V) bool visibility.
@@ -448,11 +449,19 @@ def prepare_stage(
         sigma_chroma=opts.psm_sigma_chroma,
         sigma_log_intensity=opts.psm_sigma_log_intensity,
     )
+    light_factor = _shadow_factor(setup, state, pairs, normals_np)
     robust = opts.pho_robust != "none" and s > 0  # stage 1 starts from uniform lighting: no residuals yet
-    pho_weight = _robust_pho_weights(setup, state, pairs, samples) if robust else None
+    pho_weight = _robust_pho_weights(setup, state, pairs, samples, light_factor) if robust else None
     floor = _stage_dop_floor(samples, opts)
     problem = _stage_problem(
-        setup, pairs, samples, psm_weight, t=weights.t, pho_weight=pho_weight, floor=floor
+        setup,
+        pairs,
+        samples,
+        psm_weight,
+        t=weights.t,
+        pho_weight=pho_weight,
+        floor=floor,
+        light_factor=light_factor,
     )
     stage = _Stage(
         index=s,
@@ -505,6 +514,8 @@ def prefit_lighting(
     taken from the residuals of that fit (otherwise it would have none: it starts from uniform
     lighting), and specular residue loses its pull from the first stage on.
 
+    With ``shadowing`` the first stage's shadow factors are taken again under the fitted lighting.
+
     Returns:
         the first stage (with its robust weights) and the unknowns after the fit.
     """
@@ -517,10 +528,12 @@ def prefit_lighting(
         max_iterations=opts.lighting_prefit_iterations,
         freeze_motion=True,
     )
-    if opts.pho_robust == "none" or not opts.pho_robust_first_stage:
+    robust = opts.pho_robust != "none" and opts.pho_robust_first_stage
+    if not robust and opts.shadowing == "none":
         return stage, state
     _, _, samples = _stage_observations(state.vertices, setup.topo.faces, setup.views, stage.pairs)
-    pho_weight = _robust_pho_weights(setup, state, stage.pairs, samples)
+    light_factor = _shadow_factor(setup, state, stage.pairs, None)
+    pho_weight = _robust_pho_weights(setup, state, stage.pairs, samples, light_factor) if robust else None
     problem = _stage_problem(
         setup,
         stage.pairs,
@@ -529,8 +542,34 @@ def prefit_lighting(
         t=stage.weights.t,
         pho_weight=pho_weight,
         floor=stage.dop_floor,
+        light_factor=light_factor,
     )
     return replace(stage, problem=problem), state
+
+
+def _shadow_factor(
+    setup: _Setup, state: _Unknowns, pairs: PairSet, normals_np: np.ndarray | None
+) -> torch.Tensor | None:
+    """(P,) each pair's unblocked share of its irradiance at the current geometry and lighting
+    (:func:`pmvir.refine.shadowing.shadow_factors`), None without ``shadowing``."""
+    opts = setup.opts
+    if opts.shadowing == "none":
+        return None
+    cur = state.vertices.detach().cpu().numpy().astype(np.float64)
+    if normals_np is None:
+        with torch.no_grad():
+            normals_np = vertex_normals(state.vertices, setup.topo.faces).cpu().numpy().astype(np.float64)
+    f = shadow_factors(
+        cur,
+        setup.faces_np,
+        normals_np,
+        state.sh.detach().cpu().numpy(),
+        n_directions=opts.shadow_directions,
+        bounce=opts.shadow_bounce,
+        offset=mean_edge_length(cur, setup.topo.edges_np),
+    )
+    flat = torch.from_numpy(f.reshape(-1)).to(device=setup.device, dtype=setup.dtype)
+    return flat.index_select(0, pairs.flat)
 
 
 def _stage_problem(
@@ -542,6 +581,7 @@ def _stage_problem(
     t: float,
     pho_weight: torch.Tensor | None,
     floor: torch.Tensor | float | None,
+    light_factor: torch.Tensor | None = None,
 ) -> StageProblem:
     """A stage's constants; E_pol's pair mask (DoP at or above ``floor``, see :func:`dop_floor`;
     None keeps every pair) and DoP weights are taken from the samples at the stage's start and
@@ -574,6 +614,7 @@ def _stage_problem(
         pho_weight=pho_weight,
         diffuse_fresnel_ior=opts.diffuse_fresnel_ior,
         diffuse_dop_ior=opts.diffuse_dop_ior,
+        light_factor=light_factor,
     )
 
 
@@ -647,7 +688,11 @@ def evidence_dop_floor(samples: PairSamples, opts: RefineOptions) -> float:
 
 
 def _robust_pho_weights(
-    setup: _Setup, state: _Unknowns, pairs: PairSet, samples: PairSamples
+    setup: _Setup,
+    state: _Unknowns,
+    pairs: PairSet,
+    samples: PairSamples,
+    light_factor: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """(P,) Cauchy weights 1 / (1 + (r / s)^2) of each pair's E_pho residual r (RGB norm) at the
     current unknowns, s = ``pho_robust_scale`` times the median residual (``pho_robust``).
@@ -667,6 +712,8 @@ def _robust_pho_weights(
         )
         if factor is not None:
             light = light * factor[:, None]
+        if light_factor is not None:
+            light = light * light_factor[:, None]
         diff = samples.intensity - state.albedo.index_select(0, pairs.vertex) * light
         r = torch.linalg.vector_norm(diff, dim=1)
         scale = setup.opts.pho_robust_scale * r.median().clamp_min(1e-12)

@@ -509,6 +509,30 @@ def test_gradient_of_the_diffuse_factor_photometric_term(small_problem, fresnel,
     )
 
 
+def test_gradient_of_the_photometric_term_with_shadow_factors(small_problem) -> None:
+    """refine.shadowing's per-pair factor (data, fixed for the stage) scales each pair's rendering."""
+    from dataclasses import replace
+
+    problem, inputs = small_problem
+    factor = torch.linspace(0.3, 1.0, problem.pairs.size, dtype=F64)
+    shadowed = replace(problem, light_factor=factor, polarimetric=False)
+    x, k, sh, sc = inputs
+    value = float(energy_terms(x, k, sh, sc, shadowed)["pho"].detach())
+    # the same as scaling each pair's albedo by its factor
+    light = pair_light(vertex_normals(x, problem.faces), sh, sc, problem.pairs)
+    samples = sample_pairs(x, vertex_normals(x, problem.faces), problem.views, problem.pairs)
+
+    def pho(scaled: torch.Tensor) -> float:
+        term = photometric_term(samples.intensity, scaled, k, problem.pairs, units=problem.units)
+        return float(term.detach())
+
+    assert value == pytest.approx(pho(light * factor[:, None]), rel=1e-12)
+    assert value != pytest.approx(pho(light), rel=1e-3)
+    assert torch.autograd.gradcheck(
+        lambda *a: energy_terms(*a, shadowed)["pho"] / value, inputs, eps=1e-6, atol=1e-7, rtol=1e-4
+    )
+
+
 def test_pair_light_is_each_pairs_basis_times_its_views_lighting(small_problem) -> None:
     """pair_light evaluates the SH basis per vertex and gathers one shading per pair: it must equal
     the basis of the pair's own normal times its own view's coefficients and colour scale."""

@@ -646,3 +646,40 @@ def test_diffuse_dop_factor_is_refused_where_e_pho_observes_i_int() -> None:
     with pytest.raises(ValidationError, match=r"diffuse_dop_ior.*intensity"):
         RefineOptions(diffuse_dop_ior=1.5, intensity="int")
     assert RefineOptions(intensity="int").diffuse_dop_ior == 0.0
+
+
+def test_shadow_factors_are_each_pairs_at_the_stage_start_and_after_the_lighting_prefit(plastic) -> None:
+    """refine.shadowing='cast': the stage's per-pair factor is shadow_factors' value of the pair's
+    vertex under the pair's view's lighting, taken again under the pre-fitted lighting."""
+    from pmvir.io.ply import vertex_normals
+    from pmvir.refine.mesh_ops import mean_edge_length
+    from pmvir.refine.schedule import _initial_unknowns, _setup, prefit_lighting, prepare_stage
+    from pmvir.refine.shadowing import shadow_factors
+
+    scene, obs, _, vis = plastic
+    faces = scene.faces.astype(np.int64)
+    for shadowing in ("none", "cast"):
+        opts = RefineOptions(shadowing=shadowing, shadow_directions=64, lighting_prefit_iterations=5)
+        setup = _setup(faces, len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None)
+        state = _initial_unknowns(
+            scene.vertices, len(scene.cameras), sh_order=opts.sh_order, device=setup.device, dtype=setup.dtype
+        )
+        stage, state = prepare_stage(setup, state, vis, 0)
+        fitted_stage, fitted = prefit_lighting(setup, stage, state, progress=Progress.none())
+        if shadowing == "none":
+            assert stage.problem.light_factor is None and fitted_stage.problem.light_factor is None
+            continue
+        for st, unknowns in ((stage, state), (fitted_stage, fitted)):
+            v = unknowns.vertices.numpy()
+            f = shadow_factors(
+                v,
+                faces,
+                vertex_normals(v, faces),
+                unknowns.sh.numpy(),
+                n_directions=64,
+                offset=mean_edge_length(v, setup.topo.edges_np),
+            )
+            pairs = st.pairs
+            expect = f[pairs.vertex.numpy(), pairs.view.numpy()]
+            np.testing.assert_allclose(st.problem.light_factor.numpy(), expect, rtol=1e-6, atol=1e-6)
+            assert expect.min() > 0.0 and expect.max() <= 1.0
