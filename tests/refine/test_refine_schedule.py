@@ -81,7 +81,7 @@ def test_refinement_improves_accuracy_and_beats_the_mvir_baseline(plastic, plast
 def test_every_term_is_logged_per_iteration_and_the_cost_decreases(plastic_runs) -> None:
     full, baseline, _, _ = plastic_runs
     assert len(full.stages) == 3
-    for st, tau in zip(full.stages, (60.0, 120.0, 360.0), strict=True):
+    for st, tau in zip(full.stages, DEFAULTS.tau_pol, strict=True):
         assert st.tau_pol == tau and st.k == 0.5
         assert len(st.energies) == len(st.grad_max) >= 2
         for e in st.energies:
@@ -319,7 +319,7 @@ def test_unknown_option_is_rejected_and_config_tree_has_refine() -> None:
         RefineOptions(tau1=[1.0])
     cfg = PipelineConfig.model_validate({"refine": {"polarimetric": False, "intensity": "int"}})
     assert cfg.refine.polarimetric is False and cfg.refine.n_stages == 3
-    assert RefineOptions().tau_pol == [60.0, 120.0, 360.0] and RefineOptions().pol_k == 0.5
+    assert RefineOptions().tau_pol == [15.0, 30.0, 90.0] and RefineOptions().pol_k == 0.5
 
 
 def test_median_intensity_scale_makes_the_result_independent_of_the_exposure(plastic) -> None:
