@@ -183,9 +183,21 @@ def _extract_features(
             reader.camera_params = ",".join(repr(float(v)) for v in key[3:])
         else:
             reader.camera_model = "SIMPLE_PINHOLE"
+        names = [files[i] for i in members]
+        # COLMAP numbers images in the order its extraction threads finish them, which varies from
+        # run to run; the matching and the mapper visit views in image-id order, so importing the
+        # images first (one thread, in this order) makes SfM and the known-pose matches repeatable.
+        pycolmap.Database.open(str(database)).close()
+        pycolmap.import_images(
+            database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, image_names=names, options=reader
+        )
         pycolmap.extract_features(
-            database, image_dir, image_names=[files[i] for i in members],
-            camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader, extraction_options=extraction,
+            database,
+            image_dir,
+            image_names=names,
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader,
+            extraction_options=extraction,
         )
 
 

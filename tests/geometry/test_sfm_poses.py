@@ -325,6 +325,40 @@ def test_match_ratio_option_reaches_colmap_matching(sfm_views: dict, tmp_path: P
     assert 0 < counts[0.7] < counts[0.95]
 
 
+def test_views_are_numbered_in_order_and_known_pose_matches_repeat(sfm_views: dict, tmp_path: Path) -> None:
+    """COLMAP numbers images as its extraction threads finish them; pmvir imports them first, so
+    the image ids follow the views' order and two runs write the same known-pose matches (the
+    matching visits pairs in image-id order and its ratio test is one-sided)."""
+    import pycolmap
+
+    from pmvir.geometry.sfm import _write_inputs
+    from pmvir.geometry.sfm_colmap import _extract_features, _match_known_poses
+
+    images, masks, cameras = sfm_views["images"][:12], sfm_views["masks"][:12], sfm_views["cameras"][:12]
+    opts = SfmOptions(sift_affine_shape=False, sift_upsample=False)
+    runs = []
+    for run in range(2):
+        image_dir, mask_dir, files = _write_inputs(tmp_path / f"run{run}", images, masks, opts)
+        database = tmp_path / f"run{run}" / "database.db"
+        sizes = [im.shape[:2] for im in images]
+        _extract_features(database, image_dir, mask_dir, files, sizes, [c.K for c in cameras], opts)
+        _match_known_poses(database, files, cameras)
+        db = pycolmap.Database.open(str(database))
+        try:
+            name = {im.image_id: im.name for im in db.read_all_images()}
+            assert [name[k] for k in sorted(name)] == files
+            matches = {}
+            for pair_id, m in zip(*db.read_all_matches(), strict=True):
+                id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
+                matches[name[id1], name[id2]] = np.asarray(m)
+        finally:
+            db.close()
+        runs.append(matches)
+    assert len(runs[0]) >= 10
+    assert runs[0].keys() == runs[1].keys()
+    assert all(np.array_equal(runs[0][k], runs[1][k]) for k in runs[0])
+
+
 def test_rematch_rounds_lengthen_tracks_with_sfm_poses(sfm_views: dict, tmp_path: Path) -> None:
     """sfm.rematch_rounds: SfM's poses guide a second matching (as known poses do). The level and upper
     rings' 24 views, intrinsics given: more points seen in 3 or more views (measured 868 -> 1203), centres
