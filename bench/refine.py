@@ -27,6 +27,7 @@ for the whole reconstruction). Decoding and synthesis are not included.
 
 Prints markdown tables and writes bench/results/refine.json (or --out).
 Run: .venv/bin/python bench/refine.py [--models bunny dragon armadillo] [--tables main ablation materials]
+     [--ablation-rows full no_dop_weight i_int mvir ...] [--materials lambert plastic conductor]
      [--renderer builtin|mitsuba] [--spp 64] [--views 36] [--size 612x512] [--iterations N]
      [--subdivision-area 2.0] [--work DIR] [--out FILE]
 
@@ -532,6 +533,20 @@ def main() -> None:
         help="a refine option for every refined row (JSON value, e.g. offset_scan_deblur_px=1.6); the rows' own "
         "variant wins where both set a key. Repeatable",
     )
+    parser.add_argument(
+        "--ablation-rows",
+        nargs="+",
+        default=list(ROWS["ablation"]),
+        choices=list(ROWS["ablation"]),
+        help="the ablation table's rows (default all; the paper's Table 4: full no_dop_weight i_int mvir)",
+    )
+    parser.add_argument(
+        "--materials",
+        nargs="+",
+        default=list(MATERIALS),
+        choices=list(MATERIALS),
+        help="the materials table's materials (default all)",
+    )
     parser.add_argument("--fresh", action="store_true", help="measure every row again (captures stay cached)")
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "refine.json")
     args = parser.parse_args()
@@ -600,13 +615,13 @@ def main() -> None:
             targets_markdown(doc["tables"]["main"]["targets"]),
         ]
     if "ablation" in args.tables:
-        names = ("initial", *ROWS["ablation"])
+        names = ("initial", *(r for r in ROWS["ablation"] if r in args.ablation_rows))
         rows = {m: rows_for(m, "plastic", names) for m in args.models}
         doc["tables"]["ablation"] = {"rows": rows, "average": average(rows, names)}
         text.append(table_markdown("Table 4: ablation (plastic)" + by, rows, names))
     if "materials" in args.tables:
         doc["tables"]["materials"] = {}
-        for material in MATERIALS:
+        for material in (m for m in MATERIALS if m in args.materials):
             rows = {m: rows_for(m, material, ROWS["materials"]) for m in args.models}
             doc["tables"]["materials"][material] = {"rows": rows, "average": average(rows, ROWS["materials"])}
             text.append(table_markdown(f"Materials: {material}" + by, rows, ROWS["materials"]))
