@@ -174,6 +174,11 @@ def _extract_features(
     extraction.sift.peak_threshold = options.sift_peak_threshold
     extraction.sift.estimate_affine_shape = options.sift_affine_shape
     extraction.sift.first_octave = -1 if options.sift_upsample else 0
+    # COLMAP numbers images in the order its extraction threads finish them, which varies from run
+    # to run; the matching and the mapper visit views in image-id order, so importing the images
+    # first (one thread, group by group, in the views' order) makes SfM and the known-pose matches
+    # repeatable.
+    pycolmap.Database.open(str(database)).close()  # import_images needs the file
     for key, members in groups.items():
         reader = pycolmap.ImageReaderOptions()
         if mask_dir is not None:
@@ -184,10 +189,6 @@ def _extract_features(
         else:
             reader.camera_model = "SIMPLE_PINHOLE"
         names = [files[i] for i in members]
-        # COLMAP numbers images in the order its extraction threads finish them, which varies from
-        # run to run; the matching and the mapper visit views in image-id order, so importing the
-        # images first (one thread, in this order) makes SfM and the known-pose matches repeatable.
-        pycolmap.Database.open(str(database)).close()
         pycolmap.import_images(
             database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, image_names=names, options=reader
         )
