@@ -8,7 +8,8 @@ it synthesizes a capture, decodes I_int and I_min and runs ``estimate_poses`` on
 ``--grey`` names (default ``auto``, as the geometric stage: SfM on I_min, again on I_int when that leaves views out)
 three times: with the capture's cameras (known poses), without them but with the intrinsics
 (``sfm-K``), and with neither (``sfm``, intrinsics estimated); ``--mapper global`` uses COLMAP's
-global mapper, ``--guided`` turns guided matching on, ``--rematch N`` sets sfm.rematch_rounds. It
+global mapper, ``--guided`` turns guided matching on, ``--rematch N`` sets sfm.rematch_rounds and
+``--rematch-min-track N`` sfm.rematch_min_track. It
 prints per run the
 registered views, sparse points (and their median / 90th-percentile distance to the true
 surface for known poses), the mean reprojection error, the camera-centre errors after a Umeyama
@@ -127,10 +128,14 @@ def main() -> int:
     ap.add_argument("--grey", choices=("auto", "int", "min"), default=SfmOptions().grey)
     ap.add_argument("--guided", action="store_true", help="guided matching")
     ap.add_argument("--rematch", type=int, default=SfmOptions().rematch_rounds, help="sfm.rematch_rounds")
+    ap.add_argument(
+        "--rematch-min-track", type=int, default=SfmOptions().rematch_min_track, help="sfm.rematch_min_track"
+    )
     ap.add_argument("--tag", default="", help="results go to bench/results/sfm_poses[-TAG].json")
     args = ap.parse_args()
     options = SfmOptions(
-        mapper=args.mapper, grey=args.grey, guided_matching=args.guided, rematch_rounds=args.rematch
+        mapper=args.mapper, grey=args.grey, guided_matching=args.guided, rematch_rounds=args.rematch,
+        rematch_min_track=args.rematch_min_track,
     )
     models_dir = _shared() / "data" / "models"
     if not models_dir.is_dir():
