@@ -23,6 +23,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from pmvir import __version__, stage_cache
 from pmvir.capture import Capture, open_capture
 from pmvir.config import DecodeOptions, PipelineConfig, RefineOptions
@@ -40,6 +42,11 @@ from pmvir.refine.sampling import Observation
 from pmvir.refine.schedule import StageLog
 from pmvir.result import ResultFolder
 from pmvir.stages import STAGES, Stage
+
+#: Above this median DoP inside the masks (the median over views of each view's median) the object is
+#: specular-dominated and report.json warns: measured on path-traced 36-view captures, per-view medians
+#: are 0.01-0.02 on Lambert, 0.02-0.12 on plastic and 0.25-0.37 on a smooth conductor.
+SPECULAR_MEDIAN_DOP = 0.2
 
 #: Share of the whole run each stage takes, for the overall progress fraction.
 STAGE_WEIGHTS: dict[str, float] = {"decode": 0.1, "geometry": 0.3, "refine": 0.6}
@@ -67,6 +74,7 @@ class PipelineResult:
     stages_run: list[str]
     timings: dict[str, float]
     files: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
 
 
 def stages_for(config: PipelineConfig) -> list[Stage]:
@@ -91,6 +99,35 @@ def _decode_frame(cap: Capture, i: int, options: DecodeOptions) -> PolarizationI
     raw = cap.read_raw(i)
     return decode_frame(
         raw.mosaic, cap.layout, saturated=raw.saturated, mask=cap.read_mask(i), options=options
+    )
+
+
+def median_dop_in_masks(cap: Capture, views: list[DecodedView]) -> float | None:
+    """The median over views of each view's median DoP over its valid pixels inside its mask.
+
+    None when no view has a mask (the background's DoP would dilute it) or a masked valid pixel.
+    """
+    medians = []
+    for view in views:
+        mask = cap.read_mask(view.index)
+        if mask is None:
+            continue
+        dop = view.images.dop[mask & view.images.valid]
+        if dop.size:
+            medians.append(float(np.median(dop)))
+    return float(np.median(medians)) if medians else None
+
+
+def specular_warning(median_dop: float | None) -> str | None:
+    """The warning for a specular-dominated object (median DoP above ``SPECULAR_MEDIAN_DOP``), or None."""
+    if median_dop is None or median_dop <= SPECULAR_MEDIAN_DOP:
+        return None
+    return (
+        f"the object looks specular-dominated: its median DoP inside the masks is {median_dop:.2f} "
+        f"(above {SPECULAR_MEDIAN_DOP}; diffuse plastic shows 0.02-0.12). The refinement's photometric "
+        "term models diffuse reflection, which a metal or a dark glossy surface lacks: on a path-traced "
+        "smooth-conductor armadillo it left the surface 37% less accurate than initial.ply (on a "
+        "conductor bunny it gained 21%). Compare mesh.ply with initial.ply."
     )
 
 
@@ -169,6 +206,7 @@ def run(
     weight = {s: STAGE_WEIGHTS[s] / total for s in stages}
     t_run = time.perf_counter()
     sections: dict[str, object] = {}
+    warnings: list[str] = []
     with open_capture(capture) as cap, tempfile.TemporaryDirectory(prefix=".work-", dir=out) as work:
         counts = {"frames": len(cap.frames)}
         with progress.step(Stage.DECODE, weight[Stage.DECODE]) as p:
@@ -189,6 +227,10 @@ def run(
                 write_view_previews(
                     result, [(v.name, v.images) for v in views], max_size=config.export.preview_max_size, progress=q
                 )
+        median_dop = median_dop_in_masks(cap, views)
+        sections["decode"] = {"median_dop_in_masks": median_dop}
+        if (warning := specular_warning(median_dop)) is not None:
+            warnings.append(warning)
         if Stage.GEOMETRY in stages:
             with progress.step(Stage.GEOMETRY, weight[Stage.GEOMETRY]) as p:
                 if cache is not None and resume.position > Stage.GEOMETRY.position:
@@ -226,9 +268,11 @@ def run(
     timings["total"] = time.perf_counter() - t_run
     if resume.position > 0:
         sections["resumed_from"] = str(resume)
+    sections["warnings"] = warnings
     result.write_json("report.json", _report(config, stages, timings, counts, sections))
     return PipelineResult(
-        out=result.root, stages_run=[str(s) for s in stages], timings=timings, files=list(result.written)
+        out=result.root, stages_run=[str(s) for s in stages], timings=timings, files=list(result.written),
+        warnings=warnings,
     )
 
 

@@ -182,7 +182,7 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
             try:
                 config = PipelineConfig.model_validate(job.options)
                 out.mkdir(parents=True, exist_ok=False)
-                pipeline.run(
+                outcome = pipeline.run(
                     config,
                     files.capture_dir(job_id),
                     out,
@@ -190,6 +190,8 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
                     cache=files.cache_dir(job_id),
                     resume_from=job.resume_from,
                 )
+                for warning in outcome.warnings:
+                    store.log(job_id, f"warning: {warning}")
                 if run.should_cancel():  # canceled after the last boundary: honour it
                     raise CanceledError("canceled after the last stage")
                 files.publish_result(job_id, out)

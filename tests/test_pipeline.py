@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -19,21 +20,32 @@ from pmvir.polarization.layout import ANGLES_DEG, IMX250MYR, mosaic
 from pmvir.progress import Progress
 
 
-def _write_capture(root: Path, n_frames: int = 3, size: tuple[int, int] = (48, 64)) -> Path:
-    """A small capture whose frames hold a known, uniform polarization field."""
+def _write_capture(
+    root: Path, n_frames: int = 3, size: tuple[int, int] = (48, 64), *, rho: float = 0.3, masks: bool = False
+) -> Path:
+    """A small capture whose frames hold a known, uniform polarization field (DoP ``rho``), and with
+    ``masks`` a mask per frame covering its left half."""
     h, w = size
     rng = np.random.default_rng(0)
     (root / "frames").mkdir(parents=True)
+    if masks:
+        (root / "masks").mkdir()
     entries = []
     for k in range(n_frames):
-        s0, rho, phi = 0.5 + 0.1 * k, 0.3, np.deg2rad(30.0 + 20 * k)
+        s0, phi = 0.5 + 0.1 * k, np.deg2rad(30.0 + 20 * k)
         theta = np.deg2rad(np.array(ANGLES_DEG, dtype=np.float64))
         per_angle = s0 / 2 * (1 + rho * np.cos(2 * (theta - phi)))
         colour = np.array([1.0, 0.8, 0.6])
         inten = np.broadcast_to(per_angle[:, None] * colour, (h, w, 4, 3))
         raw = np.clip(np.round(mosaic(np.ascontiguousarray(inten), IMX250MYR) * 4095 + rng.normal(0, 1, (h, w))), 0, 4095)
         write_frame(root / f"frames/{k:03d}.png", raw.astype(np.uint16), bit_depth=12)
-        entries.append(FrameEntry(file=f"frames/{k:03d}.png"))
+        mask = None
+        if masks:
+            mask = f"masks/{k:03d}.png"
+            m = np.zeros((h, w), np.uint8)
+            m[:, : w // 2] = 255
+            cv2.imwrite(str(root / mask), m)
+        entries.append(FrameEntry(file=f"frames/{k:03d}.png", mask=mask))
     write_capture_manifest(root, CaptureManifest(sensor=SensorSpec(layout="IMX250MYR", bit_depth=12), frames=entries))
     return root
 
@@ -60,6 +72,26 @@ def test_decode_stage_writes_decoded_frames_and_report(capture: Path, tmp_path: 
     assert report["parameters"]["decode"]["noise_floor"] == PipelineConfig().decode.noise_floor
     fractions = [f for _, f, _ in events]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
+
+
+def test_a_specular_dominated_object_is_warned_about(tmp_path: Path, capsys) -> None:
+    """Median DoP inside the masks above SPECULAR_MEDIAN_DOP (0.2): report.json's warnings, the run's
+    result and `pmvir reconstruct` say so; a diffuse-looking object (DoP 0.05) and a capture without
+    masks (its background would dilute the DoP) get no warning."""
+    runs = {}
+    for label, rho, masks in (("metal", 0.3, True), ("plastic", 0.05, True), ("unmasked", 0.3, False)):
+        cap = _write_capture(tmp_path / label, rho=rho, masks=masks)
+        result = run(PipelineConfig(stop_after="decode"), cap, tmp_path / f"out-{label}")
+        report = json.loads((tmp_path / f"out-{label}/report.json").read_text())
+        assert report["warnings"] == result.warnings
+        runs[label] = (report["decode"]["median_dop_in_masks"], result.warnings)
+    assert runs["metal"][0] == pytest.approx(0.3, abs=0.02)
+    assert len(runs["metal"][1]) == 1 and "specular-dominated" in runs["metal"][1][0]
+    assert runs["plastic"][0] == pytest.approx(0.05, abs=0.02) and runs["plastic"][1] == []
+    assert runs["unmasked"] == (None, [])
+    args = ["reconstruct", str(tmp_path / "metal"), "--out", str(tmp_path / "cli"), "--stop-after", "decode", "--quiet"]
+    assert main(args) == 0
+    assert "pmvir: warning: the object looks specular-dominated" in capsys.readouterr().err
 
 
 def test_cancel_stops_at_a_boundary(capture: Path, tmp_path: Path) -> None:

@@ -36,4 +36,6 @@ def run(args: argparse.Namespace) -> int:
         result = run_pipeline(config, args.capture, args.out, progress=progress)
     timings = ", ".join(f"{k} {v:.1f} s" for k, v in result.timings.items())
     print(f"{result.out}: {', '.join(result.stages_run)} ({timings})", file=sys.stderr)
+    for warning in result.warnings:
+        print(f"pmvir: warning: {warning}", file=sys.stderr)
     return 0
