@@ -118,17 +118,35 @@ def median_dop_in_masks(cap: Capture, views: list[DecodedView]) -> float | None:
     return float(np.median(medians)) if medians else None
 
 
-def specular_warning(median_dop: float | None) -> str | None:
+def is_specular(median_dop: float | None) -> bool:
+    """Whether a capture of this median DoP inside the masks is specular-dominated."""
+    return median_dop is not None and median_dop > SPECULAR_MEDIAN_DOP
+
+
+def specular_warning(median_dop: float | None, options: RefineOptions) -> str | None:
     """The warning for a specular-dominated object (median DoP above ``SPECULAR_MEDIAN_DOP``), or None."""
-    if median_dop is None or median_dop <= SPECULAR_MEDIAN_DOP:
+    if median_dop is None or not is_specular(median_dop):
         return None
+    scan = (
+        "the offset scan is off for it (refine.specular_offset_scan; the scan moved a path-traced "
+        "conductor armadillo 37% away from the truth)"
+        if refinement_options(options, median_dop).offset_scan != options.offset_scan
+        else "the offset scan runs as set (refine.specular_offset_scan 'same')"
+    )
     return (
         f"the object looks specular-dominated: its median DoP inside the masks is {median_dop:.2f} "
         f"(above {SPECULAR_MEDIAN_DOP}; diffuse plastic shows 0.02-0.12). The refinement's photometric "
-        "term models diffuse reflection, which a metal or a dark glossy surface lacks: on a path-traced "
-        "smooth-conductor armadillo it left the surface 37% less accurate than initial.ply (on a "
-        "conductor bunny it gained 21%). Compare mesh.ply with initial.ply."
+        f"term models diffuse reflection, which a metal or a dark glossy surface lacks; {scan}. "
+        "Compare mesh.ply with initial.ply."
     )
+
+
+def refinement_options(options: RefineOptions, median_dop: float | None) -> RefineOptions:
+    """The refinement's options for a capture of this median DoP inside the masks: a specular-dominated
+    one is refined without the offset scan unless ``refine.specular_offset_scan`` is 'same'."""
+    if is_specular(median_dop) and options.specular_offset_scan == "off" and options.offset_scan != "off":
+        return options.model_copy(update={"offset_scan": "off"})
+    return options
 
 
 def redecodes_for_refinement(decode: DecodeOptions, refine: RefineOptions) -> bool:
@@ -229,7 +247,7 @@ def run(
                 )
         median_dop = median_dop_in_masks(cap, views)
         sections["decode"] = {"median_dop_in_masks": median_dop}
-        if (warning := specular_warning(median_dop)) is not None:
+        if (warning := specular_warning(median_dop, config.refine)) is not None:
             warnings.append(warning)
         if Stage.GEOMETRY in stages:
             with progress.step(Stage.GEOMETRY, weight[Stage.GEOMETRY]) as p:
@@ -250,9 +268,10 @@ def run(
                 sections["geometry"] = geometry_report(geometry)
         if Stage.REFINE in stages:
             with progress.step(Stage.REFINE, weight[Stage.REFINE]) as p:
-                refined, registered = _refine_stage(cap, views, geometry, config, p, share=0.85)
+                refine_options = refinement_options(config.refine, median_dop)
+                refined, registered = _refine_stage(cap, views, geometry, config, refine_options, p, share=0.85)
                 mesh = _write_refined(result, geometry, refined, [views[i].file for i in registered])
-                sections["refine"] = refine_report(refined)
+                sections["refine"] = {**refine_report(refined), "offset_scan": refine_options.offset_scan}
                 with p.step("exports", 0.15) as q:
                     sections["exports"] = write_refined_outputs(
                         result,
@@ -281,22 +300,24 @@ def _refine_stage(
     views: list[DecodedView],
     geometry: GeometryResult,
     config: PipelineConfig,
+    options: RefineOptions,
     progress: Progress,
     share: float,
 ) -> tuple[RefineResult, list[int]]:
-    """Polarimetric MVIR on the registered views (stage 3), ``share`` of ``progress``.
+    """Polarimetric MVIR on the registered views (stage 3) with ``options`` (the run's refine options
+    as :func:`refinement_options` adapts them), ``share`` of ``progress``.
 
     Returns the result and those views' indices.
     """
     registered = [i for i, cam in enumerate(geometry.cameras) if cam is not None]
     cameras = [cam for cam in geometry.cameras if cam is not None]  # in the order of registered
     decode_share = 0.0
-    if not redecodes_for_refinement(config.decode, config.refine):
-        observations = refinement_observations(cap, views, registered, config.decode, config.refine)
+    if not redecodes_for_refinement(config.decode, options):
+        observations = refinement_observations(cap, views, registered, config.decode, options)
     else:  # the frames are decoded once more: a timed step of its own
         decode_share = 0.1 * share
         with progress.step("images", decode_share) as q:
-            observations = refinement_observations(cap, views, registered, config.decode, config.refine, q)
+            observations = refinement_observations(cap, views, registered, config.decode, options, q)
     masks = [cap.read_mask(i) for i in registered]
     visibility_fn = make_visibility_fn(
         cameras, masks, min_cos=config.geometry.visibility.min_cos, rel_tol=config.geometry.visibility.rel_tol
@@ -308,7 +329,7 @@ def _refine_stage(
             cameras,
             observations,
             geometry.visibility[:, registered],
-            options=config.refine,
+            options=options,
             visibility_fn=visibility_fn,
             progress=q,
         )

@@ -11,11 +11,18 @@ import pytest
 
 from pmvir.capture import CaptureManifest, FrameEntry, SensorSpec, open_capture, write_capture_manifest
 from pmvir.cli import main
-from pmvir.config import DecodeOptions, PipelineConfig
+from pmvir.config import DecodeOptions, PipelineConfig, RefineOptions
 from pmvir.decode import decode_frame
 from pmvir.errors import CanceledError, ConfigError
 from pmvir.io.frames import write_frame
-from pmvir.pipeline import decode_views, refinement_observations, run
+from pmvir.pipeline import (
+    SPECULAR_MEDIAN_DOP,
+    decode_views,
+    refinement_observations,
+    refinement_options,
+    run,
+    specular_warning,
+)
 from pmvir.polarization.layout import ANGLES_DEG, IMX250MYR, mosaic
 from pmvir.progress import Progress
 
@@ -87,11 +94,26 @@ def test_a_specular_dominated_object_is_warned_about(tmp_path: Path, capsys) -> 
         runs[label] = (report["decode"]["median_dop_in_masks"], result.warnings)
     assert runs["metal"][0] == pytest.approx(0.3, abs=0.02)
     assert len(runs["metal"][1]) == 1 and "specular-dominated" in runs["metal"][1][0]
+    assert "the offset scan is off" in runs["metal"][1][0]
     assert runs["plastic"][0] == pytest.approx(0.05, abs=0.02) and runs["plastic"][1] == []
     assert runs["unmasked"] == (None, [])
     args = ["reconstruct", str(tmp_path / "metal"), "--out", str(tmp_path / "cli"), "--stop-after", "decode", "--quiet"]
     assert main(args) == 0
     assert "pmvir: warning: the object looks specular-dominated" in capsys.readouterr().err
+
+
+def test_specular_captures_are_refined_without_the_offset_scan() -> None:
+    """refinement_options: above SPECULAR_MEDIAN_DOP the offset scan is turned off, unless
+    refine.specular_offset_scan is 'same'; below it, or without masks (None), the options stay."""
+    default = RefineOptions()
+    assert default.offset_scan != "off"
+    assert refinement_options(default, SPECULAR_MEDIAN_DOP + 0.05).offset_scan == "off"
+    assert refinement_options(default, SPECULAR_MEDIAN_DOP - 0.05) is default
+    assert refinement_options(default, None) is default
+    keep = RefineOptions(specular_offset_scan="same")
+    assert refinement_options(keep, 0.35).offset_scan == default.offset_scan
+    assert "runs as set" in (specular_warning(0.35, keep) or "")
+    assert specular_warning(0.1, default) is None
 
 
 def test_cancel_stops_at_a_boundary(capture: Path, tmp_path: Path) -> None:
