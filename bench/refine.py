@@ -5,7 +5,8 @@ bounding-box diagonal) a synthetic capture is made with pmvir synth (36 views of
 true poses; cached under --work so re-runs skip it), decoded, and the geometric stage run ONCE
 (its initial surface, visibility and cameras are cached under --work too). Every refinement
 variant then starts from that same initial surface (pmvir.refine.refine_surface, as the
-pipeline's refine stage calls it) and is measured with pmvir.evaluate.evaluate (1,000,000
+pipeline's refine stage calls it, with the pipeline's options for the capture: a specular-dominated
+one, such as the conductor, is refined without the offset scan) and is measured with pmvir.evaluate.evaluate (1,000,000
 ground-truth samples; illumination against gt/illumination.json). Measured rows are cached
 under --work as JSON (with the refined mesh), so a split run (one model at a time) followed by
 a run on all models only measures what is missing; --fresh measures everything again.
@@ -59,7 +60,7 @@ from pmvir.evaluate import evaluate
 from pmvir.geometry.stage import run_geometry
 from pmvir.io.illumination import illumination_from_arrays, read_illumination
 from pmvir.io.ply import Mesh, read_mesh, write_mesh_ply
-from pmvir.pipeline import decode_views, refinement_observations
+from pmvir.pipeline import decode_views, median_dop_in_masks, refinement_observations, refinement_options
 from pmvir.refine import make_visibility_fn, refine_surface
 
 ROOT = Path(__file__).resolve().parent
@@ -170,6 +171,16 @@ class Case:
                 self.masks = [cap.read_mask(i) for i in range(len(cap.frames))]
         return self._views
 
+    def median_dop(self) -> float | None:
+        """The capture's median DoP inside the masks (pmvir.pipeline.median_dop_in_masks), cached as JSON."""
+        path = self.dir / "median_dop.json"
+        if path.is_file():
+            return json.loads(path.read_text())["median_dop_in_masks"]
+        with open_capture(self.capture) as cap:
+            value = median_dop_in_masks(cap, self.views())
+        path.write_text(json.dumps({"median_dop_in_masks": value}))
+        return value
+
     def geometry(self) -> dict:
         """Initial surface, visibility, cameras and the stage's time: computed once, cached as npz."""
         if self._geometry is not None:
@@ -264,7 +275,8 @@ def metrics_row(result, seconds: float) -> dict:
 def measure(case: Case, row: str, args: argparse.Namespace) -> dict:
     """One row of a table (cached under the case's folder as JSON)."""
     geo_key = case.geometry_file.stem
-    opts = None if row == "initial" else refine_options(row, args)
+    # as the pipeline: a specular-dominated capture is refined without the offset scan
+    opts = None if row == "initial" else refinement_options(refine_options(row, args), case.median_dop())
     key = _key(
         {
             "geometry": geo_key,
