@@ -352,7 +352,14 @@ class ServiceStack:
 
 
 def write_noise_capture(
-    root: str | Path, *, frames: int, width: int = 64, height: int = 48, seed: int = 0, masks: bool = False
+    root: str | Path,
+    *,
+    frames: int,
+    width: int = 64,
+    height: int = 48,
+    seed: int = 0,
+    masks: bool = False,
+    dop: float = 0.0,
 ) -> Path:
     """A valid IMX250MYR capture of random 12-bit mosaics as 16-bit PNGs (for transport and load tests).
 
@@ -363,6 +370,8 @@ def write_noise_capture(
         seed: random seed; the content is a smooth random field plus noise, so PNG
             compression stays realistic (neither all noise nor constant).
         masks: also write masks/<name>.png (8-bit, all foreground).
+        dop: degree of linear polarization of every pixel (angle 30 degrees): the field is
+            split over the four polarizer angles of the IMX250MYR mosaic (0: unpolarized).
 
     Returns:
         The capture folder.
@@ -379,6 +388,8 @@ def write_noise_capture(
     for i in range(frames):
         fx, fy, ph = rng.uniform(0.005, 0.05), rng.uniform(0.005, 0.05), rng.uniform(0, 6.28)
         base = 1500 + 1000 * np.sin(fx * xx + ph) * np.cos(fy * yy)
+        if dop > 0.0:
+            base = base * _polarizer_gain(height, width, dop)
         samples = np.clip(base + rng.normal(0, 60, size=base.shape), 0, 4095).astype(np.uint16)
         name = f"{i:03d}"
         write_frame(root / "frames" / f"{name}.png", samples, bit_depth=12)
@@ -394,3 +405,14 @@ def write_noise_capture(
     }
     (root / "capture.json").write_text(json.dumps(manifest, indent=1))
     return root
+
+
+def _polarizer_gain(height: int, width: int, dop: float) -> np.ndarray:
+    """Per mosaic pixel ``1 + dop cos(2 (theta - 30 deg))`` for its polarizer angle theta (IMX250MYR)."""
+    from pmvir.polarization.layout import ANGLES_DEG, IMX250MYR, mosaic
+
+    theta = np.deg2rad(np.asarray(ANGLES_DEG, dtype=np.float64))
+    gain = 1.0 + dop * np.cos(2.0 * (theta - np.deg2rad(30.0)))
+    per_pixel = np.broadcast_to(gain[:, None], (height, width, 4, 3))
+    out: np.ndarray = mosaic(np.ascontiguousarray(per_pixel), IMX250MYR)
+    return out

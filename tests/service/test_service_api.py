@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from pmvir.io.frames import write_frame
-from service.testing import ServiceStack
+from service.testing import ServiceStack, write_noise_capture
 
 from svc_helpers import DECODE_ONLY, KEY, OTHER_KEY, client_for, finished, new_job, upload, wait_for
 
@@ -77,6 +77,25 @@ def test_log_lines_are_paged_with_since(api: httpx.Client, done_job: dict) -> No
     tail = api.get(f"/v1/jobs/{job_id}/log", params={"since": 2}).json()
     assert [ln["index"] for ln in tail["lines"]] == list(range(2, full["total"]))
     assert api.get(f"/v1/jobs/{job_id}/log", params={"since": full["total"]}).json()["lines"] == []
+
+
+def test_a_runs_warnings_reach_the_job_log(
+    api: httpx.Client, stack: ServiceStack, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    """A specular-dominated capture (masked, DoP 0.3 everywhere): the pipeline's warning is a
+    "warning: ..." line of the job's log before "succeeded", and in report.json."""
+    capture = write_noise_capture(tmp_path_factory.mktemp("cap") / "shiny", frames=3, masks=True, seed=3, dop=0.3)
+    with client_for(stack) as c:
+        job_id = new_job(c, capture)
+        assert c.post(f"/v1/jobs/{job_id}/start").status_code == 202
+        job = wait_for(c, job_id, finished, timeout=90, what="finish")
+    assert job["status"] == "succeeded", job
+    messages = [ln["message"] for ln in api.get(f"/v1/jobs/{job_id}/log").json()["lines"]]
+    warnings = [m for m in messages if m.startswith("warning: ")]
+    assert len(warnings) == 1 and "specular-dominated" in warnings[0], messages
+    assert messages.index(warnings[0]) < messages.index("succeeded")
+    report = api.get(f"/v1/jobs/{job_id}/result/report.json").json()
+    assert report["warnings"] == [warnings[0].removeprefix("warning: ")]
 
 
 def test_result_download_honours_range(api: httpx.Client, done_job: dict) -> None:
