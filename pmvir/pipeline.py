@@ -105,14 +105,15 @@ def _decode_frame(cap: Capture, i: int, options: DecodeOptions) -> PolarizationI
 def median_dop_in_masks(cap: Capture, views: list[DecodedView]) -> float | None:
     """The median over views of each view's median DoP over its valid pixels inside its mask.
 
-    None when no view has a mask (the background's DoP would dilute it) or a masked valid pixel.
+    ``views`` are decoded with their masks (:func:`decode_views`), so their ``valid`` already
+    excludes the background; views whose frame has no mask are skipped. None when no view has a
+    mask (the background's DoP would dilute it) or a valid pixel.
     """
     medians = []
     for view in views:
-        mask = cap.read_mask(view.index)
-        if mask is None:
+        if cap.frames[view.index].mask is None:
             continue
-        dop = view.images.dop[mask & view.images.valid]
+        dop = view.images.dop[view.images.valid]
         if dop.size:
             medians.append(float(np.median(dop)))
     return float(np.median(medians)) if medians else None
@@ -125,7 +126,7 @@ def is_specular(median_dop: float | None) -> bool:
 
 def specular_warning(median_dop: float | None, options: RefineOptions) -> str | None:
     """The warning for a specular-dominated object (median DoP above ``SPECULAR_MEDIAN_DOP``), or None."""
-    if median_dop is None or not is_specular(median_dop):
+    if not is_specular(median_dop):
         return None
     scan = (
         "the offset scan is off for it (refine.specular_offset_scan; the scan moved a path-traced "
