@@ -840,6 +840,23 @@ class RefineOptions(_Options):
         "knot and gear slightly better too. illumination.json keeps the pmvir-sh9 part (their "
         "least-squares projection) in 'sh' and the rest in 'sh_high'. Measured in the README.",
     )
+    lighting_coupling: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=1e6,
+        description="After the last stage, the lighting and albedo are fitted once more with the geometry held "
+        "and E_light added with this weight: it pulls each view's order-2 lighting (L_scale times the first 9 "
+        "SH terms) toward the views' mean, relative to the mean (the paper lights each image freely). A view's "
+        "data fix its lighting only for the normals facing it; the coupling lets the other views fix the rest "
+        "(the spec's illumination error is over the whole sphere). Held out of the stages, where it cost "
+        "accuracy. 0: off (the paper's). Measured in the README.",
+    )
+    lighting_final_iterations: int = Field(
+        default=40,
+        ge=1,
+        le=100_000,
+        description="L-BFGS iterations of the final lighting fit (with lighting_coupling > 0).",
+    )
     lighting_prefit_iterations: int = Field(
         default=0,
         ge=0,

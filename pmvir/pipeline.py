@@ -376,6 +376,7 @@ def refine_report(refined: RefineResult) -> dict:
         "timings": {k: float(v) for k, v in refined.timings.items()},
         "stages": [_stage_report(st) for st in refined.stages],
         "offset_scans": [scan.to_dict() for scan in refined.offset_scans],
+        "lighting_fit": None if refined.lighting_fit is None else _stage_report(refined.lighting_fit),
     }
 
 

@@ -1,6 +1,8 @@
 """The four terms of the polarimetric MVIR cost (paper, section 4.3), each its own function.
 
-    E = E_pho + tau1 * E_pol + tau2 * E_gsm + tau3 * E_psm
+    E = E_pho + tau1 * E_pol + tau2 * E_gsm + tau3 * E_psm [+ tau_light * E_light]
+
+E_light (not the paper's, ``RefineOptions.lighting_coupling``) ties the views' lighting together.
 
 All functions are pure, vectorized over every (vertex, view) pair / face /
 edge, and differentiable with autograd. Intensities and albedos are in the
@@ -318,6 +320,33 @@ def psm_weights(
     return np.where(observed[i] & observed[j], w, 1.0)
 
 
+def lighting_coupling_term(sh: torch.Tensor, rgb_scale: torch.Tensor, *, scale: float) -> torch.Tensor:
+    """E_light = scale * sum_c ||L_c - L_mean||^2 over the views' order-2 lighting.
+
+    ``L_c = L_scale,c (x) L_basis,c[:9]`` (3 x 9, the pmvir-sh9 shading of view c per channel);
+    ``L_mean`` is their mean over the views. A view's lighting is determined by the data only for
+    the normals that view sees (those facing it); the others are left free by E_pho and take
+    whatever value the fit gives them. Views of one capture are lit alike, so pulling each toward
+    the mean lets the other views' data determine them. The higher SH terms (order 3-4, which
+    hold the view-dependent glossy residue) stay free. The term is quadratic: a deviation relative
+    to the current mean would let the fit shrink it by inflating a part the views share. (Coupling
+    only the shape ``L_basis,c[1:9]`` and leaving ``L_scale`` free measured worse: README.)
+
+    Args:
+        sh: (V, T) L_basis per view (T = 9, 16 or 25, pmvir-sh9 first).
+        rgb_scale: (V, 3) L_scale per view.
+        scale: a constant (:attr:`StageProblem.light_scale`; the final lighting fit divides E_pho's
+            value with nothing rendered by ``||L_mean||^2`` at its start, so that a deviation of
+            d times the mean lighting costs about what an E_pho residual of d on every
+            observation would).
+
+    Returns:
+        scalar tensor (0 with one view).
+    """
+    lights = rgb_scale[:, :, None] * sh[:, None, :9]
+    return scale * ((lights - lights.mean(dim=0)) ** 2).sum()
+
+
 @dataclass(frozen=True)
 class StageProblem:
     """Everything an energy evaluation needs besides the unknowns (constant within a stage).
@@ -341,6 +370,8 @@ class StageProblem:
             it with E_pho on I_int).
         light_factor: (P,) each pair's rendered colour is multiplied by it, fixed for the stage
             (the unblocked share of its irradiance, :mod:`pmvir.refine.shadowing`); None: 1.
+        light_scale: > 0: E_light is evaluated with this scale (:func:`lighting_coupling_term`);
+            0: it is not (``lighting_coupling`` 0).
         k, t, units: term parameters.
     """
 
@@ -361,6 +392,7 @@ class StageProblem:
     diffuse_fresnel_ior: float = 0.0
     diffuse_dop_ior: float = 0.0
     light_factor: torch.Tensor | None = None
+    light_scale: float = 0.0
 
 
 def energy_terms(
@@ -370,7 +402,8 @@ def energy_terms(
     rgb_scale: torch.Tensor,
     problem: StageProblem,
 ) -> dict[str, torch.Tensor]:
-    """The named, unweighted terms ``{"pho", "pol", "gsm", "psm"}`` (``"pol"`` only when polarimetric).
+    """The named, unweighted terms ``{"pho", "pol", "gsm", "psm", "light"}`` (``"pol"`` only when
+    polarimetric, ``"light"`` only with ``problem.light_scale`` > 0).
 
     Args:
         vertices: (N, 3) positions X.
@@ -415,14 +448,24 @@ def energy_terms(
         face_normals(vertices, problem.faces), problem.face_pairs, problem.has_neighbour, t=problem.t
     )
     terms["psm"] = photometric_smoothness_term(albedo, problem.edges, problem.psm_weight, units=problem.units)
+    if problem.light_scale > 0.0:
+        terms["light"] = lighting_coupling_term(sh, rgb_scale, scale=problem.light_scale)
     return terms
 
 
 def total_energy(
-    terms: dict[str, torch.Tensor], *, tau_pol: float, tau_gsm: float, tau_psm: float
+    terms: dict[str, torch.Tensor],
+    *,
+    tau_pol: float,
+    tau_gsm: float,
+    tau_psm: float,
+    tau_light: float = 0.0,
 ) -> torch.Tensor:
-    """E_pho + tau1 E_pol + tau2 E_gsm + tau3 E_psm (a missing ``"pol"`` counts as 0)."""
+    """E_pho + tau1 E_pol + tau2 E_gsm + tau3 E_psm + tau_light E_light (a missing ``"pol"`` or
+    ``"light"`` counts as 0)."""
     e = terms["pho"] + tau_gsm * terms["gsm"] + tau_psm * terms["psm"]
     if "pol" in terms:
         e = e + tau_pol * terms["pol"]
+    if "light" in terms:
+        e = e + tau_light * terms["light"]
     return e

@@ -136,12 +136,14 @@ class RefineResult:
         visibility: (N, V) bool visibility used by the last stage.
         stages: one :class:`StageLog` per stage.
         timings: seconds: ``setup``, ``offset_scan`` (the scans before stage 1 and after the last; those
-            between stages count in their stage), ``stage_1`` ... ``stage_S``, ``total``.
+            between stages count in their stage), ``stage_1`` ... ``stage_S``, ``lighting`` (the final lighting fit, when run), ``total``.
         intensity_factor: what E_pho and E_psm multiplied intensities and albedos by
             (:func:`intensity_units`).
         offset_scans: the photo-consistent offsets scanned (and applied where the scan found one), in
             order: before stage 1, and with ``offset_scan`` "stages" also before every later stage and
             after the last (:func:`pmvir.refine.offset.photo_consistent_offset`).
+        lighting_fit: the final lighting fit's log (``lighting_coupling`` > 0; its time is
+            ``timings["lighting"]``), else None.
     """
 
     vertices: np.ndarray
@@ -155,6 +157,7 @@ class RefineResult:
     timings: dict[str, float] = field(default_factory=dict)
     intensity_factor: float = 0.0
     offset_scans: list[OffsetScan] = field(default_factory=list)
+    lighting_fit: StageLog | None = None
 
     def shading_coefficients(self) -> np.ndarray:
         """(V, T) every fitted coefficient of :func:`pmvir.sh.sh_basis` (``sh`` then ``sh_high``)."""
@@ -362,16 +365,19 @@ class _Setup:
 
 @dataclass(frozen=True)
 class StageWeights:
-    """One stage's weights of the cost ``E_pho + tau_pol E_pol + tau_gsm E_gsm + tau_psm E_psm``.
+    """One stage's weights of the cost ``E_pho + tau_pol E_pol + tau_gsm E_gsm + tau_psm E_psm
+    + tau_light E_light``.
 
     Attributes:
-        tau_pol: tau1 (0 without E_pol); tau_gsm: tau2; tau_psm: tau3; t: E_gsm's exponent.
+        tau_pol: tau1 (0 without E_pol); tau_gsm: tau2; tau_psm: tau3; t: E_gsm's exponent;
+        tau_light: E_light's weight (0 in the stages; ``lighting_coupling`` in the final lighting fit).
     """
 
     tau_pol: float
     tau_gsm: float
     tau_psm: float
     t: float
+    tau_light: float = 0.0
 
     @classmethod
     def of_stage(cls, opts: RefineOptions, s: int) -> StageWeights:
@@ -545,6 +551,35 @@ def prefit_lighting(
         light_factor=light_factor,
     )
     return replace(stage, problem=problem), state
+
+
+def final_lighting_fit(
+    setup: _Setup, state: _Unknowns, visibility: np.ndarray, *, progress: Progress
+) -> tuple[_Unknowns, StageLog]:
+    """After the last stage: the lighting and albedo fitted again with the geometry held and E_light
+    added (``lighting_coupling``, ``lighting_final_iterations``), starting from the stage's result.
+
+    The last stage's weights, pairs and robust weights are taken again at the final surface; E_light's
+    scale is E_pho's value with nothing rendered over the squared norm of the views' mean lighting
+    at the start (:func:`pmvir.refine.energy.lighting_coupling_term`).
+    """
+    opts = setup.opts
+    stage, state = prepare_stage(setup, state, visibility, opts.n_stages - 1)
+    problem = stage.problem
+    w = problem.pairs.weight if problem.pho_weight is None else problem.pairs.weight * problem.pho_weight
+    _, _, samples = _stage_observations(state.vertices, setup.topo.faces, setup.views, stage.pairs)
+    signal = float((((samples.intensity * setup.units) ** 2).sum(-1) * w).sum())
+    mean = (state.rgb_scale[:, :, None] * state.sh[:, None, :9]).mean(dim=0)
+    scale = signal / max(float((mean * mean).sum()), 1e-12)
+    stage = replace(
+        stage,
+        index=opts.n_stages,
+        problem=replace(problem, light_scale=scale),
+        weights=replace(stage.weights, tau_light=opts.lighting_coupling),
+    )
+    return solve_stage(
+        setup, stage, state, progress=progress, max_iterations=opts.lighting_final_iterations, freeze_motion=True
+    )
 
 
 def _shadow_factor(
@@ -743,7 +778,13 @@ def _minimize(
         u = param.unpack(z)
         albedo = u.albedo if solver is None else solver
         terms = energy_terms(u.vertices, albedo, u.sh, u.rgb_scale, problem)
-        total = total_energy(terms, tau_pol=weights.tau_pol, tau_gsm=weights.tau_gsm, tau_psm=weights.tau_psm)
+        total = total_energy(
+            terms,
+            tau_pol=weights.tau_pol,
+            tau_gsm=weights.tau_gsm,
+            tau_psm=weights.tau_psm,
+            tau_light=weights.tau_light,
+        )
         (grad,) = torch.autograd.grad(total, z)
         if freeze_motion:
             grad[param.blocks.motion] = 0.0
@@ -984,6 +1025,8 @@ def _initial_unknowns(
 
 #: Share of the refinement's progress taken by the offset scans outside the stages, per ``offset_scan``.
 _SCAN_WEIGHT = {"off": 0.0, "start": 0.01, "stages": 0.02}
+#: Share of the refinement's progress taken by the final lighting fit (``lighting_coupling`` > 0).
+_LIGHTING_WEIGHT = 0.03
 
 
 def _offset_scan(
@@ -1067,7 +1110,8 @@ def refine_surface(
     logs: list[StageLog] = []
     for s in range(opts.n_stages):
         t_stage = time.perf_counter()
-        stage_weight = (1.0 - _SCAN_WEIGHT[opts.offset_scan]) / opts.n_stages
+        lighting = _LIGHTING_WEIGHT if opts.lighting_coupling > 0.0 else 0.0
+        stage_weight = (1.0 - _SCAN_WEIGHT[opts.offset_scan] - lighting) / opts.n_stages
         with progress.step(f"stage {s + 1}", weight=stage_weight) as p:
             p.update(0.0, f"of {opts.n_stages}: visibility and pairs")
             if s > 0 and opts.offset_scan == "stages":
@@ -1086,6 +1130,12 @@ def refine_surface(
         with progress.step("offset scan", weight=0.01) as p:
             state, scans = _offset_scan(setup, state, opts, scans, p)
         timings["offset_scan"] += time.perf_counter() - t_scan
+    lighting_fit = None
+    if opts.lighting_coupling > 0.0:
+        t_fit = time.perf_counter()
+        with progress.step("lighting", weight=_LIGHTING_WEIGHT) as p:
+            state, lighting_fit = final_lighting_fit(setup, state, vis, progress=p)
+        timings["lighting"] = time.perf_counter() - t_fit
     with torch.no_grad():
         normals = vertex_normals(state.vertices, setup.topo.faces).cpu().numpy().astype(np.float32)
     timings["total"] = time.perf_counter() - t_start
@@ -1101,4 +1151,5 @@ def refine_surface(
         timings=timings,
         intensity_factor=setup.units,
         offset_scans=scans,
+        lighting_fit=lighting_fit,
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -20,6 +21,7 @@ from pmvir.refine.energy import (
     energy_terms,
     fresnel_transmittance,
     geometric_smoothness_term,
+    lighting_coupling_term,
     pair_light,
     photometric_smoothness_term,
     photometric_term,
@@ -378,6 +380,16 @@ def _total(problem, x, k, sh, sc):
     return total_energy(terms, tau_pol=60.0, tau_gsm=0.1, tau_psm=2.0)
 
 
+def _light(problem, sh, sc):
+    return lighting_coupling_term(sh, sc, scale=1000.0)
+
+
+def _total_light(problem, x, k, sh, sc):
+    terms = energy_terms(x, k, sh, sc, replace(problem, light_scale=1000.0))
+    assert "light" in terms
+    return total_energy(terms, tau_pol=60.0, tau_gsm=0.1, tau_psm=2.0, tau_light=0.5)
+
+
 @pytest.mark.parametrize(
     "name, fn, which",
     [
@@ -386,6 +398,8 @@ def _total(problem, x, k, sh, sc):
         ("gsm", _gsm, (0,)),
         ("psm", _psm, (1,)),
         ("total", _total, (0, 1, 2, 3)),
+        ("light", _light, (2, 3)),
+        ("total with E_light", _total_light, (0, 1, 2, 3)),
     ],
 )
 def test_gradients_match_finite_differences(small_problem, name, fn, which) -> None:
@@ -398,6 +412,26 @@ def test_gradients_match_finite_differences(small_problem, name, fn, which) -> N
     value = float(fn(problem, *args).detach())
     assert value > 0.0, f"E_{name} should be positive on the perturbed mesh"
     assert torch.autograd.gradcheck(lambda *a: fn(problem, *a) / value, args, eps=1e-6, atol=1e-7, rtol=1e-4)
+
+
+def test_lighting_coupling_is_zero_for_shared_lighting_quadratic_and_blind_to_the_higher_terms() -> None:
+    rng = np.random.default_rng(0)
+    sh = torch.from_numpy(np.tile(rng.normal(0.0, 0.3, 25), (4, 1)))
+    sh[:, 0] = 1.0
+    scale = torch.from_numpy(np.tile([1.0, 0.9, 0.7], (4, 1)))
+    assert float(lighting_coupling_term(sh, scale, scale=10.0)) == pytest.approx(0.0, abs=1e-12)
+    varied = sh.clone()
+    varied[:, 9:] = torch.from_numpy(rng.normal(0.0, 0.3, (4, 16)))  # order 3-4: view-dependent, free
+    assert float(lighting_coupling_term(varied, scale, scale=10.0)) == pytest.approx(0.0, abs=1e-12)
+    varied[1, 2] += 0.2  # one view's light from elsewhere
+    e = float(lighting_coupling_term(varied, scale, scale=10.0))
+    # over 4 views, the squared deviations from the mean sum to 0.2^2 * 3/4 per unit channel scale
+    assert e == pytest.approx(10.0 * 0.04 * 0.75 * (1.0 + 0.81 + 0.49), rel=1e-12)
+    assert float(lighting_coupling_term(varied, 3.0 * scale, scale=10.0)) == pytest.approx(9.0 * e, rel=1e-12)
+    assert float(lighting_coupling_term(varied, scale, scale=20.0)) == pytest.approx(2.0 * e, rel=1e-12)
+    brighter = scale.clone()
+    brighter[2] *= 1.5  # one view lit more strongly
+    assert float(lighting_coupling_term(sh, brighter, scale=10.0)) > 0.0
 
 
 def test_dop_weighting_is_switchable(small_problem) -> None:
