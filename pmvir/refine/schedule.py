@@ -136,7 +136,8 @@ class RefineResult:
         visibility: (N, V) bool visibility used by the last stage.
         stages: one :class:`StageLog` per stage.
         timings: seconds: ``setup``, ``offset_scan`` (the scans before stage 1 and after the last; those
-            between stages count in their stage), ``stage_1`` ... ``stage_S``, ``lighting`` (the final lighting fit, when run), ``total``.
+            between stages count in their stage), ``stage_1`` ... ``stage_S``, ``lighting`` (the final
+            lighting fit, when run), ``total``.
         intensity_factor: what E_pho and E_psm multiplied intensities and albedos by
             (:func:`intensity_units`).
         offset_scans: the photo-consistent offsets scanned (and applied where the scan found one), in
