@@ -14,7 +14,8 @@
   ``sfm.rematch_rounds`` times the known-pose matching along the estimated
   poses, triangulation and the robust bundle adjustment again (longer tracks
   between views 30-70 degrees apart; its points seen in fewer than
-  ``sfm.rematch_min_track`` views are dropped). Given intrinsics are
+  ``sfm.rematch_min_track`` views are dropped; models that must be joined
+  get one round per joining pass). Given intrinsics are
   held fixed (PINHOLE); missing ones are estimated as SIMPLE_PINHOLE (one focal
   length, principal point at the image centre), shared by the views of one
   image size unless ``sfm.shared_intrinsics`` is off. The result lives in
