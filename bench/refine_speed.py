@@ -3,13 +3,15 @@
 A synthetic ~300k-vertex bumpy sphere seen by 36 views at 612 x 512, rendered
 with the refinement's own image model (pmvir.refine.forward), is refined from a
 perturbed copy (details attenuated, noise added) with the default options on
-the CPU, visibility refreshed between stages by pmvir.geometry.visibility.
+the CPU (``--device cuda``: on the GPU; the peer is the CPU run on the same
+machine), visibility refreshed between stages by pmvir.geometry.visibility.
 
 Prints a table and writes bench/results/refine_speed.json. Peak memory is the
 process's maximum resident set size (ru_maxrss), which includes what torch
-allocates (tracemalloc would not see it).
+allocates (tracemalloc would not see it); on a GPU also torch's peak allocated
+GPU memory.
 
-Run: .venv/bin/python bench/refine_speed.py [--frequency 173] [--views 36] [--max-iterations N]
+Run: .venv/bin/python bench/refine_speed.py [--frequency 173] [--views 36] [--max-iterations N] [--device cuda]
 """
 
 from __future__ import annotations
@@ -105,6 +107,9 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=612)
     ap.add_argument("--height", type=int, default=512)
     ap.add_argument("--max-iterations", type=int, default=None, help="override RefineOptions.max_iterations")
+    ap.add_argument(
+        "--device", default="cpu", help="RefineOptions.device: cpu, cuda, cuda:N or auto (the peer: cpu, same machine)"
+    )
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "refine_speed.json"))
     args = ap.parse_args()
 
@@ -117,7 +122,10 @@ def main() -> None:
     t_scene = time.perf_counter() - t0
     rss_scene = rss_gib()
 
-    opts = RefineOptions(device="cpu")
+    opts = RefineOptions(device=args.device)
+    cuda = opts.device != "cpu" and torch.cuda.is_available()
+    if cuda:
+        torch.cuda.reset_peak_memory_stats()
     if args.max_iterations is not None:
         opts.max_iterations = args.max_iterations
     t1 = time.perf_counter()
@@ -135,6 +143,8 @@ def main() -> None:
     )
     t_refine = time.perf_counter() - t1
     rss_peak = rss_gib()
+    gpu_peak = torch.cuda.max_memory_allocated() / 2**30 if cuda else None
+    device_name = torch.cuda.get_device_name() if cuda else platform.processor() or platform.machine()
     acc0, acc1 = accuracy(init_v, true_v, faces), accuracy(res.vertices, true_v, faces)
 
     rows = [("scene + render + visibility (not timed below)", t_scene, "")]
@@ -151,12 +161,15 @@ def main() -> None:
     rows.append(("refine: total", t_refine, "limit 600 s"))
     print(
         f"pmvir refine speed: {len(init_v):,} vertices, {len(faces):,} faces, {args.views} views "
-        f"{args.width}x{args.height}, torch {torch.__version__}, {torch.get_num_threads()} threads"
+        f"{args.width}x{args.height}, torch {torch.__version__}, {torch.get_num_threads()} threads, "
+        f"device {opts.device} ({device_name})"
     )
     print(f"{'step':60s} {'seconds':>9s}  notes")
     for name, sec, note in rows:
         print(f"{name:60s} {sec:9.1f}  {note}")
     print(f"peak RSS {rss_peak:.2f} GiB (after scene: {rss_scene:.2f} GiB; limit 8 GiB)")
+    if gpu_peak is not None:
+        print(f"peak GPU memory allocated {gpu_peak:.2f} GiB")
     print(f"accuracy (GT diagonals): initial {acc0:.6f} -> refined {acc1:.6f}")
     out = {
         "vertices": len(init_v),
@@ -164,6 +177,9 @@ def main() -> None:
         "views": args.views,
         "image": [args.width, args.height],
         "threads": torch.get_num_threads(),
+        "device": opts.device,
+        "device_name": device_name,
+        "peak_gpu_gib": gpu_peak,
         "cpu_count": os.cpu_count(),
         "platform": platform.platform(),
         "torch": torch.__version__,
