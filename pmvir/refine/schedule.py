@@ -404,6 +404,7 @@ class _Stage:
     h: float
     dop_floor: torch.Tensor | float | None
     pol_pairs: int
+    pho_signal: float  # E_pho's value with nothing rendered, at the stage's start (E_light's scale)
 
 
 def prepare_stage(
@@ -481,8 +482,16 @@ def prepare_stage(
         h=mean_edge_length(cur_np, setup.topo.edges_np),
         dop_floor=floor,
         pol_pairs=_pol_pair_count(samples, problem) if opts.polarimetric else 0,
+        pho_signal=_pho_signal(samples, problem),
     )
     return stage, state
+
+
+def _pho_signal(samples: PairSamples, problem: StageProblem) -> float:
+    """E_pho with nothing rendered: every pair's observed intensity squared, weighted as E_pho weights it."""
+    w = problem.pairs.weight if problem.pho_weight is None else problem.pairs.weight * problem.pho_weight
+    with torch.no_grad():
+        return float((((samples.intensity * problem.units) ** 2).sum(-1) * w).sum())
 
 
 def _stage_dop_floor(samples: PairSamples, opts: RefineOptions) -> torch.Tensor | float | None:
@@ -566,16 +575,12 @@ def final_lighting_fit(
     """
     opts = setup.opts
     stage, state = prepare_stage(setup, state, visibility, opts.n_stages - 1)
-    problem = stage.problem
-    w = problem.pairs.weight if problem.pho_weight is None else problem.pairs.weight * problem.pho_weight
-    _, _, samples = _stage_observations(state.vertices, setup.topo.faces, setup.views, stage.pairs)
-    signal = float((((samples.intensity * setup.units) ** 2).sum(-1) * w).sum())
     mean = (state.rgb_scale[:, :, None] * state.sh[:, None, :9]).mean(dim=0)
-    scale = signal / max(float((mean * mean).sum()), 1e-12)
+    scale = stage.pho_signal / max(float((mean * mean).sum()), 1e-12)
     stage = replace(
         stage,
         index=opts.n_stages,
-        problem=replace(problem, light_scale=scale),
+        problem=replace(stage.problem, light_scale=scale),
         weights=replace(stage.weights, tau_light=opts.lighting_coupling),
     )
     return solve_stage(
