@@ -63,6 +63,7 @@ from pmvir.camera import Camera
 from pmvir.config import SfmOptions
 from pmvir.errors import InputError, ReconstructionError, ShapeError
 from pmvir.geometry.sfm_colmap import Progress, fundamental_matrix, quiet_colmap, run_colmap, sampson_error
+from pmvir.geometry.sfm_frontier import frontier_adjust
 from pmvir.io.colmap_text import image_from_camera, pinhole_from_camera, write_colmap_text_model
 from pmvir.polarization.preview import srgb_encode
 
@@ -101,6 +102,9 @@ class SparseModel:
             x, y (pixels, COLMAP convention), or None.
         fallback: True when SfM on the first images left views out or failed and the
             ``fallback_images`` of :func:`estimate_poses` gave this model.
+        frontier: the frontier adjustment's report (:class:`.sfm_frontier.FrontierReport` as a
+            dict: residuals before and after, whether its poses were kept), or None where it did
+            not run (known poses, no masks, ``sfm.frontier_weight`` 0, too few masked views).
     """
 
     cameras: list[Camera | None]
@@ -115,6 +119,7 @@ class SparseModel:
     num_features: list[int] = field(default_factory=list)
     point_observations: list[np.ndarray] | None = None
     fallback: bool = False
+    frontier: dict[str, float | int | bool] | None = None
 
     @property
     def num_registered(self) -> int:
@@ -394,6 +399,16 @@ def _estimate_poses(
             known_cameras if known else None, options, timings, report,
         )
 
+    frontier = None
+    if not known and rec is not None and masks is not None and options.frontier_weight > 0:
+        report(0.97, "holding the poses to the masks")
+        t0 = time.perf_counter()
+        frontier = frontier_adjust(
+            rec, {f: m for f, m in zip(files, masks, strict=True) if m is not None},
+            weight=options.frontier_weight, iterations=options.frontier_iterations,
+        )
+        timings["frontier"] = time.perf_counter() - t0
+
     index = {name: i for i, name in enumerate(files)}
     view_of_image = {} if rec is None else {im.image_id: index[im.name] for im in rec.images.values()}
     result_cameras: list[Camera | None] = list(known_cameras) if known else [None] * n
@@ -439,6 +454,7 @@ def _estimate_poses(
         point_observations=observations,
         mean_reprojection_error=float(rec.compute_mean_reprojection_error()), registered=registered,
         known_poses=known, timings=timings, names=list(names), num_features=features,
+        frontier=None if frontier is None else frontier.as_dict(),
     )
 
 

@@ -279,6 +279,7 @@ def geometry_report(result: GeometryResult) -> dict[str, Any]:
             "sparse_points": len(sparse.points),
             "mean_reprojection_error_px": float(sparse.mean_reprojection_error),
             "fallback_images": bool(sparse.fallback),  # sfm.grey 'auto': SfM on I_int after I_min left views out
+            "frontier": sparse.frontier,  # sfm.frontier_weight: the poses held to the masks' tangencies
             "timings": {k: float(v) for k, v in sparse.timings.items()},
         },
         "dense": {

@@ -83,7 +83,8 @@ def _shared_model(name: str) -> Path:
 def test_the_dragons_two_one_sided_models_are_joined(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """End to end: on the 36-view dragon the mapper builds one model per side (the end-on views
     verify with too few others; it failed with 14 views before the join); joining them through the
-    views both register by absolute pose gives one model of at least 30 views within 1.5% of the rig.
+    views both register by absolute pose gives one model of at least 30 views, and the frontier
+    adjustment takes the bend its tracks leave (1.1% of the rig) to within 0.5%.
     Models being joined are matched again once per pass whatever sfm.rematch_rounds says (default 2):
     a second round along their bent poses added to the bend (1.10 -> 1.34 % of the rig)."""
     from pmvir.capture import open_capture
@@ -140,4 +141,8 @@ def test_the_dragons_two_one_sided_models_are_joined(tmp_path: Path, monkeypatch
     tru = np.stack([true[i].center for i in reg])
     err = np.linalg.norm(umeyama(est, tru).apply(est) - tru, axis=1)
     rig = float(np.linalg.norm(tru.max(0) - tru.min(0)))
-    assert err.max() <= 0.015 * rig, f"largest centre error {100 * err.max() / rig:.2f}% of the rig"
+    # The frontier adjustment (sfm.frontier_weight) holds the joined poses to the masks: without it
+    # the largest centre error was 1.10 % (the tracks' bend), with it 0.19 % (Nov 27, session 25).
+    assert model.frontier is not None and model.frontier["accepted"], model.frontier
+    assert model.frontier["frontier_rms_after"] < 0.25 * model.frontier["frontier_rms_before"]
+    assert err.max() <= 0.005 * rig, f"largest centre error {100 * err.max() / rig:.2f}% of the rig"

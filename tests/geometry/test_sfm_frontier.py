@@ -1,0 +1,177 @@
+"""The frontier adjustment (pmvir.geometry.sfm_frontier): poses held to the masks' epipolar tangencies."""
+
+from __future__ import annotations
+
+import numpy as np
+import pycolmap
+import pytest
+import torch
+
+from pmvir.geometry.sfm_frontier import _Problem, frontier_adjust
+
+RADII = np.array([1.0, 0.7, 0.5])  # the object: this ellipsoid and a ball on its side (no symmetry)
+BALL, BALL_RADIUS = np.array([0.2, 0.55, 0.3]), 0.35
+W, H, F = 320, 256, 350.0
+
+
+def _look_at(centre: np.ndarray) -> np.ndarray:
+    z = -centre / np.linalg.norm(centre)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z])  # world -> camera (y down)
+
+
+def _cameras() -> list[tuple[np.ndarray, np.ndarray]]:
+    cams = []
+    for k in range(16):
+        az, el = 2 * np.pi * k / 8 + (0.2 if k >= 8 else 0.0), np.radians(25 if k < 8 else -15)
+        c = 4.0 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        cams.append((_look_at(c), c))
+    return cams
+
+
+K = np.array([[F, 0, W / 2], [0, F, H / 2], [0, 0, 1.0]])
+
+
+def _mask(R: np.ndarray, c: np.ndarray, shift: np.ndarray | None = None) -> np.ndarray:
+    """Pixels whose ray meets the object (moved by ``shift``)."""
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    rays = (R.T @ np.linalg.solve(K, np.stack([u.ravel(), v.ravel(), np.ones(u.size)]))).T
+    hit = np.zeros(u.size, dtype=bool)
+    for centre, radii in ((np.zeros(3), RADII), (BALL, np.full(3, BALL_RADIUS))):
+        o = (c - centre - (np.zeros(3) if shift is None else shift)) / radii
+        d = rays / radii
+        a, b, cc = (d * d).sum(1), 2 * (d @ o), o @ o - 1
+        hit |= b * b - 4 * a * cc >= 0
+    return hit.reshape(H, W)
+
+
+def _reconstruction(cams: list[tuple[np.ndarray, np.ndarray]], points: np.ndarray, true_cams: list) -> pycolmap.Reconstruction:
+    """Poses ``cams``; observations: the points projected by the *true* cameras where they face them."""
+    rec = pycolmap.Reconstruction()
+    normals = points / RADII**2
+    obs: dict[int, list] = {i: [] for i in range(len(cams))}
+    tracks = []
+    for p, n in zip(points, normals, strict=True):
+        t = []
+        for i, (R, c) in enumerate(true_cams):
+            if n @ (c - p) > 0:
+                x = K @ (R @ (p - c))
+                t.append((i, len(obs[i])))
+                obs[i].append(x[:2] / x[2])
+        tracks.append(t)
+    for i, (R, c) in enumerate(cams):
+        cam = pycolmap.Camera(model="PINHOLE", width=W, height=H, params=[F, F, W / 2, H / 2], camera_id=i + 1)
+        rec.add_camera_with_trivial_rig(cam)
+        xy = np.asarray(obs[i], np.float64).reshape(-1, 2)
+        image = pycolmap.Image(name=f"{i:05d}.png", keypoints=xy, camera_id=i + 1, image_id=i + 1)
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ c))
+    for p, t in zip(points, tracks, strict=True):
+        if len(t) >= 2:
+            track = pycolmap.Track()
+            for i, k in t:
+                track.add_element(i + 1, k)
+            rec.add_point3D(p, track, np.zeros(3, np.uint8))
+    return rec
+
+
+def _surface_points(n: int, rng: np.random.Generator, cap: bool = False) -> np.ndarray:
+    d = rng.normal(size=(4 * n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    if cap:  # a patch on the +x end only
+        d = d[d[:, 0] > 0.9]
+    return (d * RADII)[:n]
+
+
+def _perturbed(cams: list, moved: list[int], rng: np.random.Generator, size: float = 0.08) -> list:
+    out = list(cams)
+    for i in moved:
+        R, c = cams[i]
+        w = rng.normal(size=3) * np.radians(1.0)
+        th = np.linalg.norm(w)
+        kx = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]) / th
+        dR = np.eye(3) + np.sin(th) * kx + (1 - np.cos(th)) * kx @ kx
+        out[i] = (R @ dR, c + rng.normal(size=3) * size)
+    return out
+
+
+def _centre_errors(rec: pycolmap.Reconstruction, cams: list) -> np.ndarray:
+    return np.array([np.linalg.norm(rec.images[i + 1].projection_center() - c) for i, (_, c) in enumerate(cams)])
+
+
+@pytest.fixture(scope="module")
+def scene() -> dict:
+    cams = _cameras()
+    return {"cams": cams, "masks": {f"{i:05d}.png": _mask(R, c) for i, (R, c) in enumerate(cams)}}
+
+
+def test_frontier_residuals_vanish_at_the_true_poses_only(scene: dict) -> None:
+    rng = np.random.default_rng(0)
+    true = _Problem.build(_reconstruction(scene["cams"], _surface_points(100, rng), scene["cams"]), scene["masks"])
+    assert true is not None and len(true.pairs) >= 60
+    rms_true, med_true = true.measure(true.state0())
+    assert rms_true < 0.5 and med_true < 1e-6
+    moved = _perturbed(scene["cams"], [3, 9], rng)
+    bent = _Problem.build(_reconstruction(moved, _surface_points(100, rng), scene["cams"]), scene["masks"])
+    assert bent is not None
+    assert bent.measure(bent.state0())[0] > 5 * rms_true
+
+
+def test_views_without_tracks_are_brought_back_by_the_masks_alone(scene: dict) -> None:
+    """Points only on one end of the ellipsoid: the views that do not see it have no track, so only
+    the masks can move them; four of them start 1 degree and ~0.14 units off (3.5% of the distance
+    to the object)."""
+    rng = np.random.default_rng(1)
+    points = _surface_points(40, rng, cap=True)
+    normals = points / RADII**2
+    blind = [i for i, (_, c) in enumerate(scene["cams"]) if not np.any(normals @ c - (normals * points).sum(1) > 0)]
+    assert len(blind) >= 4
+    moved = blind[:4]
+    start = _perturbed(scene["cams"], moved, rng)
+    rec = _reconstruction(start, points, scene["cams"])
+    before = _centre_errors(rec, scene["cams"])[moved]
+    report = frontier_adjust(rec, scene["masks"], weight=1.0, iterations=2000)
+    assert report is not None and report.accepted, report
+    after = _centre_errors(rec, scene["cams"])[moved]
+    assert np.all(after < 0.5 * before) and after.mean() < 0.3 * before.mean(), (before, after)
+    assert report.frontier_rms_after < 0.2 * report.frontier_rms_before
+    # tracks only (weight 0): those views have nothing to move them
+    rec0 = _reconstruction(start, points, scene["cams"])
+    frontier_adjust(rec0, scene["masks"], weight=0.0, iterations=200)
+    np.testing.assert_allclose(_centre_errors(rec0, scene["cams"])[moved], before, rtol=1e-3)
+
+
+def test_masks_of_another_object_are_not_followed(scene: dict) -> None:
+    """Masks that fit no poses (each view's ellipsoid shifted at random) with a weight that would
+    tear the tracks apart: the adjustment's poses are refused and the model is left as it was."""
+    rng = np.random.default_rng(2)
+    wrong = {
+        f"{i:05d}.png": _mask(R, c, shift=rng.normal(size=3) * 0.15) for i, (R, c) in enumerate(scene["cams"])
+    }
+    rec = _reconstruction(scene["cams"], _surface_points(100, rng), scene["cams"])
+    before = np.stack([rec.images[i + 1].projection_center() for i in range(16)])
+    report = frontier_adjust(rec, wrong, weight=100.0, iterations=300)
+    assert report is not None and not report.accepted
+    assert report.track_median_after > 1.0
+    np.testing.assert_array_equal(np.stack([rec.images[i + 1].projection_center() for i in range(16)]), before)
+
+
+def test_no_masks_or_too_few_is_a_no_op(scene: dict) -> None:
+    rec = _reconstruction(scene["cams"], _surface_points(50, np.random.default_rng(3)), scene["cams"])
+    assert frontier_adjust(rec, {}, weight=1.0, iterations=10) is None
+    two = dict(list(scene["masks"].items())[:2])
+    assert frontier_adjust(rec, two, weight=1.0, iterations=10) is None
+
+
+def test_energy_gradient_matches_finite_differences(scene: dict) -> None:
+    rng = np.random.default_rng(4)
+    moved = _perturbed(scene["cams"], [2, 5, 11], rng, size=0.03)
+    problem = _Problem.build(_reconstruction(moved, _surface_points(30, rng), scene["cams"]), scene["masks"])
+    assert problem is not None
+    w = (torch.randn(16, 3, dtype=torch.float64) * 1e-3).requires_grad_(True)
+    dc = (torch.randn(16, 3, dtype=torch.float64) * 1e-3).requires_grad_(True)
+    dx = (torch.randn_like(problem.X0) * 1e-3).requires_grad_(True)
+    # the extremes' contour points stay put under the checks' 1e-7 steps
+    assert torch.autograd.gradcheck(
+        lambda a, b, c: problem.energy(a, b, c, weight=1.0), (w, dc, dx), eps=1e-7, atol=1e-4, rtol=1e-4
+    )
