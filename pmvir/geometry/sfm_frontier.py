@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import pycolmap
+import scipy.optimize
 import torch
 
 #: Cauchy scale of the track reprojection residuals (px), as COLMAP's robust adjustment in pmvir.
@@ -97,24 +98,27 @@ def frontier_adjust(
         before = problem.measure(problem.state0())
     if not problem.pairs:
         return None
-    params = [torch.zeros_like(problem.C0), torch.zeros_like(problem.C0), torch.zeros_like(problem.X0)]
-    for p in params:
-        p.requires_grad_(True)
-    opt = torch.optim.LBFGS(
-        params, lr=1.0, max_iter=iterations, history_size=30, line_search_fn="strong_wolfe",
-        tolerance_grad=1e-10, tolerance_change=1e-14,
+    n_view, n_point = len(problem.C0), len(problem.X0)
+
+    def split(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        return x[: 3 * n_view].view(n_view, 3), x[3 * n_view: 6 * n_view].view(n_view, 3), x[6 * n_view:].view(n_point, 3)
+
+    def energy_and_gradient(x: np.ndarray) -> tuple[float, np.ndarray]:
+        xt = torch.from_numpy(x).requires_grad_(True)
+        energy = problem.energy(*problem.unscaled(*split(xt)), weight=weight)
+        (grad,) = torch.autograd.grad(energy, xt)
+        return float(energy.detach()), grad.numpy()
+
+    # SciPy's L-BFGS-B: the same method as torch.optim.LBFGS at half its cost here (its bookkeeping
+    # took as long as the energy and gradient on the dragon).
+    res = scipy.optimize.minimize(
+        energy_and_gradient, np.zeros(6 * n_view + 3 * n_point), jac=True, method="L-BFGS-B",
+        options={"maxiter": iterations, "maxfun": 2 * iterations, "maxcor": 30, "ftol": 1e-15, "gtol": 1e-10},
     )
-
-    def closure() -> torch.Tensor:
-        opt.zero_grad()
-        energy = problem.energy(*params, weight=weight)
-        energy.backward()
-        return energy
-
-    opt.step(closure)
-    n_iter = int(opt.state[opt._params[0]].get("n_iter", 0))
+    n_iter = int(res.nit)
+    params = split(torch.from_numpy(res.x))
     with torch.no_grad():
-        state = problem.state(*params)
+        state = problem.state(*problem.unscaled(*params))
         after = problem.measure(state)
     accepted = bool(after[0] < before[0] and after[1] <= max(1.0, before[1]))
     if accepted:
@@ -141,12 +145,14 @@ def _rodrigues(w: torch.Tensor) -> torch.Tensor:
 
 
 def _contour_rays(mask: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit camera-frame rays (M, 3) through the outer contour pixels of ``mask`` and (M,) whether
-    each lies on the image border (a truncated silhouette)."""
+    """Unit camera-frame rays (M, 3) through the vertices of the convex hull of ``mask``'s contour
+    pixels and (M,) whether each lies on the image border (a truncated silhouette)."""
     contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     if not contours:
         return np.zeros((0, 3)), np.zeros(0, dtype=bool)
-    px = np.concatenate([c.reshape(-1, 2) for c in contours]).astype(np.float64)
+    # The outermost tangent lines from a point outside a silhouette touch its convex hull: its
+    # vertices are the only candidates for the extremes (tens of points instead of thousands).
+    px = cv2.convexHull(np.concatenate([c.reshape(-1, 2) for c in contours])).reshape(-1, 2).astype(np.float64)
     h, w = mask.shape
     border = (px[:, 0] <= 0) | (px[:, 1] <= 0) | (px[:, 0] >= w - 1) | (px[:, 1] >= h - 1)
     rays = np.linalg.solve(K, np.c_[px + 0.5, np.ones(len(px))].T).T
@@ -216,6 +222,16 @@ class _Problem:
         )
         problem._select_pairs()
         return problem
+
+    def unscaled(
+        self, w: torch.Tensor, dc: torch.Tensor, dx: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The increments from the optimizer's variables, which are in pixels: a unit step of each
+        moves an image point about a pixel (rotations by 1/f, positions by depth/f). L-BFGS's
+        curvature model fits far better so (dragon: 1000 iterations 0.40 % of the rig unscaled)."""
+        f = self.K[:, 0, 0].mean()
+        unit = (self.centre - self.C0).norm(dim=-1).median() / f
+        return w / f, dc * unit, dx * unit
 
     def state0(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         return self.R0, self.C0, self.X0
