@@ -63,7 +63,7 @@ from pmvir.camera import Camera
 from pmvir.config import SfmOptions
 from pmvir.errors import InputError, ReconstructionError, ShapeError
 from pmvir.geometry.sfm_colmap import Progress, fundamental_matrix, quiet_colmap, run_colmap, sampson_error
-from pmvir.geometry.sfm_frontier import frontier_adjust
+from pmvir.geometry.sfm_frontier import frontier_adjust, register_from_silhouettes
 from pmvir.io.colmap_text import image_from_camera, pinhole_from_camera, write_colmap_text_model
 from pmvir.polarization.preview import srgb_encode
 
@@ -105,6 +105,8 @@ class SparseModel:
         frontier: the frontier adjustment's report (:class:`.sfm_frontier.FrontierReport` as a
             dict: residuals before and after, whether its poses were kept), or None where it did
             not run (known poses, no masks, ``sfm.frontier_weight`` 0, too few masked views).
+        silhouette_registered: names of the views SfM left out that were registered from their
+            masks (:func:`.sfm_frontier.register_from_silhouettes`, ``sfm.silhouette_register_px``).
     """
 
     cameras: list[Camera | None]
@@ -120,6 +122,7 @@ class SparseModel:
     point_observations: list[np.ndarray] | None = None
     fallback: bool = False
     frontier: dict[str, float | int | bool] | None = None
+    silhouette_registered: list[str] = field(default_factory=list)
 
     @property
     def num_registered(self) -> int:
@@ -329,8 +332,11 @@ def estimate_poses(
     t0 = time.perf_counter()
     first: SparseModel | None = None
     try:
+        # no registration from silhouettes in this run: it is for the final model only (views the
+        # first images leave out are usually found by the second; each search costs 5-15 s)
         first = _estimate_poses(
-            images, names, cameras, intrinsics, masks, options, workdir, lambda f, s: report(0.5 * f, s)
+            images, names, cameras, intrinsics, masks, options, workdir, lambda f, s: report(0.5 * f, s),
+            silhouettes=False,
         )
     except ReconstructionError as exc:
         first_error = exc
@@ -372,8 +378,11 @@ def _estimate_poses(
     options: SfmOptions,
     workdir: str | Path,
     progress: Progress | None,
+    *,
+    silhouettes: bool = True,
 ) -> SparseModel:
-    """:func:`estimate_poses` on one set of images."""
+    """:func:`estimate_poses` on one set of images (``silhouettes``: views SfM leaves out may be
+    registered from their masks, ``sfm.silhouette_register_px``)."""
     t_start = time.perf_counter()
     n = len(images)
     _check_inputs(images, names, cameras, intrinsics, masks)
@@ -400,14 +409,19 @@ def _estimate_poses(
         )
 
     frontier = None
+    silhouette_views: list[str] = []
     if not known and rec is not None and masks is not None and options.frontier_weight > 0:
         report(0.97, "holding the poses to the masks")
         t0 = time.perf_counter()
+        by_file = {f: m for f, m in zip(files, masks, strict=True) if m is not None}
         frontier = frontier_adjust(
-            rec, {f: m for f, m in zip(files, masks, strict=True) if m is not None},
-            weight=options.frontier_weight, iterations=options.frontier_iterations,
+            rec, by_file, weight=options.frontier_weight, iterations=options.frontier_iterations
         )
         timings["frontier"] = time.perf_counter() - t0
+        if silhouettes and options.silhouette_register_px > 0:
+            t0 = time.perf_counter()
+            silhouette_views = _register_missing_by_silhouette(rec, by_file, files, Ks, images, options)
+            timings["silhouette_registration"] = time.perf_counter() - t0
 
     index = {name: i for i, name in enumerate(files)}
     view_of_image = {} if rec is None else {im.image_id: index[im.name] for im in rec.images.values()}
@@ -455,7 +469,40 @@ def _estimate_poses(
         mean_reprojection_error=float(rec.compute_mean_reprojection_error()), registered=registered,
         known_poses=known, timings=timings, names=list(names), num_features=features,
         frontier=None if frontier is None else frontier.as_dict(),
+        silhouette_registered=[names[index[f]] for f in silhouette_views],
     )
+
+
+def _register_missing_by_silhouette(
+    rec: pycolmap.Reconstruction,
+    masks: dict[str, np.ndarray],
+    files: list[str],
+    Ks: list[np.ndarray | None],
+    images: Sequence[np.ndarray],
+    options: SfmOptions,
+) -> list[str]:
+    """The views SfM left out, registered from their masks and adjusted with the rest (two passes:
+    the views registered in the first give the second more pairs). Returns their file names."""
+    registered = {rec.images[i].name for i in rec.reg_image_ids()}
+    shared = {  # estimated intrinsics: a registered view's of the same size
+        images[files.index(rec.images[i].name)].shape[:2]: rec.cameras[rec.images[i].camera_id].calibration_matrix()
+        for i in rec.reg_image_ids()
+    }
+    done: list[str] = []
+    for _ in range(2):
+        missing = {}
+        for i, f in enumerate(files):
+            K = Ks[i] if Ks[i] is not None else shared.get(images[i].shape[:2])
+            if f not in registered and f not in done and f in masks and K is not None:
+                missing[f] = K
+        if not missing:
+            break
+        found = register_from_silhouettes(rec, masks, missing, max_rms_px=options.silhouette_register_px)
+        if not found:
+            break
+        done += [r.name for r in found]
+        frontier_adjust(rec, masks, weight=options.frontier_weight, iterations=options.frontier_iterations)
+    return done
 
 
 def write_poses_text(model: SparseModel, directory: str | Path) -> Path:

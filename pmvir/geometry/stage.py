@@ -280,6 +280,7 @@ def geometry_report(result: GeometryResult) -> dict[str, Any]:
             "mean_reprojection_error_px": float(sparse.mean_reprojection_error),
             "fallback_images": bool(sparse.fallback),  # sfm.grey 'auto': SfM on I_int after I_min left views out
             "frontier": sparse.frontier,  # sfm.frontier_weight: the poses held to the masks' tangencies
+            "silhouette_registered": list(sparse.silhouette_registered),  # sfm.silhouette_register_px
             "timings": {k: float(v) for k, v in sparse.timings.items()},
         },
         "dense": {

@@ -175,3 +175,25 @@ def test_energy_gradient_matches_finite_differences(scene: dict) -> None:
     assert torch.autograd.gradcheck(
         lambda a, b, c: problem.energy(a, b, c, weight=1.0), (w, dc, dx), eps=1e-7, atol=1e-4, rtol=1e-4
     )
+
+
+def test_a_view_sfm_left_out_is_registered_from_its_silhouette(scene: dict) -> None:
+    """View 6 is missing from the model (as the dragon's end-on views are from SfM's): the search
+    over camera directions, distances and rolls, polished, finds its pose from its mask alone."""
+    from pmvir.geometry.sfm_frontier import register_from_silhouettes
+
+    rng = np.random.default_rng(5)
+    rec = _reconstruction(scene["cams"], _surface_points(150, rng), scene["cams"])
+    rec.deregister_frame(rec.images[7].frame_id)  # image 7 = view 6
+    assert not rec.images[7].has_pose
+    found = register_from_silhouettes(rec, scene["masks"], {"00006.png": K}, max_rms_px=1.0)
+    assert [r.name for r in found] == ["00006.png"] and found[0].rms_px < 1.0, found
+    assert rec.images[7].has_pose
+    error = np.linalg.norm(rec.images[7].projection_center() - scene["cams"][6][1])
+    assert error < 0.02 * np.linalg.norm(scene["cams"][6][1]), error
+    # a mask no pose explains (another object) is not registered
+    rec.deregister_frame(rec.images[7].frame_id)
+    mask = scene["masks"]["00006.png"]
+    other = {**scene["masks"], "00006.png": np.roll(mask, (0, 60), axis=(0, 1)) | np.roll(mask, (40, -30), axis=(0, 1))}
+    assert register_from_silhouettes(rec, other, {"00006.png": K}, max_rms_px=1.0) == []
+    assert not rec.images[7].has_pose
