@@ -145,7 +145,7 @@ def test_the_dragons_two_one_sided_models_are_joined(tmp_path: Path, monkeypatch
     # the largest centre error was 1.10 % (the tracks' bend), with it 0.19 % (Nov 27, session 25).
     assert model.frontier is not None and model.frontier["accepted"], model.frontier
     assert model.frontier["frontier_rms_after"] < 0.25 * model.frontier["frontier_rms_before"]
-    # and three of the four end-on views SfM leaves out are registered from their masks
-    # (sfm.silhouette_register_px): 35 of 36 views within 0.19 % of the rig (session 25)
-    assert len(model.silhouette_registered) >= 2 and len(reg) >= 34, (model.silhouette_registered, len(reg))
+    # and the four end-on views SfM leaves out are registered from their masks
+    # (sfm.silhouette_register_px): 36 of 36 views within 0.18 % of the rig (session 25)
+    assert len(model.silhouette_registered) >= 3 and len(reg) >= 35, (model.silhouette_registered, len(reg))
     assert err.max() <= 0.005 * rig, f"largest centre error {100 * err.max() / rig:.2f}% of the rig"
