@@ -35,6 +35,7 @@ import numpy as np
 import pycolmap
 import scipy.optimize
 import torch
+from scipy.spatial.transform import Rotation
 
 #: Cauchy scale of the track reprojection residuals (px), as COLMAP's robust adjustment in pmvir.
 TRACK_SCALE_PX = 1.0
@@ -342,6 +343,11 @@ class _Problem:
             rec.points3D[pid].xyz = X[k]
 
 
+def _rotvec(w: np.ndarray) -> np.ndarray:
+    """(3,) axis-angle -> (3, 3) rotation matrix."""
+    return Rotation.from_rotvec(w).as_matrix()
+
+
 @dataclass(frozen=True)
 class SilhouetteRegistration:
     """A view registered from its silhouette: its name, the RMS frontier residual (px) of its pose
@@ -439,15 +445,6 @@ def _frontier_vector(
     return np.asarray(res), used
 
 
-def _axis_rotation(w: np.ndarray) -> np.ndarray:
-    theta = float(np.linalg.norm(w))
-    if theta < 1e-12:
-        return np.eye(3)
-    k = w / theta
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(theta) * kx + (1 - np.cos(theta)) * kx @ kx
-
-
 def _search_pose(
     mask: np.ndarray, K: np.ndarray, centre: np.ndarray, distance: float, Cr: np.ndarray,
     hulls: list[np.ndarray], min_pairs: int,
@@ -469,7 +466,7 @@ def _search_pose(
         v = np.cross(aim, u)
         vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
         to_u = np.eye(3) + vx + vx @ vx / (1 + aim @ u)
-        rotations = np.stack([(_axis_rotation(u * roll) @ to_u).T for roll in rolls])  # world -> camera
+        rotations = np.stack([(_rotvec(u * roll) @ to_u).T for roll in rolls])  # world -> camera
         world = np.einsum("mi,rij->rmj", hull, rotations)  # (rolls, M, 3): R^T r
         for scale in SEARCH_DISTANCES:
             C = centre + direction * distance * scale
@@ -507,11 +504,11 @@ def _search_pose(
         pairs = _frontier_vector(R0, C0, hull, centre, Cr, hulls, f, None)[1]
 
         def residuals(x: np.ndarray) -> np.ndarray:
-            return _frontier_vector(R0 @ _axis_rotation(x[:3]), C0 + x[3:] * distance, hull, centre, Cr, hulls, f, pairs)[0]
+            return _frontier_vector(R0 @ _rotvec(x[:3]), C0 + x[3:] * distance, hull, centre, Cr, hulls, f, pairs)[0]
 
         fit = scipy.optimize.least_squares(residuals, np.zeros(6), loss="huber", f_scale=FRONTIER_SCALE_PX, max_nfev=nfev)
         rms = float(np.sqrt(np.mean(fit.fun**2)))
-        return rms, len(pairs), R0 @ _axis_rotation(fit.x[:3]), C0 + fit.x[3:] * distance
+        return rms, len(pairs), R0 @ _rotvec(fit.x[:3]), C0 + fit.x[3:] * distance
 
     screened = sorted((polish(R0, C0, SCREEN_NFEV) for _, R0, C0, _ in distinct[:SEARCH_POLISHED]), key=lambda c: c[0])
     finals = [polish(R, C, 200) for _, _, R, C in screened[:SEARCH_FINALS]]
