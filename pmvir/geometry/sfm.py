@@ -63,7 +63,7 @@ from pmvir.camera import Camera
 from pmvir.config import SfmOptions
 from pmvir.errors import InputError, ReconstructionError, ShapeError
 from pmvir.geometry.sfm_colmap import Progress, fundamental_matrix, quiet_colmap, run_colmap, sampson_error
-from pmvir.geometry.sfm_frontier import frontier_adjust, register_from_silhouettes
+from pmvir.geometry.sfm_frontier import FrontierReport, frontier_adjust, register_from_silhouettes
 from pmvir.io.colmap_text import image_from_camera, pinhole_from_camera, write_colmap_text_model
 from pmvir.polarization.preview import srgb_encode
 
@@ -420,7 +420,8 @@ def _estimate_poses(
         timings["frontier"] = time.perf_counter() - t0
         if silhouettes and options.silhouette_register_px > 0:
             t0 = time.perf_counter()
-            silhouette_views = _register_missing_by_silhouette(rec, by_file, files, Ks, images, options)
+            silhouette_views, last = _register_missing_by_silhouette(rec, by_file, files, Ks, images, options)
+            frontier = last or frontier  # the adjustment that gave the final poses
             timings["silhouette_registration"] = time.perf_counter() - t0
 
     index = {name: i for i, name in enumerate(files)}
@@ -480,15 +481,17 @@ def _register_missing_by_silhouette(
     Ks: list[np.ndarray | None],
     images: Sequence[np.ndarray],
     options: SfmOptions,
-) -> list[str]:
+) -> tuple[list[str], FrontierReport | None]:
     """The views SfM left out, registered from their masks and adjusted with the rest (two passes:
-    the views registered in the first give the second more pairs). Returns their file names."""
+    the views registered in the first give the second more pairs). Returns their file names and
+    the last adjustment's report (None when none was registered)."""
     registered = {rec.images[i].name for i in rec.reg_image_ids()}
     shared = {  # estimated intrinsics: a registered view's of the same size
         images[files.index(rec.images[i].name)].shape[:2]: rec.cameras[rec.images[i].camera_id].calibration_matrix()
         for i in rec.reg_image_ids()
     }
     done: list[str] = []
+    last: FrontierReport | None = None
     for _ in range(2):
         missing = {}
         for i, f in enumerate(files):
@@ -501,8 +504,8 @@ def _register_missing_by_silhouette(
         if not found:
             break
         done += [r.name for r in found]
-        frontier_adjust(rec, masks, weight=options.frontier_weight, iterations=options.frontier_iterations)
-    return done
+        last = frontier_adjust(rec, masks, weight=options.frontier_weight, iterations=options.frontier_iterations)
+    return done, last
 
 
 def write_poses_text(model: SparseModel, directory: str | Path) -> Path:
