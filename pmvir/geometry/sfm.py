@@ -107,6 +107,9 @@ class SparseModel:
             not run (known poses, no masks, ``sfm.frontier_weight`` 0, too few masked views).
         silhouette_registered: names of the views SfM left out that were registered from their
             masks (:func:`.sfm_frontier.register_from_silhouettes`, ``sfm.silhouette_register_px``).
+        silhouette_refused: name -> why the silhouette search did not register a view SfM left
+            out (no pose fits its mask well enough, or a distinct pose fits it about as well: an
+            ambiguous, e.g. symmetric, silhouette).
     """
 
     cameras: list[Camera | None]
@@ -123,6 +126,7 @@ class SparseModel:
     fallback: bool = False
     frontier: dict[str, float | int | bool] | None = None
     silhouette_registered: list[str] = field(default_factory=list)
+    silhouette_refused: dict[str, str] = field(default_factory=dict)
 
     @property
     def num_registered(self) -> int:
@@ -282,6 +286,20 @@ def _failure_message(
     return f"{what}; views that failed: {', '.join(shown)}{more}.{hint}"
 
 
+def _silhouette_note(refused: dict[str, str]) -> str:
+    """What the silhouette search said about the views it did not register, for a failure message."""
+    if not refused:
+        return ""
+    reasons = list(refused.values())
+    if reasons[0].startswith("not searched"):
+        return f"; the missing views were not searched for by their masks ({reasons[0][len('not searched: '):]})"
+    ambiguous = sum(why.startswith("ambiguous") for why in reasons)
+    note = f"; their masks did not place {len(refused)} of the missing views"
+    if ambiguous:
+        note += f" ({ambiguous} ambiguous: their silhouettes fit distinct poses alike, a symmetric object?)"
+    return note
+
+
 def estimate_poses(
     images: Sequence[np.ndarray],
     names: Sequence[str],
@@ -410,6 +428,7 @@ def _estimate_poses(
 
     frontier = None
     silhouette_views: list[str] = []
+    silhouette_refused: dict[str, str] = {}
     if not known and rec is not None and masks is not None and options.frontier_weight > 0:
         report(0.97, "holding the poses to the masks")
         t0 = time.perf_counter()
@@ -420,7 +439,9 @@ def _estimate_poses(
         timings["frontier"] = time.perf_counter() - t0
         if silhouettes and options.silhouette_register_px > 0:
             t0 = time.perf_counter()
-            silhouette_views, last = _register_missing_by_silhouette(rec, by_file, files, Ks, images, options)
+            silhouette_views, silhouette_refused, last = _register_missing_by_silhouette(
+                rec, by_file, files, Ks, images, options
+            )
             frontier = last or frontier  # the adjustment that gave the final poses
             timings["silhouette_registration"] = time.perf_counter() - t0
 
@@ -443,7 +464,7 @@ def _estimate_poses(
         raise ReconstructionError(_failure_message(
             f"SfM registered {sum(registered)} of {n} views, at least {needed} needed "
             f"(min_registered_views = {options.min_registered_views}, "
-            f"min_registered_fraction = {options.min_registered_fraction})",
+            f"min_registered_fraction = {options.min_registered_fraction})" + _silhouette_note(silhouette_refused),
             names, [i for i in range(n) if not registered[i]], features, partners,
         ))
     assert rec is not None
@@ -471,6 +492,7 @@ def _estimate_poses(
         known_poses=known, timings=timings, names=list(names), num_features=features,
         frontier=None if frontier is None else frontier.as_dict(),
         silhouette_registered=[names[index[f]] for f in silhouette_views],
+        silhouette_refused={names[index[f]]: why for f, why in silhouette_refused.items()},
     )
 
 
@@ -481,16 +503,22 @@ def _register_missing_by_silhouette(
     Ks: list[np.ndarray | None],
     images: Sequence[np.ndarray],
     options: SfmOptions,
-) -> tuple[list[str], FrontierReport | None]:
+) -> tuple[list[str], dict[str, str], FrontierReport | None]:
     """The views SfM left out, registered from their masks and adjusted with the rest (two passes:
-    the views registered in the first give the second more pairs). Returns their file names and
-    the last adjustment's report (None when none was registered)."""
+    the views registered in the first give the second more pairs). Returns their file names, why
+    the others were not registered (file name -> reason) and the last adjustment's report (None
+    when none was registered)."""
     registered = {rec.images[i].name for i in rec.reg_image_ids()}
+    if len(registered) < options.silhouette_min_registered * len(files):
+        why = (f"not searched: SfM registered {len(registered)} of {len(files)} views, under "
+               f"sfm.silhouette_min_registered = {options.silhouette_min_registered:g}")
+        return [], {f: why for f in files if f not in registered and f in masks}, None
     shared = {  # estimated intrinsics: a registered view's of the same size
         images[files.index(rec.images[i].name)].shape[:2]: rec.cameras[rec.images[i].camera_id].calibration_matrix()
         for i in rec.reg_image_ids()
     }
     done: list[str] = []
+    refused: dict[str, str] = {}
     last: FrontierReport | None = None
     for _ in range(2):
         missing = {}
@@ -500,12 +528,16 @@ def _register_missing_by_silhouette(
                 missing[f] = K
         if not missing:
             break
-        found = register_from_silhouettes(rec, masks, missing, max_rms_px=options.silhouette_register_px)
+        searched = register_from_silhouettes(rec, masks, missing, max_rms_px=options.silhouette_register_px)
+        refused.update({r.name: r.reason for r in searched if not r.registered})
+        found = [r.name for r in searched if r.registered]
         if not found:
             break
-        done += [r.name for r in found]
+        done += found
+        for name in found:
+            refused.pop(name, None)
         last = frontier_adjust(rec, masks, weight=options.frontier_weight, iterations=options.frontier_iterations)
-    return done, last
+    return done, refused, last
 
 
 def write_poses_text(model: SparseModel, directory: str | Path) -> Path:

@@ -28,7 +28,7 @@ Only views with a mask take part; the silhouettes must be the whole object's. Us
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -350,12 +350,17 @@ def _rotvec(w: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class SilhouetteRegistration:
-    """A view registered from its silhouette: its name, the RMS frontier residual (px) of its pose
-    against the registered views' masks, and the number of pairs that residual is over."""
+    """A view's silhouette search: its name, the RMS frontier residual (px) of the best pose
+    against the registered views' masks, the number of pairs that residual is over, the RMS of the
+    best pose distinct from it (``rival_px``: another basin; inf when none was found), and whether
+    the pose was registered (``reason`` says why not)."""
 
     name: str
     rms_px: float
     pairs: int
+    rival_px: float = float("inf")
+    registered: bool = True
+    reason: str = ""
 
 
 #: The search for a view's pose from its silhouette: camera directions (a Fibonacci sphere),
@@ -368,6 +373,18 @@ SEARCH_ROLLS = 24
 SEARCH_POLISHED = 200
 SCREEN_NFEV = 15
 SEARCH_FINALS = 5
+#: Two polished poses are distinct basins when their rotations differ by more than ``DISTINCT_DEG``
+#: or their centres by more than ``DISTINCT_DISTANCE`` of the distance to the object (screened
+#: poses, only partly polished, by 3 times that). A silhouette that a distinct pose fits about as
+#: well (RMS below ``AMBIGUITY_RATIO`` times the best's plus ``AMBIGUITY_MARGIN_PX``) is ambiguous
+#: and not registered: a symmetric object (the built-in torus knot, D3) shows the same silhouette
+#: from several poses, and the search picked a wrong one for 19 of the 20 views SfM left out, each
+#: fitting its mask within 1.2 px (camera centres 18-67% of the rig off). Without symmetry the next
+#: basin fits far worse (the dragon's view 5: 1.27 px against 0.22-0.31 px).
+DISTINCT_DEG = 5.0
+DISTINCT_DISTANCE = 0.05
+AMBIGUITY_RATIO = 2.0
+AMBIGUITY_MARGIN_PX = 0.2
 
 
 def register_from_silhouettes(
@@ -384,13 +401,17 @@ def register_from_silhouettes(
     median distance, and 15% nearer and farther) aim the mask's centroid at it with 24 rolls;
     the best candidate of each of the 200 directions whose frontier residuals against the
     registered views are lowest is polished briefly (robust least squares over the view's pose
-    alone), the 5 best in full, and the best is kept when its RMS residual is at most
-    ``max_rms_px`` over at least ``min_pairs`` pairs. On the dragon the right poses polished to
-    0.22-0.31 px and the next best basin of view 5 to 1.27 px. The views are added to ``rec`` (no
-    keypoints; :func:`frontier_adjust` then adjusts them with the others).
+    alone), the best of 5 distinct basins in full, and the best is kept when its RMS residual is at
+    most ``max_rms_px`` over at least ``min_pairs`` pairs and no distinct pose fits about as well
+    (``AMBIGUITY_RATIO``, ``AMBIGUITY_MARGIN_PX``: a symmetric object). On the dragon the right
+    poses polished to 0.22-0.31 px and the next best basin of view 5 to 1.27 px. The views are
+    added to ``rec`` (no keypoints; :func:`frontier_adjust` then adjusts them with the others).
 
     Assumes the cameras look at the object from roughly the distance of the registered ones, as
     on any rig that frames the object; the masks must hold the whole object.
+
+    Returns:
+        One entry per view searched, registered or not (``reason`` says why not).
     """
     names = {rec.images[i].name: i for i in rec.reg_image_ids()}
     if len(names) < 3 or rec.num_points3D() == 0:
@@ -410,11 +431,20 @@ def register_from_silhouettes(
             continue
         K = np.asarray(intrinsics[name], dtype=np.float64)
         found = _search_pose(masks[name], K, centre, distance, Cr, hulls, min_pairs)
-        if found is None or found[0] > max_rms_px:
+        if found is None:
+            out.append(SilhouetteRegistration(name, float("inf"), 0, registered=False,
+                                              reason=f"no pose sees {min_pairs} registered views' frontier points"))
             continue
-        rms, npairs, R, C = found
-        _add_view(rec, name, K, masks[name].shape, R, C)
-        out.append(SilhouetteRegistration(name=name, rms_px=float(rms), pairs=int(npairs)))
+        rms, npairs, R, C, rival = found
+        entry = SilhouetteRegistration(name=name, rms_px=float(rms), pairs=int(npairs), rival_px=float(rival))
+        if rms > max_rms_px:
+            entry = replace(entry, registered=False, reason=f"best pose fits within {rms:.2f} px > {max_rms_px:g} px")
+        elif rival <= AMBIGUITY_RATIO * rms + AMBIGUITY_MARGIN_PX:
+            entry = replace(entry, registered=False,
+                            reason=f"ambiguous: a distinct pose fits within {rival:.2f} px (best {rms:.2f} px)")
+        else:
+            _add_view(rec, name, K, masks[name].shape, R, C)
+        out.append(entry)
     return out
 
 
@@ -448,8 +478,9 @@ def _frontier_vector(
 def _search_pose(
     mask: np.ndarray, K: np.ndarray, centre: np.ndarray, distance: float, Cr: np.ndarray,
     hulls: list[np.ndarray], min_pairs: int,
-) -> tuple[float, int, np.ndarray, np.ndarray] | None:
-    """(RMS px, pairs, R, C) of the best polished candidate pose for a mask, or None."""
+) -> tuple[float, int, np.ndarray, np.ndarray, float] | None:
+    """(RMS px, pairs, R, C) of the best polished candidate pose for a mask and the RMS of the best
+    polished pose in another basin (inf when none), or None."""
     hull = _contour_rays(mask, K)[0]
     ys, xs = np.nonzero(mask)
     aim = np.linalg.solve(K, np.array([xs.mean() + 0.5, ys.mean() + 0.5, 1.0]))
@@ -510,9 +541,30 @@ def _search_pose(
         rms = float(np.sqrt(np.mean(fit.fun**2)))
         return rms, len(pairs), R0 @ _rotvec(fit.x[:3]), C0 + fit.x[3:] * distance
 
+    def same_basin(
+        a: tuple[float, int, np.ndarray, np.ndarray], b: tuple[float, int, np.ndarray, np.ndarray], widen: float = 1.0
+    ) -> bool:
+        cos = np.clip((np.trace(a[2] @ b[2].T) - 1) / 2, -1.0, 1.0)
+        return bool(
+            np.degrees(np.arccos(cos)) <= widen * DISTINCT_DEG
+            and np.linalg.norm(a[3] - b[3]) <= widen * DISTINCT_DISTANCE * distance
+        )
+
     screened = sorted((polish(R0, C0, SCREEN_NFEV) for _, R0, C0, _ in distinct[:SEARCH_POLISHED]), key=lambda c: c[0])
-    finals = [polish(R, C, 200) for _, _, R, C in screened[:SEARCH_FINALS]]
-    return min(finals, key=lambda c: c[0]) if finals else None
+    # the finals: the best screened pose of each of the first SEARCH_FINALS distinct basins (a
+    # basin's neighbours screen alike and would crowd out a rival)
+    starts: list[tuple[float, int, np.ndarray, np.ndarray]] = []
+    for pose in screened:
+        if len(starts) == SEARCH_FINALS:
+            break
+        if not any(same_basin(pose, s, widen=3.0) for s in starts):
+            starts.append(pose)
+    finals = sorted((polish(R, C, 200) for _, _, R, C in starts), key=lambda c: c[0])
+    if not finals:
+        return None
+    best = finals[0]
+    rival = min((other[0] for other in finals[1:] if not same_basin(other, best)), default=float("inf"))
+    return best[0], best[1], best[2], best[3], rival
 
 
 def _add_view(rec: pycolmap.Reconstruction, name: str, K: np.ndarray, shape: tuple[int, ...], R: np.ndarray, C: np.ndarray) -> None:

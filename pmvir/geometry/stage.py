@@ -281,6 +281,7 @@ def geometry_report(result: GeometryResult) -> dict[str, Any]:
             "fallback_images": bool(sparse.fallback),  # sfm.grey 'auto': SfM on I_int after I_min left views out
             "frontier": sparse.frontier,  # sfm.frontier_weight: the poses held to the masks' tangencies
             "silhouette_registered": list(sparse.silhouette_registered),  # sfm.silhouette_register_px
+            "silhouette_refused": dict(sparse.silhouette_refused),  # views the silhouette search left out, and why
             "timings": {k: float(v) for k, v in sparse.timings.items()},
         },
         "dense": {
