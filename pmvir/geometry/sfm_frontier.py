@@ -379,8 +379,10 @@ SEARCH_FINALS = 5
 #: well (RMS below ``AMBIGUITY_RATIO`` times the best's plus ``AMBIGUITY_MARGIN_PX``) is ambiguous
 #: and not registered: a symmetric object (the built-in torus knot, D3) shows the same silhouette
 #: from several poses, and the search picked a wrong one for 19 of the 20 views SfM left out, each
-#: fitting its mask within 1.2 px (camera centres 18-67% of the rig off). Without symmetry the next
-#: basin fits far worse (the dragon's view 5: 1.27 px against 0.22-0.31 px).
+#: fitting its mask within 1.2 px (camera centres 18-67% of the rig off). This check refused 16 of
+#: them; the other 4 had no rival among the finals, hence also ``sfm.silhouette_min_registered``
+#: (:mod:`pmvir.geometry.sfm`). Without symmetry the next basin fits far worse (the dragon's four
+#: views: 0.22-0.32 px, their rivals 3.4-6.3 px).
 DISTINCT_DEG = 5.0
 DISTINCT_DISTANCE = 0.05
 AMBIGUITY_RATIO = 2.0
