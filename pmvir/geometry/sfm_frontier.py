@@ -406,7 +406,7 @@ def register_from_silhouettes(
     alone), the best of 5 distinct basins in full, and the best is kept when its RMS residual is at
     most ``max_rms_px`` over at least ``min_pairs`` pairs and no distinct pose fits about as well
     (``AMBIGUITY_RATIO``, ``AMBIGUITY_MARGIN_PX``: a symmetric object). On the dragon the right
-    poses polished to 0.22-0.31 px and the next best basin of view 5 to 1.27 px. The views are
+    poses polished to 0.22-0.32 px and the best distinct basins to 3.4-6.3 px. The views are
     added to ``rec`` (no keypoints; :func:`frontier_adjust` then adjusts them with the others).
 
     Assumes the cameras look at the object from roughly the distance of the registered ones, as
