@@ -51,7 +51,7 @@ from __future__ import annotations
 import math
 import shutil
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -95,7 +95,9 @@ class SparseModel:
         registered: per view, whether it has a camera.
         known_poses: True when the cameras were given (known-pose mode).
         timings: seconds per step: "images", "features", "matching", then "triangulation"
-            (known poses) or "mapping" and "refinement" (SfM), and "total".
+            (known poses) or "mapping" and "refinement" (SfM), "frontier" and
+            "silhouette_registration" (SfM with masks), "finish" (those two and the checks), and
+            "total"; with ``fallback_images``, "first_images" or "second_images": the run not kept.
         names: the views' names, in capture order.
         num_features: SIFT features per view.
         point_observations: per point a (k, 3) float64 array of its observations: view index,
@@ -330,7 +332,8 @@ def estimate_poses(
             when ``images`` are I_min), or None. In SfM mode, when SfM on ``images`` registers
             fewer than every view (or fails), it runs again on these (in ``workdir/fallback``)
             and the model with more registered views is kept (ties: the first); the result's
-            ``fallback`` says which. Ignored with known poses.
+            ``fallback`` says which. Only the kept model is held to the masks and completed from
+            them (``sfm.frontier_weight``, ``sfm.silhouette_register_px``). Ignored with known poses.
 
     Returns:
         The SparseModel; in known-pose mode its cameras are the given objects.
@@ -341,66 +344,87 @@ def estimate_poses(
         ReconstructionError: fewer views than ``min_registered_views``; too few registered
             views; too few 3D points. The message names the views that failed.
     """
+    report = progress or (lambda fraction, step: None)
     known = cameras is not None and all(c is not None for c in cameras) and len(cameras) == len(images)
     if fallback_images is None or known:
-        return _estimate_poses(images, names, cameras, intrinsics, masks, options, workdir, progress)
+        run = _run_sfm(images, cameras, intrinsics, masks, options, workdir, report, names=names)
+        return _finish(run, names, cameras, masks, options, report)
     if len(fallback_images) != len(images):
         raise ShapeError(f"expected {len(images)} fallback images (one per view), got {len(fallback_images)}")
-    report = progress or (lambda fraction, step: None)
     t0 = time.perf_counter()
-    first: SparseModel | None = None
+    n = len(images)
+    first, first_error = _attempt(lambda: _run_sfm(
+        images, cameras, intrinsics, masks, options, workdir, lambda f, s: report(0.5 * f, s), names=names
+    ))
+    if first is not None and first.num_registered == n:
+        try:
+            return _finish(first, names, cameras, masks, options, report)
+        except ReconstructionError as exc:  # e.g. too few sparse points: the second images may give more
+            first, first_error = None, exc
+    t1 = time.perf_counter()
+    second, second_error = _attempt(lambda: _run_sfm(
+        fallback_images, cameras, intrinsics, masks, options, Path(workdir) / "fallback",
+        lambda f, s: report(0.5 + 0.45 * f, f"{s} (second images)"), names=names,
+    ))
+    seconds = {"first_images": t1 - t0, "second_images": time.perf_counter() - t1}
+    # the model with more registered views first (ties: the first images'); only the kept one is finished
+    for run in sorted((r for r in (first, second) if r is not None), key=lambda r: -r.num_registered):
+        try:
+            model = _finish(run, names, cameras, masks, options, report, t0=t0)
+        except ReconstructionError as exc:
+            if run is first:
+                first_error = exc
+            else:
+                second_error = exc
+            continue
+        model.fallback = run is second
+        # the total counts both runs; "first_images" / "second_images" is the time of the run not kept
+        other = "first_images" if model.fallback else "second_images"
+        model.timings[other] = seconds[other]
+        return model
+    raise ReconstructionError(f"{first_error}; on the second images: {second_error}")
+
+
+def _attempt(run: Callable[[], _SfmRun]) -> tuple[_SfmRun | None, ReconstructionError | None]:
+    """``run()``, or its ReconstructionError."""
     try:
-        # no registration from silhouettes in this run: it is for the final model only (views the
-        # first images leave out are usually found by the second; each search costs 5-15 s)
-        first = _estimate_poses(
-            images, names, cameras, intrinsics, masks, options, workdir, lambda f, s: report(0.5 * f, s),
-            silhouettes=False,
-        )
+        return run(), None
     except ReconstructionError as exc:
-        first_error = exc
-    if first is not None and first.num_registered == len(images):
-        report(1.0, "poses done")
-        return first
-    try:
-        second = _estimate_poses(
-            fallback_images, names, cameras, intrinsics, masks, options, Path(workdir) / "fallback",
-            lambda f, s: report(0.5 + 0.5 * f, f"{s} (second images)"),
-        )
-    except ReconstructionError as exc:
-        if first is not None:
-            report(1.0, "poses done")
-            return _with_both_times(first, t0)
-        raise ReconstructionError(f"{first_error}; on the second images: {exc}") from exc
-    if first is not None and first.num_registered >= second.num_registered:
-        return _with_both_times(first, t0)
-    second.fallback = True
-    # the total counts both runs; "first_images" is the time of the first one
-    second.timings["first_images"] = time.perf_counter() - t0 - second.timings["total"]
-    second.timings["total"] = time.perf_counter() - t0
-    return second
+        return None, exc
 
 
-def _with_both_times(first: SparseModel, t0: float) -> SparseModel:
-    """The first images' model kept after a second run: its total counts both, "second_images" the second."""
-    first.timings["second_images"] = time.perf_counter() - t0 - first.timings["total"]
-    first.timings["total"] = time.perf_counter() - t0
-    return first
+@dataclass
+class _SfmRun:
+    """What COLMAP made of one set of images, before the masks adjust and complete it (:func:`_finish`)."""
+
+    rec: pycolmap.Reconstruction | None
+    images: Sequence[np.ndarray]
+    files: list[str]
+    Ks: list[np.ndarray | None]
+    features: list[int]
+    partners: list[int]
+    known: bool
+    known_cameras: list[Camera]
+    timings: dict[str, float]
+    seconds: float  # wall time of the run
+
+    @property
+    def num_registered(self) -> int:
+        return 0 if self.rec is None else len(self.rec.reg_image_ids())
 
 
-def _estimate_poses(
+def _run_sfm(
     images: Sequence[np.ndarray],
-    names: Sequence[str],
     cameras: Sequence[Camera | None] | None,
     intrinsics: Sequence[np.ndarray | None] | None,
     masks: Sequence[np.ndarray | None] | None,
     options: SfmOptions,
     workdir: str | Path,
-    progress: Progress | None,
+    report: Progress,
     *,
-    silhouettes: bool = True,
-) -> SparseModel:
-    """:func:`estimate_poses` on one set of images (``silhouettes``: views SfM leaves out may be
-    registered from their masks, ``sfm.silhouette_register_px``)."""
+    names: Sequence[str],
+) -> _SfmRun:
+    """COLMAP's features, matches and model (or triangulation with known poses) on one set of images."""
     t_start = time.perf_counter()
     n = len(images)
     _check_inputs(images, names, cameras, intrinsics, masks)
@@ -408,7 +432,6 @@ def _estimate_poses(
         raise ReconstructionError(
             f"too few views: {n} given, poses need at least min_registered_views = {options.min_registered_views}"
         )
-    report = progress or (lambda fraction, step: None)
     known_cameras = [c for c in cameras or () if c is not None]
     known = cameras is not None and len(known_cameras) == n
     workdir = Path(workdir)
@@ -425,25 +448,55 @@ def _estimate_poses(
             workdir, image_dir, mask_dir, files, [im.shape[:2] for im in images], Ks,
             known_cameras if known else None, options, timings, report,
         )
+    return _SfmRun(
+        rec, images, files, Ks, features, partners, known, known_cameras, timings, time.perf_counter() - t_start
+    )
 
+
+def _finish(
+    run: _SfmRun,
+    names: Sequence[str],
+    cameras: Sequence[Camera | None] | None,
+    masks: Sequence[np.ndarray | None] | None,
+    options: SfmOptions,
+    report: Progress,
+    *,
+    t0: float | None = None,
+) -> SparseModel:
+    """The kept run's model: held to the masks, its missing views registered from them where they
+    decide a pose (``sfm.frontier_weight``, ``sfm.silhouette_register_px``), checked, as a
+    SparseModel. ``t0``: when the poses step began (default: when the run began)."""
+    t_finish = time.perf_counter()
+    rec, images, files, Ks = run.rec, run.images, run.files, run.Ks
+    features, partners, known, known_cameras = run.features, run.partners, run.known, run.known_cameras
+    n = len(images)
+    timings = dict(run.timings)
     frontier = None
     silhouette_views: list[str] = []
     silhouette_refused: dict[str, str] = {}
-    if not known and rec is not None and masks is not None and options.frontier_weight > 0:
+    needed = max(options.min_registered_views, math.ceil(options.min_registered_fraction * n))
+    # too few views, and the masks may not complete the model: it fails whatever the adjustment does
+    hopeless = run.num_registered < needed and (
+        options.silhouette_register_px <= 0 or run.num_registered < options.silhouette_min_registered * n
+    )
+    if hopeless and not known and rec is not None and masks is not None and options.silhouette_register_px > 0:
+        by_file = {f: m for f, m in zip(files, masks, strict=True) if m is not None}
+        silhouette_refused = _register_missing_by_silhouette(rec, by_file, files, Ks, images, options)[1]
+    elif not known and rec is not None and masks is not None and options.frontier_weight > 0:
         report(0.97, "holding the poses to the masks")
-        t0 = time.perf_counter()
+        t = time.perf_counter()
         by_file = {f: m for f, m in zip(files, masks, strict=True) if m is not None}
         frontier = frontier_adjust(
             rec, by_file, weight=options.frontier_weight, iterations=options.frontier_iterations
         )
-        timings["frontier"] = time.perf_counter() - t0
-        if silhouettes and options.silhouette_register_px > 0:
-            t0 = time.perf_counter()
+        timings["frontier"] = time.perf_counter() - t
+        if options.silhouette_register_px > 0:
+            t = time.perf_counter()
             silhouette_views, silhouette_refused, last = _register_missing_by_silhouette(
                 rec, by_file, files, Ks, images, options
             )
             frontier = last or frontier  # the adjustment that gave the final poses
-            timings["silhouette_registration"] = time.perf_counter() - t0
+            timings["silhouette_registration"] = time.perf_counter() - t
 
     index = {name: i for i, name in enumerate(files)}
     view_of_image = {} if rec is None else {im.image_id: index[im.name] for im in rec.images.values()}
@@ -459,7 +512,6 @@ def _estimate_poses(
                     width=w, height=h,
                 )
     registered = [c is not None for c in result_cameras]
-    needed = max(options.min_registered_views, math.ceil(options.min_registered_fraction * n))
     if sum(registered) < needed:
         raise ReconstructionError(_failure_message(
             f"SfM registered {sum(registered)} of {n} views, at least {needed} needed "
@@ -483,7 +535,9 @@ def _estimate_poses(
             f"least min_sparse_points = {options.min_sparse_points} needed",
             names, weakest, features, partners,
         ))
-    timings["total"] = time.perf_counter() - t_start
+    now = time.perf_counter()
+    timings["finish"] = now - t_finish
+    timings["total"] = run.seconds + timings["finish"] if t0 is None else now - t0
     report(1.0, "poses done")
     return SparseModel(
         cameras=result_cameras, points=points, point_colors=colors, point_views=views,
