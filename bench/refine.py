@@ -30,7 +30,7 @@ Prints markdown tables and writes bench/results/refine.json (or --out).
 Run: .venv/bin/python bench/refine.py [--models bunny dragon armadillo] [--tables main ablation materials]
      [--ablation-rows full no_dop_weight i_int mvir ...] [--materials lambert plastic conductor]
      [--renderer builtin|mitsuba] [--spp 64] [--views 36] [--size 612x512] [--iterations N]
-     [--subdivision-area 2.0] [--work DIR] [--out FILE]
+     [--subdivision-area 2.0] [--surface-hull 0.5] [--work DIR] [--out FILE]
 
 --renderer mitsuba path-traces the captures with Mitsuba 3 (polarized pplastic / diffuse / conductor,
 perspective-exact Stokes frames; pmvir synth --renderer mitsuba) and caches them under --work beside
@@ -138,7 +138,11 @@ class Case:
         self.dir = args.work / f"{model}-{material}-{render}-v{args.views}-{w}x{h}-s{SEED}"
         self.capture = self.dir / "capture"
         self.mesh_file = models_dir / MODELS[model]
-        self.geometry_options = GeometryOptions(subdivision={"max_area_px": args.subdivision_area})
+        hull = getattr(args, "surface_hull", GeometryOptions().surface.hull_tolerance_px)
+        self.geometry_options = GeometryOptions(
+            subdivision={"max_area_px": args.subdivision_area},
+            surface={"hull_tolerance_px": None if hull is None or hull < 0 else hull},
+        )
         self.geometry_file = self.dir / f"geometry-{_key(self.geometry_options.model_dump(mode='json'))}.npz"
         self._views = None
         self._geometry: dict | None = None
@@ -317,6 +321,7 @@ def measure(case: Case, row: str, args: argparse.Namespace) -> dict:
             geo["visibility"][:, reg],
             options=opts,
             visibility_fn=visibility_fn,
+            masks=[case.masks[i] for i in reg],
         )
         seconds = time.perf_counter() - t
         del observations
@@ -529,6 +534,13 @@ def main() -> None:
         help="geometry.subdivision.max_area_px (px^2)",
     )
     parser.add_argument(
+        "--surface-hull",
+        type=float,
+        default=GeometryOptions().surface.hull_tolerance_px,
+        help="geometry.surface.hull_tolerance_px (px; a negative value: off, the initial surface as the stereo "
+        "left it)",
+    )
+    parser.add_argument(
         "--samples", type=int, default=1_000_000, help="ground-truth samples for completeness"
     )
     parser.add_argument(
@@ -602,6 +614,7 @@ def main() -> None:
             "seed": SEED,
             "iterations": args.iterations,
             "subdivision_max_area_px": args.subdivision_area,
+            "surface_hull_tolerance_px": args.surface_hull,
             "samples": args.samples,
             "refine_options": args.refine_option,
             "poses": "true (from capture.json)",

@@ -333,6 +333,7 @@ def _refine_stage(
             options=options,
             visibility_fn=visibility_fn,
             progress=q,
+            masks=masks,
         )
     return refined, registered
 
@@ -376,6 +377,7 @@ def refine_report(refined: RefineResult) -> dict:
         "timings": {k: float(v) for k, v in refined.timings.items()},
         "stages": [_stage_report(st) for st in refined.stages],
         "offset_scans": [scan.to_dict() for scan in refined.offset_scans],
+        "hull_fits": [fit.to_dict() for fit in refined.hull_fits],
         "lighting_fit": None if refined.lighting_fit is None else _stage_report(refined.lighting_fit),
     }
 

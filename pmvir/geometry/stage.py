@@ -12,7 +12,9 @@
 4. ``visibility``: :func:`pmvir.geometry.visibility.vertex_visibility`;
 5. ``subdivision``: :func:`pmvir.geometry.subdivision.subdivide_until`
    (sqrt(3) steps until every visible triangle is below
-   ``subdivision.max_area_px`` pixels^2).
+   ``subdivision.max_area_px`` pixels^2);
+6. ``silhouettes``: :func:`pmvir.geometry.hull_fit.fit_inside_hull` (vertices
+   that project outside a mask move inward: ``surface.hull_tolerance_px``).
 
 :func:`write_geometry` writes a result folder's ``initial.ply`` (the subdivided
 initial surface), ``poses/`` (a COLMAP model, binary and text, of the registered
@@ -43,6 +45,7 @@ from pmvir.geometry.export import (
     write_images,
     write_points_ply,
 )
+from pmvir.geometry.hull_fit import HullFit, fit_inside_hull
 from pmvir.geometry.mvs_dense import DenseResult, dense_stereo
 from pmvir.geometry.sfm import SparseModel, estimate_poses
 from pmvir.geometry.subdivision import subdivide_until
@@ -54,7 +57,7 @@ from pmvir.progress import Progress
 from pmvir.result import ResultFolder
 
 #: Share of the stage's progress bar given to each step (they sum to 1).
-_STEP_WEIGHTS = {"poses": 0.25, "dense": 0.45, "surface": 0.1, "visibility": 0.1, "subdivision": 0.1}
+_STEP_WEIGHTS = {"poses": 0.25, "dense": 0.45, "surface": 0.1, "visibility": 0.1, "subdivision": 0.08, "silhouettes": 0.02}
 
 
 @dataclass(frozen=True)
@@ -74,6 +77,8 @@ class GeometryResult:
         subdivision_rounds: sqrt(3) steps applied.
         subdivision_max_area_px: largest projected visible triangle area at the end, pixels^2.
         subdivision_converged: the area threshold was reached (not a round/vertex limit).
+        hull_fit: the subdivided vertices pulled inside the masks' visual hull
+            (``surface.hull_tolerance_px``; :func:`pmvir.geometry.hull_fit.fit_inside_hull`), or None (off).
         timings: seconds per step: poses, depth_maps, fusion, surface, visibility, subdivision, total.
         previews: per frame (H, W, 3) uint8 sRGB I_int with one exposure for all frames (``images/``).
     """
@@ -90,6 +95,7 @@ class GeometryResult:
     subdivision_rounds: int
     subdivision_max_area_px: float
     subdivision_converged: bool
+    hull_fit: HullFit | None = None
     timings: dict[str, float] = field(default_factory=dict)
     previews: list[np.ndarray] = field(default_factory=list)
 
@@ -197,6 +203,14 @@ def run_geometry(
             reg_cams,
             **options.subdivision.model_dump(),
         )
+    vertices, hull = sub.vertices, None
+    with progress.step("silhouettes", _STEP_WEIGHTS["silhouettes"]):
+        if options.surface.hull_tolerance_px is not None:
+            hull = fit_inside_hull(
+                sub.vertices, sub.faces, reg_cams, [masks[i] for i in reg],
+                tolerance_px=options.surface.hull_tolerance_px,
+            )
+            vertices = hull.vertices
     full_vis = np.zeros((len(sub.vertices), n), bool)
     full_vis[:, reg] = sub.visibility
     timings = {k: v for k, v in progress.timings.items() if k != "dense"} | dict(dense.timings)
@@ -208,12 +222,13 @@ def run_geometry(
         sparse=sparse,
         dense=dense,
         surface=surface,
-        vertices=sub.vertices,
+        vertices=vertices,
         faces=sub.faces,
         visibility=full_vis,
         subdivision_rounds=sub.rounds,
         subdivision_max_area_px=sub.max_area_px,
         subdivision_converged=sub.converged,
+        hull_fit=hull,
         timings=timings,
         previews=viewable_images(images, masks),
     )
@@ -302,5 +317,6 @@ def geometry_report(result: GeometryResult) -> dict[str, Any]:
             if len(result.vertices)
             else 0.0,
         },
+        "hull_fit": None if result.hull_fit is None else result.hull_fit.to_dict(),  # surface.hull_tolerance_px
         "timings": {k: float(v) for k, v in result.timings.items()},
     }

@@ -43,6 +43,7 @@ import torch
 from pmvir.camera import Camera
 from pmvir.config import RefineOptions
 from pmvir.errors import ConfigError, ReconstructionError
+from pmvir.geometry.hull_fit import HullFit, fit_inside_hull
 from pmvir.io.ply import vertex_normals as vertex_normals_np
 from pmvir.progress import Progress
 from pmvir.refine.albedo import AlbedoSolver
@@ -136,13 +137,16 @@ class RefineResult:
         visibility: (N, V) bool visibility used by the last stage.
         stages: one :class:`StageLog` per stage.
         timings: seconds: ``setup``, ``offset_scan`` (the scans before stage 1 and after the last; those
-            between stages count in their stage), ``stage_1`` ... ``stage_S``, ``lighting`` (the final
+            between stages count in their stage), ``stage_1`` ... ``stage_S``, ``hull_fit`` (after the last
+            stage; the fits after earlier scans count in their stage), ``lighting`` (the final
             lighting fit, when run), ``total``.
         intensity_factor: what E_pho and E_psm multiplied intensities and albedos by
             (:func:`intensity_units`).
         offset_scans: the photo-consistent offsets scanned (and applied where the scan found one), in
             order: before stage 1, and with ``offset_scan`` "stages" also before every later stage and
             after the last (:func:`pmvir.refine.offset.photo_consistent_offset`).
+        hull_fits: the surface held inside the masks' visual hull (``hull_tolerance_px`` with masks),
+            in order: after every applied offset scan but the last, and after the last stage and scan.
         lighting_fit: the final lighting fit's log (``lighting_coupling`` > 0; its time is
             ``timings["lighting"]``), else None.
     """
@@ -158,6 +162,7 @@ class RefineResult:
     timings: dict[str, float] = field(default_factory=dict)
     intensity_factor: float = 0.0
     offset_scans: list[OffsetScan] = field(default_factory=list)
+    hull_fits: list[HullFit] = field(default_factory=list)
     lighting_fit: StageLog | None = None
 
     def shading_coefficients(self) -> np.ndarray:
@@ -1062,6 +1067,23 @@ def _offset_scan(
     return replace(state, vertices=moved), [*scans, scan]
 
 
+def _inside_hull(
+    setup: _Setup, state: _Unknowns, masks: Sequence[np.ndarray | None] | None, fits: list[HullFit]
+) -> _Unknowns:
+    """``state`` with the vertices outside the masks' visual hull moved inside (``hull_tolerance_px``);
+    the fit is appended to ``fits``. Unchanged without masks or with the option off."""
+    tolerance = setup.opts.hull_tolerance_px
+    if masks is None or tolerance is None:
+        return state
+    v = state.vertices.detach().cpu().numpy().astype(np.float64)
+    fit = fit_inside_hull(v, setup.faces_np, setup.cameras, masks, tolerance_px=tolerance)
+    fits.append(fit)
+    if fit.moved == 0:
+        return state
+    moved = torch.from_numpy(fit.vertices).to(device=setup.device, dtype=setup.dtype)
+    return replace(state, vertices=moved)
+
+
 def refine_surface(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -1072,6 +1094,7 @@ def refine_surface(
     options: RefineOptions | None = None,
     visibility_fn: VisibilityFn | None = None,
     progress: Progress | None = None,
+    masks: Sequence[np.ndarray | None] | None = None,
 ) -> RefineResult:
     """Polarimetric MVIR: refine a mesh, its albedo and per-view lighting (paper sections 4.3, 5.1).
 
@@ -1086,6 +1109,9 @@ def refine_surface(
         visibility_fn: recomputes visibility from (vertices, faces) between stages (e.g.
             :func:`make_visibility_fn`); without it the initial visibility is kept.
         progress: one step ``stage s`` per stage, reporting its iterations; polled there for cancellation.
+        masks: the V views' object masks (None entries: no mask); with ``hull_tolerance_px`` the
+            surface is held inside their visual hull after every offset scan and after the last stage
+            (:func:`pmvir.geometry.hull_fit.fit_inside_hull`). None: not held.
 
     Returns:
         :class:`RefineResult`.
@@ -1107,11 +1133,21 @@ def refine_surface(
     state = _initial_unknowns(
         verts_np, n_views, sh_order=opts.sh_order, device=setup.device, dtype=setup.dtype
     )
+    if masks is not None and len(masks) != n_views:
+        raise ConfigError(f"expected {n_views} masks (one per view), got {len(masks)}")
+    hull_fits: list[HullFit] = []
+
+    def scanned(state: _Unknowns, scans: list[OffsetScan], p: Progress) -> tuple[_Unknowns, list[OffsetScan]]:
+        state, scans = _offset_scan(setup, state, opts, scans, p)
+        if scans[-1].applied:
+            state = _inside_hull(setup, state, masks, hull_fits)
+        return state, scans
+
     scans: list[OffsetScan] = []
     t_scan = time.perf_counter()
     if opts.offset_scan != "off":
         with progress.step("offset scan", weight=0.01) as p:
-            state, scans = _offset_scan(setup, state, opts, scans, p)
+            state, scans = scanned(state, scans, p)
     timings = {"setup": t_scan - t_start, "offset_scan": time.perf_counter() - t_scan}
     logs: list[StageLog] = []
     for s in range(opts.n_stages):
@@ -1121,7 +1157,7 @@ def refine_surface(
         with progress.step(f"stage {s + 1}", weight=stage_weight) as p:
             p.update(0.0, f"of {opts.n_stages}: visibility and pairs")
             if s > 0 and opts.offset_scan == "stages":
-                state, scans = _offset_scan(setup, state, opts, scans, p)
+                state, scans = scanned(state, scans, p)
             stage, state = prepare_stage(setup, state, vis, s)
             vis = stage.visibility
             if s == 0 and opts.lighting_prefit_iterations > 0:
@@ -1136,6 +1172,9 @@ def refine_surface(
         with progress.step("offset scan", weight=0.01) as p:
             state, scans = _offset_scan(setup, state, opts, scans, p)
         timings["offset_scan"] += time.perf_counter() - t_scan
+    t_hull = time.perf_counter()
+    state = _inside_hull(setup, state, masks, hull_fits)
+    timings["hull_fit"] = time.perf_counter() - t_hull
     lighting_fit = None
     if opts.lighting_coupling > 0.0:
         t_fit = time.perf_counter()
@@ -1157,5 +1196,6 @@ def refine_surface(
         timings=timings,
         intensity_factor=setup.units,
         offset_scans=scans,
+        hull_fits=hull_fits,
         lighting_fit=lighting_fit,
     )

@@ -18,6 +18,7 @@ from pmvir.capture import open_capture
 from pmvir.config import GeometryOptions
 from pmvir.errors import CanceledError, ReconstructionError
 from pmvir.evaluate import evaluate
+from pmvir.geometry.hull_fit import hull_depth, mask_distance
 from pmvir.geometry.mesh_ops import edge_topology
 from pmvir.geometry.stage import geometry_report, run_geometry, write_geometry
 from pmvir.io.colmap_text import camera_from_colmap, read_colmap_text_model
@@ -88,6 +89,13 @@ def test_outputs_and_report(blob_geometry, blob_capture: Path, tmp_path: Path):
     for step in ("poses", "depth_maps", "fusion", "surface", "visibility", "subdivision", "total"):
         assert report["timings"][step] > 0
     assert report["timings"]["total"] >= sum(report["timings"][s] for s in ("poses", "depth_maps", "surface"))
+    # the initial surface is held inside the masks' visual hull (surface.hull_tolerance_px)
+    fit = report["hull_fit"]
+    assert fit["tolerance_px"] == 0.5 and fit["outside_after"] <= 0.05 * max(fit["outside_before"], 1)
+    with open_capture(blob_capture) as cap:
+        masks = [cap.read_mask(i) for i in range(len(cap.frames))]
+    least, _ = hull_depth(g.vertices, g.cameras, [mask_distance(m) for m in masks])
+    assert int((least < -0.5).sum()) == fit["outside_after"]
 
 
 def test_progress_rises_to_one(blob_progress):
