@@ -46,6 +46,13 @@ def mitsuba_runs():
             visibility_fn=vis_fn,
         )
         runs[name] = accuracy(res.vertices, scene.true_vertices, scene.true_faces)
+    res = refine_surface(
+        scene.vertices, scene.faces, scene.cameras, obs, vis,
+        options=RefineOptions(max_iterations=ITERATIONS, silhouette_margin_px=0), visibility_fn=vis_fn,
+        masks=[fr["mask"] for fr in scene.frames],
+    )
+    runs["full_masks"] = accuracy(res.vertices, scene.true_vertices, scene.true_faces)
+    runs["hull_fits"] = res.hull_fits
     runs["frames"] = scene.frames
     return runs
 
@@ -67,3 +74,12 @@ def test_polarimetric_term_beats_mvir_on_a_physically_rendered_capture(mitsuba_r
 
 def test_robust_photometric_loss_beats_least_squares_there(mitsuba_runs) -> None:
     assert mitsuba_runs["full"] < mitsuba_runs["least_squares"]
+
+
+def test_masks_hold_the_refined_surface_inside_the_hull(mitsuba_runs) -> None:
+    """With the masks (``hull_tolerance_px``) the refinement ends inside the visual hull and closer to the
+    truth: 0.00314 -> 0.00288 when measured (the initial surface's bumps reach past the silhouettes)."""
+    last = mitsuba_runs["hull_fits"][-1]
+    assert mitsuba_runs["hull_fits"][0].outside_before > 0
+    assert last.outside_after <= 0.01 * max(last.outside_before, 1) + 5, last.to_dict()
+    assert mitsuba_runs["full_masks"] < 0.95 * mitsuba_runs["full"], mitsuba_runs
