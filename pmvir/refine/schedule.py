@@ -137,8 +137,8 @@ class RefineResult:
         visibility: (N, V) bool visibility used by the last stage.
         stages: one :class:`StageLog` per stage.
         timings: seconds: ``setup``, ``offset_scan`` (the scans before stage 1 and after the last; those
-            between stages count in their stage), ``stage_1`` ... ``stage_S``, ``hull_fit`` (after the last
-            stage; the fits after earlier scans count in their stage), ``lighting`` (the final
+            between stages count in their stage), ``stage_1`` ... ``stage_S``, ``hull_fit`` (with masks: the fit
+            after the last stage; the fits after earlier scans count in their stage), ``lighting`` (the final
             lighting fit, when run), ``total``.
         intensity_factor: what E_pho and E_psm multiplied intensities and albedos by
             (:func:`intensity_units`).
@@ -1172,9 +1172,10 @@ def refine_surface(
         with progress.step("offset scan", weight=0.01) as p:
             state, scans = _offset_scan(setup, state, opts, scans, p)
         timings["offset_scan"] += time.perf_counter() - t_scan
-    t_hull = time.perf_counter()
-    state = _inside_hull(setup, state, masks, hull_fits)
-    timings["hull_fit"] = time.perf_counter() - t_hull
+    if masks is not None and opts.hull_tolerance_px is not None:
+        t_hull = time.perf_counter()
+        state = _inside_hull(setup, state, masks, hull_fits)
+        timings["hull_fit"] = time.perf_counter() - t_hull
     lighting_fit = None
     if opts.lighting_coupling > 0.0:
         t_fit = time.perf_counter()
