@@ -130,7 +130,8 @@ def fit_inside_hull(
 
     Args:
         vertices, faces: the mesh (faces counter-clockwise seen from outside).
-        cameras, masks: the registered views and their object masks (None: that view does not count).
+        cameras, masks: the registered views and their object masks (None, or a mask without object
+            or without background pixels: that view does not count).
         tolerance_px: how far outside a mask (pixels) a vertex may project; masks and poses are
             good to about half a pixel.
         max_move_px: the most a vertex moves, in pixels of its ground sampling distance.
@@ -149,7 +150,13 @@ def fit_inside_hull(
         raise ConfigError(f"{len(cameras)} cameras but {len(masks)} masks")
     v0 = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
-    pairs = [(c, mask_distance(m)) for c, m in zip(cameras, masks, strict=True) if m is not None]
+    # a mask without object or without background pixels draws no silhouette (an empty one is a
+    # failed segmentation, not a view that rules the whole surface out): it does not count
+    pairs = [
+        (c, mask_distance(m))
+        for c, m in zip(cameras, masks, strict=True)
+        if m is not None and np.any(m) and not np.all(m)
+    ]
     if not pairs or len(v0) == 0:
         return HullFit(v0.copy(), 0, 0, 0, 0.0, tolerance_px)
     cams = [c for c, _ in pairs]

@@ -75,6 +75,10 @@ def test_views_without_masks_do_not_count(sphere_views: tuple) -> None:
     assert fit.moved == 0 and np.array_equal(fit.vertices, 1.1 * v)
     one = fit_inside_hull(1.1 * v, f, cameras, [masks[0]] + [None] * (len(cameras) - 1))
     assert 0 < one.moved < len(v)  # only what view 0's silhouette rules out
+    # an empty mask (a failed segmentation) or a full one draws no silhouette: it moves nothing
+    blank = [np.zeros_like(masks[0]), np.ones_like(masks[1])] + list(masks[2:])
+    on_truth = fit_inside_hull(v, f, cameras, blank)
+    assert on_truth.moved == 0 and np.array_equal(on_truth.vertices, v)
 
 
 def test_bad_arguments_are_config_errors(sphere_views: tuple) -> None:
