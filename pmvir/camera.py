@@ -100,3 +100,22 @@ def look_at(
     y = np.cross(z, x)
     R = np.stack([x, y, z], axis=0)
     return R, -R @ center
+
+
+def sample_bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear samples of an (H, W) image at pixel coordinates (COLMAP convention: pixel [r, c]
+    centred at (c + 0.5, r + 0.5)), clamped to the image (a point beyond the border reads the border).
+
+    >>> sample_bilinear(np.array([[0.0, 1.0], [2.0, 3.0]]), np.array([1.0, 0.0]), np.array([1.0, 5.0]))
+    array([1.5, 2. ])
+    """
+    h, w = image.shape
+    x = np.clip(u - 0.5, 0.0, w - 1.0)
+    y = np.clip(v - 0.5, 0.0, h - 1.0)
+    x0 = np.minimum(np.floor(x).astype(np.int64), max(w - 2, 0))
+    y0 = np.minimum(np.floor(y).astype(np.int64), max(h - 2, 0))
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx, fy = x - x0, y - y0
+    top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
+    bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy

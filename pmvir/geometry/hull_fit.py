@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pmvir.camera import Camera
+from pmvir.camera import Camera, sample_bilinear
 from pmvir.errors import ConfigError, ShapeError
 from pmvir.io.ply import vertex_normals
 
@@ -80,21 +80,6 @@ def mask_distance(mask: np.ndarray) -> np.ndarray:
     return np.where(m, inside - 0.5, 0.5 - outside).astype(np.float64)
 
 
-def _sample(field: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear samples at COLMAP pixel coordinates (pixel [r, c] centred at (c + 0.5, r + 0.5)),
-    clamped to the image (a point beyond the border reads the border)."""
-    h, w = field.shape
-    x = np.clip(uv[:, 0] - 0.5, 0.0, w - 1.0)
-    y = np.clip(uv[:, 1] - 0.5, 0.0, h - 1.0)
-    x0 = np.minimum(np.floor(x).astype(np.int64), max(w - 2, 0))
-    y0 = np.minimum(np.floor(y).astype(np.int64), max(h - 2, 0))
-    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
-    fx, fy = x - x0, y - y0
-    top = field[y0, x0] * (1 - fx) + field[y0, x1] * fx
-    bottom = field[y1, x0] * (1 - fx) + field[y1, x1] * fx
-    return top * (1 - fy) + bottom * fy
-
-
 def hull_depth(
     vertices: np.ndarray, cameras: Sequence[Camera], distances: Sequence[np.ndarray]
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -108,7 +93,7 @@ def hull_depth(
     gsd = np.zeros(len(x))
     for cam, dist in zip(cameras, distances, strict=True):
         uv, z = cam.project(x)
-        d = np.where(z > 0, _sample(dist, uv), np.inf)
+        d = np.where(z > 0, sample_bilinear(dist, uv[:, 0], uv[:, 1]), np.inf)
         lower = d < least
         least = np.where(lower, d, least)
         gsd = np.where(lower, np.maximum(z, 0.0) / cam.K[0, 0], gsd)
@@ -162,25 +147,26 @@ def fit_inside_hull(
     cams = [c for c, _ in pairs]
     dists = [d for _, d in pairs]
     least, _ = hull_depth(v0, cams, dists)
-    before = int((least < -tolerance_px).sum())
+    # only these can move (a vertex's violation depends on its own position alone)
+    idx = np.flatnonzero(least < -tolerance_px)
     x = v0.copy()
-    moved_px = np.zeros(len(x))
+    moved_px = np.zeros(len(idx))
     for _ in range(iterations):
-        least, gsd = hull_depth(x, cams, dists)
-        out = (least < -tolerance_px) & (moved_px < max_move_px) & (gsd > 0)
+        least_i, gsd = hull_depth(x[idx], cams, dists)
+        out = (least_i < -tolerance_px) & (moved_px < max_move_px) & (gsd > 0)
         if not out.any():
             break
-        step_px = np.minimum(np.minimum(0.5 * (-least[out] - tolerance_px), 1.0), max_move_px - moved_px[out])
+        step_px = np.minimum(np.minimum(0.5 * (-least_i[out] - tolerance_px), 1.0), max_move_px - moved_px[out])
         step_px = np.maximum(step_px, 0.01)  # halving toward the tolerance converges slowly at the end
-        normals = vertex_normals(x, f).astype(np.float64)
-        x[out] -= (step_px * gsd[out])[:, None] * normals[out]
+        normals = vertex_normals(x, f).astype(np.float64)[idx[out]]
+        x[idx[out]] -= (step_px * gsd[out])[:, None] * normals
         moved_px[out] += step_px
-    least, _ = hull_depth(x, cams, dists)
+    least_i, _ = hull_depth(x[idx], cams, dists)
     moved = moved_px > 0
     return HullFit(
         vertices=x,
-        outside_before=before,
-        outside_after=int((least < -tolerance_px).sum()),
+        outside_before=len(idx),
+        outside_after=int((least_i < -tolerance_px).sum()),
         moved=int(moved.sum()),
         mean_move_px=float(moved_px[moved].mean()) if moved.any() else 0.0,
         tolerance_px=tolerance_px,

@@ -29,7 +29,7 @@ import numpy as np
 import open3d as o3d
 from scipy.ndimage import uniform_filter
 
-from pmvir.camera import Camera
+from pmvir.camera import Camera, sample_bilinear
 from pmvir.errors import ConfigError
 from pmvir.geometry.mesh_ops import face_normals
 from pmvir.io.ply import vertex_normals
@@ -202,19 +202,6 @@ def _pairs(
     return pairs
 
 
-def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Sample at COLMAP pixel coordinates (pixel [r, c] centre at (c + 0.5, r + 0.5)), clamped."""
-    h, w = img.shape
-    x = np.clip(u - 0.5, 0.0, w - 1.0)
-    y = np.clip(v - 0.5, 0.0, h - 1.0)
-    x0 = np.minimum(np.floor(x).astype(np.int64), w - 2)
-    y0 = np.minimum(np.floor(y).astype(np.int64), h - 2)
-    fx, fy = x - x0, y - y0
-    top = img[y0, x0] * (1 - fx) + img[y0, x0 + 1] * fx
-    bottom = img[y0 + 1, x0] * (1 - fx) + img[y0 + 1, x0 + 1] * fx
-    return top * (1 - fy) + bottom * fy
-
-
 def _zncc_cost(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -239,7 +226,7 @@ def _zncc_cost(
         denom = (p.rays * n).sum(1)
         t = ((a - cam.center) * n).sum(1) / np.where(np.abs(denom) > 1e-300, denom, 1e-300)
         uv, _ = src.project(cam.center + t[:, None] * p.rays)
-        sampled = _bilinear(greys[p.src], uv[:, 0], uv[:, 1])
+        sampled = sample_bilinear(greys[p.src], uv[:, 0], uv[:, 1])
         warped = np.zeros(p.shape)
         warped[p.rows, p.cols] = sampled
         safe = np.maximum(p.cover, 1e-12)
