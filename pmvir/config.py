@@ -667,6 +667,24 @@ class RefineOptions(_Options):
         "capture the accuracy gain rose from +15.6% to +20.9% at 40 iterations per stage (3: +21.1%; 2 at 80 "
         "iterations: +19.9%). Measured in the README.",
     )
+    aop_noise: Literal["closure", "uniform"] = Field(
+        default="closure",
+        description="How noisy each E_pol pair's AoP is taken to be. 'closure' (default): measured per pixel "
+        "from the raw mosaic, as the local RMS of the polarizer closure residual (I0 + I90) - (I45 + I135) "
+        "relative to s0 (pmvir.polarization.noise; shot and Monte Carlo noise, and false polarization where "
+        "the scene changes within a 2x2 block); E_pol's weight and its evidence floor then use each pair's DoP "
+        "divided by its noise relative to the stage's median noise (rho * median(sigma) / sigma: the AoP's "
+        "signal-to-noise ratio in DoP units) instead of the DoP. 'uniform': the same noise everywhere (the "
+        "DoP alone, as before). Observations without a noise map (a library caller's) are uniform. "
+        "Measured in the README.",
+    )
+    aop_noise_px: float = Field(
+        default=3.0,
+        gt=0.0,
+        le=32.0,
+        description="With aop_noise 'closure': standard deviation, in pixels, of the Gaussian average of the "
+        "closure residual.",
+    )
     dop_min: float = Field(
         default=0.05,
         ge=0.0,
@@ -692,13 +710,15 @@ class RefineOptions(_Options):
         "is in report.json per stage. Measured in the README.",
     )
     dop_evidence_ratio: float = Field(
-        default=0.8,
+        default=0.7,
         gt=0.0,
         le=1.0,
         description="With dop_min_noise 'evidence': a bin of pairs counts as polarized evidence while its mean "
         "azimuth distance to the current surface is at most this fraction of chance's (pi/8, 22.5 deg: the "
         "mean for an AoP unrelated to the surface). Measured: an unpolarized Mitsuba surface's bins sit at "
-        "0.90-1.0 below DoP 0.1; an environment-lit plastic's at 0.64 (DoP 0.05-0.065) and 0.35-0.47 above 0.1.",
+        "0.90-1.0 below DoP 0.1; an environment-lit plastic's at 0.64 (DoP 0.05-0.065) and 0.35-0.47 above 0.1. "
+        "0.7 (default since session 28, with aop_noise 'closure') measured better than 0.8 on path-traced "
+        "captures at 32 spp (README).",
     )
     dop_evidence_bin: int = Field(
         default=1000,

@@ -20,7 +20,7 @@ from __future__ import annotations
 import platform
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +35,7 @@ from pmvir.export import write_refined_outputs
 from pmvir.geometry.stage import GeometryResult, geometry_report, run_geometry, write_geometry
 from pmvir.io.illumination import illumination_from_arrays
 from pmvir.io.ply import Mesh
+from pmvir.polarization.noise import closure_noise
 from pmvir.polarization.stokes import PolarizationImages
 from pmvir.progress import Progress
 from pmvir.refine import RefineResult, make_visibility_fn, observation_from_decoded, refine_surface
@@ -168,17 +169,30 @@ def refinement_observations(
     With ``refine.demosaic`` 'same' (or the decode stage's method) these are the decoded
     ``views``; otherwise each frame is decoded once more with ``refine.demosaic`` (the decode
     stage's noise floor, saturation and mask), one at a time, so only the observations stay
-    in memory.
+    in memory. With ``refine.aop_noise`` 'closure' (and E_pol on) each observation carries its
+    frame's polarization noise (:func:`pmvir.polarization.noise.closure_noise` over its valid
+    pixels), measured from the raw mosaic read once more.
     """
     progress = progress or Progress.none()
-    if not redecodes_for_refinement(decode, refine):
-        return [observation_from_decoded(vars(views[i].images), intensity=refine.intensity) for i in indices]
-    options = decode.model_copy(update={"demosaic": refine.demosaic})
+    redecode = redecodes_for_refinement(decode, refine)
+    options = decode.model_copy(update={"demosaic": refine.demosaic}) if redecode else decode
+    noise = refine.polarimetric and refine.aop_noise == "closure"
     observations = []
     for k, i in enumerate(indices):
-        images = _decode_frame(cap, i, options)
-        observations.append(observation_from_decoded(vars(images), intensity=refine.intensity))
-        progress.update((k + 1) / len(indices), f"decoded {cap.frames[i].file} with {refine.demosaic}")
+        raw = cap.read_raw(i) if redecode or noise else None
+        if raw is not None and redecode:
+            images = decode_frame(
+                raw.mosaic, cap.layout, saturated=raw.saturated, mask=cap.read_mask(i), options=options
+            )
+        else:
+            images = views[i].images
+        obs = observation_from_decoded(vars(images), intensity=refine.intensity)
+        if raw is not None and noise:
+            sigma = closure_noise(raw.mosaic, cap.layout, valid=images.valid, sigma_px=refine.aop_noise_px)
+            obs = replace(obs, aop_noise=sigma)
+        observations.append(obs)
+        if redecode:
+            progress.update((k + 1) / len(indices), f"decoded {cap.frames[i].file} with {refine.demosaic}")
     return observations
 
 

@@ -24,6 +24,7 @@ from pmvir.pipeline import (
     specular_warning,
 )
 from pmvir.polarization.layout import ANGLES_DEG, IMX250MYR, mosaic
+from pmvir.polarization.noise import closure_noise
 from pmvir.progress import Progress
 
 
@@ -191,3 +192,21 @@ def test_refinement_images_can_come_from_another_demosaicing(capture: Path) -> N
             assert np.abs(eari[k].dop - views[i].images.dop).max() > 1e-3
     # frame 0's mean I_int (0.2) sits under the noise floor 0.24, frame 2's (0.28) above it
     assert not eari[1].valid.any() and eari[0].valid.mean() > 0.8
+
+
+def test_refinement_images_carry_their_frames_polarization_noise(capture: Path) -> None:
+    """refine.aop_noise 'closure' measures each frame's closure noise over the refinement images'
+    valid pixels; 'uniform' and the MVIR baseline (no E_pol) measure none."""
+    config = PipelineConfig()
+    with open_capture(capture) as cap:
+        views = decode_views(cap, config)
+        for refine in (config.refine, config.refine.model_copy(update={"demosaic": "same"})):
+            obs = refinement_observations(cap, views, [2], config.decode, refine)[0]
+            raw = cap.read_raw(2)
+            expected = closure_noise(raw.mosaic, cap.layout, valid=obs.valid, sigma_px=refine.aop_noise_px)
+            np.testing.assert_array_equal(obs.aop_noise, expected)
+            measured = obs.aop_noise[obs.valid]
+            assert np.isfinite(measured).all() and measured.min() > 0.0
+        for update in ({"aop_noise": "uniform"}, {"polarimetric": False}):
+            refine = config.refine.model_copy(update=update)
+            assert refinement_observations(cap, views, [2], config.decode, refine)[0].aop_noise is None

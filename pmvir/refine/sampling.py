@@ -46,12 +46,16 @@ class Observation:
         dop: (H, W) float32 degree of polarization in [0, 1].
         valid: (H, W) bool; False where AoP/DoP are undefined or the pixel is saturated
             or outside the object.
+        aop_noise: optional (H, W) float32 noise of the normalized Stokes vector
+            (:func:`pmvir.polarization.noise.closure_noise`; NaN where unmeasured), so that
+            DoP / noise is each pixel's AoP signal-to-noise ratio; None: the same everywhere.
     """
 
     intensity: np.ndarray
     aop: np.ndarray
     dop: np.ndarray
     valid: np.ndarray
+    aop_noise: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         i = np.asarray(self.intensity, dtype=np.float32)
@@ -59,6 +63,8 @@ class Observation:
             raise ConfigError(f"expected (H, W, 3) intensity, got shape {i.shape}")
         h, w = i.shape[:2]
         fields = {"aop": self.aop, "dop": self.dop, "valid": self.valid}
+        if self.aop_noise is not None:
+            fields["aop_noise"] = self.aop_noise
         for name, a in fields.items():
             if np.shape(a) != (h, w):
                 raise ConfigError(f"expected ({h}, {w}) {name} to match the intensity, got {np.shape(a)}")
@@ -66,6 +72,8 @@ class Observation:
         object.__setattr__(self, "aop", np.asarray(self.aop, dtype=np.float32))
         object.__setattr__(self, "dop", np.asarray(self.dop, dtype=np.float32))
         object.__setattr__(self, "valid", np.asarray(self.valid, dtype=bool))
+        if self.aop_noise is not None:
+            object.__setattr__(self, "aop_noise", np.asarray(self.aop_noise, dtype=np.float32))
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -107,6 +115,9 @@ class ViewStack:
         rotation: (V, 3, 3) cam_from_world rotations.
         translation: (V, 3) cam_from_world translations.
         intrinsics: (V, 5) fx, fy, cx, cy, skew.
+        noise: (sum_c H_c W_c, 1) every view's ``aop_noise`` in the rows of ``table`` (NaN where
+            unmeasured or the view has none), or None when no view has one. Sampled only at a
+            stage's start (``sample_pairs(..., with_noise=True)``), not in the energy.
     """
 
     table: torch.Tensor
@@ -116,6 +127,7 @@ class ViewStack:
     rotation: torch.Tensor
     translation: torch.Tensor
     intrinsics: torch.Tensor
+    noise: torch.Tensor | None = None
 
     @property
     def polarimetric(self) -> bool:
@@ -164,6 +176,12 @@ def build_view_stack(
             rows[:, 3] = np.cos(2.0 * phi)
             rows[:, 4] = np.sin(2.0 * phi)
             rows[:, 5] = obs.dop.reshape(-1)
+    noise = None
+    if polarimetric and any(obs.aop_noise is not None for obs in observations):
+        noise = np.full((int(sum(counts)), 1), np.nan, dtype=np.float32)
+        for c, obs in enumerate(observations):
+            if obs.aop_noise is not None:
+                noise[base[c] : base[c] + counts[c], 0] = obs.aop_noise.reshape(-1)
 
     def tensor(a: np.ndarray, dt: torch.dtype = dtype) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(a)).to(device=device, dtype=dt)
@@ -177,6 +195,7 @@ def build_view_stack(
         rotation=tensor(np.stack([c.R for c in cameras])),
         translation=tensor(np.stack([c.t for c in cameras])),
         intrinsics=tensor(intr),
+        noise=None if noise is None else tensor(noise),
     )
 
 
@@ -302,6 +321,8 @@ class PairSamples:
         aop: (P,) observed AoP phi_{i,c}(X) in [0, pi) (None without polarization).
         dop: (P,) observed DoP rho_{i,c}(X) (None without polarization).
         aop_defined: (P,) bool, False where the interpolated (cos, sin) 2phi vector vanished.
+        aop_noise: (P,) the view's ``aop_noise`` at the pair (NaN where unmeasured), or None
+            (not asked for, or no view has one).
     """
 
     intensity: torch.Tensor
@@ -310,6 +331,7 @@ class PairSamples:
     aop: torch.Tensor | None
     dop: torch.Tensor | None
     aop_defined: torch.Tensor | None
+    aop_noise: torch.Tensor | None = None
 
 
 class _Bilinear(torch.autograd.Function):
@@ -352,7 +374,12 @@ class _Bilinear(torch.autograd.Function):
 
 
 def sample_pairs(
-    vertices: torch.Tensor, normals: torch.Tensor, views: ViewStack, pairs: PairSet
+    vertices: torch.Tensor,
+    normals: torch.Tensor,
+    views: ViewStack,
+    pairs: PairSet,
+    *,
+    with_noise: bool = False,
 ) -> PairSamples:
     """Project every pair's vertex into its view and sample the images there (differentiably).
 
@@ -364,6 +391,7 @@ def sample_pairs(
         normals: (N, 3) unit world normals of the vertices.
         views: the packed views.
         pairs: the stage's pairs.
+        with_noise: also sample ``views.noise`` (PairSamples.aop_noise), without a gradient.
     """
     sizes = [b - a for a, b in zip(pairs.offsets[:-1], pairs.offsets[1:], strict=True)]
     # torch.split (not slicing): its backward concatenates, slicing's would zero-fill (P, 3) per view.
@@ -378,18 +406,20 @@ def sample_pairs(
     xn, yn = pc[:, 0] * inv_z, pc[:, 1] * inv_z
     u = intr[:, 0] * xn + intr[:, 4] * yn + intr[:, 2]
     v = intr[:, 1] * yn + intr[:, 3]
-    smp = _Bilinear.apply(
-        u - 0.5,
-        v - 0.5,
-        views.table,
+    lookup = (
         views.base.index_select(0, pairs.view),
         views.width.index_select(0, pairs.view),
         views.height.index_select(0, pairs.view),
     )
+    smp = _Bilinear.apply(u - 0.5, v - 0.5, views.table, *lookup)
     if not views.polarimetric:
         return PairSamples(smp[:, :3], normal_cam, ray_cam, None, None, None)
     cos2, sin2 = smp[:, 3], smp[:, 4]
     defined = cos2 * cos2 + sin2 * sin2 > 1e-12
     cos_safe = torch.where(defined, cos2, torch.ones_like(cos2))
     phi = torch.remainder(0.5 * torch.atan2(sin2, cos_safe), torch.pi)
-    return PairSamples(smp[:, :3], normal_cam, ray_cam, phi, smp[:, 5], defined)
+    noise = None
+    if with_noise and views.noise is not None:
+        with torch.no_grad():
+            noise = _Bilinear.apply(u.detach() - 0.5, v.detach() - 0.5, views.noise, *lookup)[:, 0]
+    return PairSamples(smp[:, :3], normal_cam, ray_cam, phi, smp[:, 5], defined, noise)

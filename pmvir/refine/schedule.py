@@ -94,7 +94,9 @@ class StageLog:
         n_pairs: usable (vertex, view) pairs; n_observed: vertices with at least one.
         pol_pairs: the pairs E_pol used (0 without E_pol).
         dop_floor: E_pol's DoP floor (see :func:`dop_floor`; the median of per-pair floors; 0 when
-            every pair is kept; None when no pair was evidence and E_pol was off).
+            every pair is kept; None when no pair was evidence and E_pol was off). With measured
+            noise (``aop_noise`` 'closure') an 'evidence' floor is on :func:`pol_evidence`'s scale,
+            the DoP at the stage's median noise.
         energies: per iteration (0 = the stage's start), the unweighted terms
             ``pho``, ``pol`` (only with E_pol), ``gsm``, ``psm`` and the weighted ``total``.
         grad_max: per iteration, the largest gradient component (preconditioned unknowns).
@@ -306,7 +308,7 @@ def _stage_observations(
     'has a pair', and the samples of every pair there (their DoP fixes E_pol's masks and weights)."""
     with torch.no_grad():
         normals = vertex_normals(vertices, faces)
-        smp = sample_pairs(vertices, normals, views, pairs)
+        smp = sample_pairs(vertices, normals, views, pairs, with_noise=True)
         total = torch.zeros_like(vertices).index_add_(0, pairs.vertex, smp.intensity)
     count = pairs.count
     mean = total.cpu().numpy().astype(np.float64) / np.maximum(count, 1)[:, None]
@@ -633,9 +635,11 @@ def _stage_problem(
     None keeps every pair) and DoP weights are taken from the samples at the stage's start and
     stay fixed, like the pairs."""
     opts, topo = setup.opts, setup.topo
-    dop = samples.dop
-    pol_mask = None if dop is None or floor is None else dop >= floor
-    pol_weight = dop if opts.dop_weight and dop is not None else None
+    evidence = pol_evidence(samples)
+    pol_mask = None
+    if samples.dop is not None and evidence is not None and floor is not None:
+        pol_mask = _above_floor(samples.dop, evidence, floor, opts)
+    pol_weight = evidence if opts.dop_weight else None
     if pol_weight is not None and opts.dop_weight_power != 1.0:
         pol_weight = pol_weight.clamp_min(0.0) ** opts.dop_weight_power
     if pol_weight is not None and opts.dop_weight_normalized:
@@ -662,6 +666,37 @@ def _stage_problem(
         diffuse_dop_ior=opts.diffuse_dop_ior,
         light_factor=light_factor,
     )
+
+
+def pol_evidence(samples: PairSamples) -> torch.Tensor | None:
+    """(P,) what E_pol weights and floors each pair by: its DoP, in units of its own AoP noise.
+
+    With the views' measured polarization noise sigma (``refine.aop_noise`` 'closure',
+    :func:`pmvir.polarization.noise.closure_noise`): ``rho * m / sigma`` with m the median sigma
+    over the stage's pairs, i.e. the AoP's signal-to-noise ratio rho / sigma scaled to read as a
+    DoP at the median noise. Unmeasured (NaN) noise counts as m; sigma is held above m / 4, so no
+    pair outweighs others by noise alone more than 16-fold at ``dop_weight_power`` 2. Without noise
+    maps: the DoP itself. None without polarization.
+    """
+    if samples.dop is None or samples.aop_noise is None:
+        return samples.dop
+    noise = samples.aop_noise
+    measured = torch.isfinite(noise) & (noise > 0)
+    if not bool(measured.any()):
+        return samples.dop
+    ref = noise[measured].median()
+    noise = torch.where(measured, noise, ref).clamp_min(0.25 * ref)
+    return samples.dop * (ref / noise)
+
+
+def _above_floor(
+    dop: torch.Tensor, evidence: torch.Tensor, floor: torch.Tensor | float, opts: RefineOptions
+) -> torch.Tensor:
+    """E_pol's pair mask: the 'evidence' floor applies to :func:`pol_evidence` (and the DoP stays at
+    or above ``dop_min``); the 'fixed' and 'shot' floors to the DoP."""
+    if opts.dop_min_noise == "evidence":
+        return (evidence >= floor) & (dop >= opts.dop_min)
+    return dop >= floor
 
 
 def dop_floor(samples: PairSamples, opts: RefineOptions) -> torch.Tensor | float:
@@ -694,29 +729,31 @@ CHANCE_ETA = math.pi / 8.0
 def evidence_dop_floor(samples: PairSamples, opts: RefineOptions) -> float:
     """The DoP from which the observed AoP is evidence about the current surface ('evidence').
 
-    The pairs at or above ``dop_min`` (with a defined AoP and azimuth) are sorted by DoP, most
+    The pairs at or above ``dop_min`` (with a defined AoP and azimuth) are sorted by their
+    evidence (:func:`pol_evidence`: the DoP, over its noise where the views measure it), most
     polarized first, and cut into bins of ``max(dop_evidence_bin, 2% of them)`` pairs (a short
     remainder joins the last bin). Walking down, a bin is evidence while its mean azimuth distance
     eta to the samples' normals is at most ``dop_evidence_ratio * pi / 8``: an AoP unrelated to
     the surface (noise, false polarization at albedo edges) has mean pi/8. The floor is the
-    lowest DoP of the last such bin; the walk stops at the first bin that is not (when none is
+    lowest evidence of the last such bin; the walk stops at the first bin that is not (when none is
     not, the floor is ``dop_min``).
 
     Returns:
         the floor (at least ``dop_min``), or ``inf`` when the most polarized bin is no evidence
         (E_pol then has no pairs this stage).
     """
-    if samples.dop is None or samples.aop is None or samples.aop_defined is None:
+    evidence = pol_evidence(samples)
+    if evidence is None or samples.dop is None or samples.aop is None or samples.aop_defined is None:
         return opts.dop_min
     alpha, defined = azimuth(samples.normal_cam, samples.ray_cam)
     usable = defined & samples.aop_defined & (samples.dop >= opts.dop_min)
-    dop = samples.dop[usable]
-    if dop.numel() == 0:
+    ranked = evidence[usable]
+    if ranked.numel() == 0:
         return opts.dop_min
     eta = azimuth_distance(alpha[usable], samples.aop[usable])
-    order = torch.argsort(dop, descending=True)
-    dop, eta = dop[order], eta[order]
-    n = dop.numel()
+    order = torch.argsort(ranked, descending=True)
+    ranked, eta = ranked[order], eta[order]
+    n = ranked.numel()
     size = min(n, max(opts.dop_evidence_bin, math.ceil(0.02 * n)))
     starts = list(range(0, n, size))
     if len(starts) > 1 and n - starts[-1] < size:
@@ -727,7 +764,7 @@ def evidence_dop_floor(samples: PairSamples, opts: RefineOptions) -> float:
     for a, b in zip(starts, ends, strict=True):
         if float(eta[a:b].mean()) > bound:
             break
-        floor = float(dop[b - 1])
+        floor = float(ranked[b - 1])
     else:
         return opts.dop_min  # every bin is evidence: keep every pair above dop_min
     return max(floor, opts.dop_min)
@@ -990,6 +1027,8 @@ def _setup(
     dtype = torch.float32 if opts.dtype == "float32" else torch.float64
     if opts.silhouette_margin_px > 0:
         observations = [with_valid_margin(obs, opts.silhouette_margin_px) for obs in observations]
+    if opts.aop_noise == "uniform":
+        observations = [replace(obs, aop_noise=None) for obs in observations]
     if opts.stokes_smoothing_px > 0 and opts.polarimetric:
         observations = [with_smoothed_stokes(obs, opts.stokes_smoothing_px) for obs in observations]
     views = build_view_stack(

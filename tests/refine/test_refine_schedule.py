@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -639,6 +640,50 @@ def test_evidence_dop_floor_is_where_the_aop_stops_agreeing_with_the_surface() -
     # a stricter ratio asks for closer agreement: 3 deg noise still passes at 0.3 of chance
     strict = RefineOptions(dop_min=0.05, dop_evidence_ratio=0.3)
     assert dop_floor(_evidence_samples(40000, 0.2), strict) == pytest.approx(0.2, abs=0.013)
+
+
+def test_pol_evidence_is_the_dop_over_each_pairs_own_noise() -> None:
+    """refine.aop_noise 'closure': a pair's evidence is rho * median(sigma) / sigma; equal noise
+    leaves the DoP as it is, unmeasured noise counts as the median, and sigma is held above a
+    quarter of the median."""
+    import torch
+
+    from pmvir.refine.schedule import pol_evidence
+
+    base = _evidence_samples(8, 0.0)
+    assert pol_evidence(base) is base.dop
+    noise = torch.tensor([1.0, 1.0, 1.0, 2.0, 0.5, float("nan"), 0.01, 1.0], dtype=torch.float64)
+    ev = pol_evidence(replace(base, aop_noise=noise))
+    ratio = (ev / base.dop).numpy()  # median of the 7 measured: 1.0
+    np.testing.assert_allclose(ratio, [1.0, 1.0, 1.0, 0.5, 2.0, 1.0, 4.0, 1.0])
+    same = pol_evidence(replace(base, aop_noise=torch.full((8,), 0.3, dtype=torch.float64)))
+    torch.testing.assert_close(same, base.dop)
+
+
+def test_evidence_floor_ranks_pairs_by_their_aop_signal_to_noise() -> None:
+    """85% of the pairs are noisy (random AoP, 4x the noise) at the same DoPs as the clean 15%:
+    ranked by DoP every bin is mostly noise and E_pol turns off; ranked by DoP over noise the clean
+    pairs come first, the floor keeps nearly all of them and few noisy ones."""
+    import torch
+
+    from pmvir.refine.schedule import _above_floor, dop_floor, pol_evidence
+
+    n = 40000
+    clean = np.random.default_rng(3).random(n) < 0.15
+    aligned = _evidence_samples(n, 0.0, seed=4)
+    unrelated = _evidence_samples(n, None, seed=4)  # same normals and DoPs, random AoP
+    aop = torch.where(torch.from_numpy(clean), aligned.aop, unrelated.aop)
+    samples = replace(aligned, aop=aop)
+    opts = RefineOptions(dop_min=0.05)
+    assert dop_floor(samples, opts) == float("inf")
+    noise = torch.from_numpy(np.where(clean, 0.05, 0.2))
+    with_noise = replace(samples, aop_noise=noise)
+    floor = dop_floor(with_noise, opts)
+    assert np.isfinite(floor)
+    kept = _above_floor(with_noise.dop, pol_evidence(with_noise), floor, opts).numpy()
+    usable = aligned.dop.numpy() >= 0.05
+    assert kept[clean & usable].mean() > 0.75  # those below DoP 0.1 compete with noisy pairs of DoP 0.2-0.5
+    assert kept[~clean].mean() < 0.1, kept[~clean].mean()
 
 
 def test_diffuse_dop_factor_is_refused_where_e_pho_observes_i_int() -> None:
