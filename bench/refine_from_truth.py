@@ -167,7 +167,14 @@ def run(
             observations = refinement_observations(cap, views, list(range(len(views))), config.decode, opts)
         t0 = time.perf_counter()
         refined = refine_surface(
-            vertices, faces, cameras, observations, visibility, options=opts, visibility_fn=visibility_fn
+            vertices,
+            faces,
+            cameras,
+            observations,
+            visibility,
+            options=opts,
+            visibility_fn=visibility_fn,
+            masks=masks,
         )
         elapsed = time.perf_counter() - t0
         ev = evaluate(Mesh(refined.vertices, faces), truth, n_samples=samples)

@@ -137,6 +137,7 @@ def main() -> None:
         vis,
         options=opts,
         visibility_fn=make_visibility_fn(cams, masks),
+        masks=masks,
         progress=Progress(
             lambda _, f, m: print(f"{time.perf_counter() - t1:8.1f}s {f:5.3f} {m}", file=sys.stderr, flush=True)
         ),
