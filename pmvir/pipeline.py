@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from pmvir import __version__, stage_cache
-from pmvir.capture import Capture, open_capture
+from pmvir.capture import Capture, RawFrame, open_capture
 from pmvir.config import DecodeOptions, PipelineConfig, RefineOptions
 from pmvir.decode import decode_frame, write_decoded, write_previews
 from pmvir.errors import ConfigError, PmvirError
@@ -95,9 +95,12 @@ def decode_views(cap: Capture, config: PipelineConfig, progress: Progress | None
     return views
 
 
-def _decode_frame(cap: Capture, i: int, options: DecodeOptions) -> PolarizationImages:
-    """Frame ``i`` of an open capture demosaiced with ``options`` (its saturation and mask applied)."""
-    raw = cap.read_raw(i)
+def _decode_frame(
+    cap: Capture, i: int, options: DecodeOptions, raw: RawFrame | None = None
+) -> PolarizationImages:
+    """Frame ``i`` of an open capture demosaiced with ``options`` (its saturation and mask applied);
+    ``raw``: the frame already read, if the caller has it."""
+    raw = cap.read_raw(i) if raw is None else raw
     return decode_frame(
         raw.mosaic, cap.layout, saturated=raw.saturated, mask=cap.read_mask(i), options=options
     )
@@ -180,12 +183,7 @@ def refinement_observations(
     observations = []
     for k, i in enumerate(indices):
         raw = cap.read_raw(i) if redecode or noise else None
-        if raw is not None and redecode:
-            images = decode_frame(
-                raw.mosaic, cap.layout, saturated=raw.saturated, mask=cap.read_mask(i), options=options
-            )
-        else:
-            images = views[i].images
+        images = _decode_frame(cap, i, options, raw) if redecode else views[i].images
         obs = observation_from_decoded(vars(images), intensity=refine.intensity)
         if raw is not None and noise:
             sigma = closure_noise(raw.mosaic, cap.layout, valid=images.valid, sigma_px=refine.aop_noise_px)
