@@ -840,6 +840,17 @@ class RefineOptions(_Options):
         "normals, not position, and the scans move the whole mesh, so thin parts drift out past their "
         "silhouettes. None: off. Measured in the README.",
     )
+    rim_fit_gain: float = Field(
+        default=0.5,
+        ge=0.0,
+        le=1.0,
+        description="After the last stage (and its hull fit), vertices near some view's rim that project more "
+        "than a quarter pixel inside that view's mask, measured along their normals to the mask's boundary, move "
+        "outward by this share of the excess, spread over the shoulders around them (pmvir.geometry.hull_fit."
+        "fit_to_rims; needs the masks). Stereo leaves weakly textured parts inside the surface, where neither the "
+        "offset scans nor the shading see it. 0: off; 1 moves the whole excess (the excess includes the rims' own "
+        "inset, which the truth has too: 0.5 measured best). Measured in the README.",
+    )
     relax_iterations: int = Field(
         default=20,
         ge=0,

@@ -390,6 +390,7 @@ def refine_report(refined: RefineResult) -> dict:
         "stages": [_stage_report(st) for st in refined.stages],
         "offset_scans": [scan.to_dict() for scan in refined.offset_scans],
         "hull_fits": [fit.to_dict() for fit in refined.hull_fits],
+        "rim_fit": None if refined.rim_fit is None else refined.rim_fit.to_dict(),
         "lighting_fit": None if refined.lighting_fit is None else _stage_report(refined.lighting_fit),
     }
 

@@ -65,6 +65,9 @@ def test_result_files_follow_the_spec(result) -> None:
         assert len(scan["scan_px"]) == len(scan["scan_cost"]) == (13 if k == 0 else 7)
         assert scan["pixel_size"] > 0
         assert scan["applied"] == (scan["reason"] == "") and abs(scan["offset_px"]) <= scan["scan_px"][-1]
+    # the shoulders inside the masks' rims moved out after the last hull fit (refine.rim_fit_gain 0.5)
+    rims = report["refine"]["rim_fit"]
+    assert rims["gain"] == 0.5 and 0 < rims["inside"] <= rims["rim_vertices"] and rims["mean_move_px"] >= 0.0
     assert not any(p.name.startswith(".work") for p in out.iterdir())
 
 

@@ -43,7 +43,7 @@ import torch
 from pmvir.camera import Camera
 from pmvir.config import RefineOptions
 from pmvir.errors import ConfigError, ReconstructionError
-from pmvir.geometry.hull_fit import HullFit, fit_inside_hull
+from pmvir.geometry.hull_fit import HullFit, RimFit, fit_inside_hull, fit_to_rims
 from pmvir.io.ply import vertex_normals as vertex_normals_np
 from pmvir.progress import Progress
 from pmvir.refine.albedo import AlbedoSolver
@@ -140,8 +140,8 @@ class RefineResult:
         stages: one :class:`StageLog` per stage.
         timings: seconds: ``setup``, ``offset_scan`` (the scans before stage 1 and after the last; those
             between stages count in their stage), ``stage_1`` ... ``stage_S``, ``hull_fit`` (with masks: the fit
-            after the last stage; the fits after earlier scans count in their stage), ``lighting`` (the final
-            lighting fit, when run), ``total``.
+            after the last stage; the fits after earlier scans count in their stage), ``rim_fit`` (when run),
+            ``lighting`` (the final lighting fit, when run), ``total``.
         intensity_factor: what E_pho and E_psm multiplied intensities and albedos by
             (:func:`intensity_units`).
         offset_scans: the photo-consistent offsets scanned (and applied where the scan found one), in
@@ -149,6 +149,8 @@ class RefineResult:
             after the last (:func:`pmvir.refine.offset.photo_consistent_offset`).
         hull_fits: the surface held inside the masks' visual hull (``hull_tolerance_px`` with masks),
             in order: after every applied offset scan but the last, and after the last stage and scan.
+        rim_fit: the shoulders moved out to the masks' rims after the last hull fit (``rim_fit_gain`` > 0
+            with masks), else None.
         lighting_fit: the final lighting fit's log (``lighting_coupling`` > 0; its time is
             ``timings["lighting"]``), else None.
     """
@@ -165,6 +167,7 @@ class RefineResult:
     intensity_factor: float = 0.0
     offset_scans: list[OffsetScan] = field(default_factory=list)
     hull_fits: list[HullFit] = field(default_factory=list)
+    rim_fit: RimFit | None = None
     lighting_fit: StageLog | None = None
 
     def shading_coefficients(self) -> np.ndarray:
@@ -1123,6 +1126,16 @@ def _inside_hull(
     return replace(state, vertices=moved)
 
 
+def _to_rims(
+    setup: _Setup, state: _Unknowns, masks: Sequence[np.ndarray | None]
+) -> tuple[_Unknowns, RimFit]:
+    """``state`` with the shoulders whose rims lie inside the masks moved outward (``rim_fit_gain``)."""
+    v = state.vertices.detach().cpu().numpy().astype(np.float64)
+    fit = fit_to_rims(v, setup.faces_np, setup.cameras, masks, gain=setup.opts.rim_fit_gain)
+    moved = torch.from_numpy(fit.vertices).to(device=setup.device, dtype=setup.dtype)
+    return replace(state, vertices=moved), fit
+
+
 def refine_surface(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -1215,6 +1228,11 @@ def refine_surface(
         t_hull = time.perf_counter()
         state = _inside_hull(setup, state, masks, hull_fits)
         timings["hull_fit"] = time.perf_counter() - t_hull
+    rim_fit = None
+    if masks is not None and opts.rim_fit_gain > 0.0:
+        t_rim = time.perf_counter()
+        state, rim_fit = _to_rims(setup, state, masks)
+        timings["rim_fit"] = time.perf_counter() - t_rim
     lighting_fit = None
     if opts.lighting_coupling > 0.0:
         t_fit = time.perf_counter()
@@ -1237,5 +1255,6 @@ def refine_surface(
         intensity_factor=setup.units,
         offset_scans=scans,
         hull_fits=hull_fits,
+        rim_fit=rim_fit,
         lighting_fit=lighting_fit,
     )

@@ -7,7 +7,7 @@ import open3d as o3d
 import pytest
 
 from pmvir.errors import ConfigError
-from pmvir.geometry.hull_fit import fit_inside_hull, hull_depth, mask_distance
+from pmvir.geometry.hull_fit import fit_inside_hull, fit_to_rims, hull_depth, mask_distance
 from pmvir.synth.rig import ring_cameras
 
 W, H = 160, 128
@@ -88,3 +88,58 @@ def test_bad_arguments_are_config_errors(sphere_views: tuple) -> None:
         fit_inside_hull(v, f, cameras, masks, tolerance_px=-1.0)
     with pytest.raises(ConfigError, match="masks"):
         fit_inside_hull(v, f, cameras, masks[:3])
+
+
+def _gsd(cameras: list) -> float:
+    return float(np.linalg.norm(cameras[0].center) / cameras[0].K[0, 0])
+
+
+def test_a_shrunk_surface_moves_out_to_its_rims_and_the_truth_stays(sphere_views: tuple) -> None:
+    """The unit sphere shrunk by 1 and 2 px: gain 1 brings it back within 0.2 px, gain 0.5 halfway; every
+    vertex moves outward; the true sphere moves under 0.1 px on average (the rims' own inset)."""
+    cameras, masks = sphere_views
+    v, f = _sphere()
+    gsd = _gsd(cameras)
+    for shrink_px in (1.0, 2.0):
+        scale = 1.0 - shrink_px * gsd
+        for gain, left in ((1.0, 0.2), (0.5, 0.6)):
+            fit = fit_to_rims(scale * v, f, cameras, masks, gain=gain)
+            r = np.linalg.norm(fit.vertices, axis=1)
+            assert np.all(r >= scale - 1e-12)  # never inward
+            error_px = np.abs(r - 1.0).mean() / gsd
+            assert error_px < left * shrink_px, (shrink_px, gain, error_px, fit)
+            assert fit.inside > 0.9 * fit.rim_vertices > 0
+    on_truth = fit_to_rims(v, f, cameras, masks, gain=0.5)
+    assert np.abs(np.linalg.norm(on_truth.vertices, axis=1) - 1.0).mean() / gsd < 0.1, on_truth
+    assert on_truth.mean_move_px < 0.1
+
+
+def test_a_rim_fit_needs_masks_and_a_gain(sphere_views: tuple) -> None:
+    cameras, masks = sphere_views
+    v, f = _sphere(3)
+    for fit in (
+        fit_to_rims(0.9 * v, f, cameras, [None] * len(cameras)),
+        fit_to_rims(0.9 * v, f, cameras, masks, gain=0.0),
+        fit_to_rims(0.9 * v, f, cameras, [np.zeros_like(m) for m in masks]),
+    ):
+        assert fit.rim_vertices == 0 and np.array_equal(fit.vertices, 0.9 * v)
+
+
+def test_a_rim_beyond_reach_of_the_mask_boundary_counts_for_nothing(sphere_views: tuple) -> None:
+    """Masks of the unit sphere, but the mesh is a sphere 10 px inside it: no rim meets the mask's boundary
+    within ``reach_px`` (4 px), so nothing is measured and nothing moves (a silhouette that far off is
+    not this surface's)."""
+    cameras, masks = sphere_views
+    v, f = _sphere(3)
+    far = fit_to_rims(0.8 * v, f, cameras, masks)
+    assert far.rim_vertices == 0 and np.array_equal(far.vertices, 0.8 * v)
+
+
+def test_bad_rim_fit_arguments_are_config_errors(sphere_views: tuple) -> None:
+    cameras, masks = sphere_views
+    v, f = _sphere(2)
+    for options in ({"gain": -0.1}, {"tolerance_px": -1.0}, {"rim_cos": 0.0}, {"rim_cos": 1.0}, {"reach_px": 0.0}):
+        with pytest.raises(ConfigError, match="expected gain"):
+            fit_to_rims(v, f, cameras, masks, **options)
+    with pytest.raises(ConfigError, match="masks"):
+        fit_to_rims(v, f, cameras, masks[:3])

@@ -46,13 +46,15 @@ def mitsuba_runs():
             visibility_fn=vis_fn,
         )
         runs[name] = accuracy(res.vertices, scene.true_vertices, scene.true_faces)
-    res = refine_surface(
-        scene.vertices, scene.faces, scene.cameras, obs, vis,
-        options=RefineOptions(max_iterations=ITERATIONS, silhouette_margin_px=0), visibility_fn=vis_fn,
-        masks=[fr["mask"] for fr in scene.frames],
-    )
-    runs["full_masks"] = accuracy(res.vertices, scene.true_vertices, scene.true_faces)
-    runs["hull_fits"] = res.hull_fits
+    # with the masks: the hull fits alone, then with the rim fit too (its default gain)
+    for name, gain in (("full_masks", 0.0), ("full_rims", 0.5)):
+        res = refine_surface(
+            scene.vertices, scene.faces, scene.cameras, obs, vis,
+            options=RefineOptions(max_iterations=ITERATIONS, silhouette_margin_px=0, rim_fit_gain=gain),
+            visibility_fn=vis_fn, masks=[fr["mask"] for fr in scene.frames],
+        )
+        runs[name] = accuracy(res.vertices, scene.true_vertices, scene.true_faces)
+        runs["hull_fits" if gain == 0.0 else "rim_fit"] = res.hull_fits if gain == 0.0 else res.rim_fit
     runs["frames"] = scene.frames
     return runs
 
@@ -83,3 +85,11 @@ def test_masks_hold_the_refined_surface_inside_the_hull(mitsuba_runs) -> None:
     assert mitsuba_runs["hull_fits"][0].outside_before > 0
     assert last.outside_after <= 0.01 * max(last.outside_before, 1) + 5, last.to_dict()
     assert mitsuba_runs["full_masks"] < 0.95 * mitsuba_runs["full"], mitsuba_runs
+
+
+def test_shoulders_inside_the_rims_move_out_to_them(mitsuba_runs) -> None:
+    """``rim_fit_gain`` 0.5 (the default) after the hull fit: the shoulders the masks show inside the surface move out, and
+    the result is closer to the truth (0.00289 -> 0.00259 when measured)."""
+    fit = mitsuba_runs["rim_fit"]
+    assert fit is not None and fit.inside > 0 and fit.mean_move_px > 0.0, fit
+    assert mitsuba_runs["full_rims"] < 0.95 * mitsuba_runs["full_masks"], mitsuba_runs
