@@ -1163,7 +1163,9 @@ def refine_surface(
         progress: one step ``stage s`` per stage, reporting its iterations; polled there for cancellation.
         masks: the V views' object masks (None entries: no mask); with ``hull_tolerance_px`` the
             surface is held inside their visual hull after every offset scan and after the last stage
-            (:func:`pmvir.geometry.hull_fit.fit_inside_hull`). None: not held.
+            (:func:`pmvir.geometry.hull_fit.fit_inside_hull`), and with ``rim_fit_gain`` the shoulders
+            whose rims lie inside them move out after the last stage
+            (:func:`pmvir.geometry.hull_fit.fit_to_rims`). None: neither.
 
     Returns:
         :class:`RefineResult`.
