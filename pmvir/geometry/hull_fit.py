@@ -209,31 +209,30 @@ class RimFit:
 
 
 def _rim_distances(
-    vertices: np.ndarray, faces: np.ndarray, cam: Camera, mask: np.ndarray, rim_cos: float, reach_px: float
+    vertices: np.ndarray,
+    normals: np.ndarray,
+    scene: o3d.t.geometry.RaycastingScene,
+    origin: np.ndarray,
+    cam: Camera,
+    mask: np.ndarray,
+    rim_cos: float,
+    reach_px: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One view's near-rim vertices, how far (pixels) inside the mask each projects along its normal's image
     direction, and the ground sampling distance there; vertices whose march meets another part of the
-    mesh or does not leave the mask within ``reach_px`` are left out."""
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32))
-    )
-    origins, dirs = cam.pixel_rays()
-    covered = np.isfinite(
-        scene.cast_rays(o3d.core.Tensor(np.concatenate([origins, dirs], -1).astype(np.float32)))[
-            "t_hit"
-        ].numpy()
-    )
-    free = mask & ~covered
-    normals = vertex_normals(vertices, faces).astype(np.float64)
+    mesh or does not leave the mask within ``reach_px`` are left out. ``scene`` holds the mesh moved by
+    ``-origin`` (float32 rays stay precise far from the world's origin)."""
+
+    def cast(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        rays = np.concatenate([np.broadcast_to(origins - origin, dirs.shape), dirs], -1).astype(np.float32)
+        return scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+
+    _, dirs = cam.pixel_rays()
+    free = mask & ~np.isfinite(cast(cam.center, dirs))  # mask pixels the mesh leaves uncovered
     to_v = vertices - cam.center
     dist = np.linalg.norm(to_v, axis=1)
     to_v /= np.maximum(dist, 1e-300)[:, None]
-    hit = scene.cast_rays(
-        o3d.core.Tensor(
-            np.concatenate([np.broadcast_to(cam.center, vertices.shape), to_v], 1).astype(np.float32)
-        )
-    )["t_hit"].numpy()
+    hit = cast(cam.center, to_v)
     uv, z = cam.project(vertices)
     step, _ = cam.project(vertices + 1e-4 * dist[:, None] * normals)
     direction = step - uv
@@ -329,9 +328,13 @@ def fit_to_rims(
     ]
     if not views or n == 0 or gain == 0.0:
         return RimFit(v0.copy(), 0, 0, 0.0, 0.0, gain, tolerance_px)
+    normals = vertex_normals(v0, f).astype(np.float64)
+    origin = v0.mean(axis=0)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor((v0 - origin).astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
     found_v, found_d, found_g = [], [], []
     for cam, mask in views:
-        idx, inside, gsd = _rim_distances(v0, f, cam, mask, rim_cos, reach_px)
+        idx, inside, gsd = _rim_distances(v0, normals, scene, origin, cam, mask, rim_cos, reach_px)
         found_v.append(idx)
         found_d.append(inside)
         found_g.append(gsd)
@@ -362,7 +365,6 @@ def fit_to_rims(
     for _ in range(spread):
         num, den = average(num), average(den)
     spread_move = np.where(den > 1e-3, num / np.maximum(den, 1e-12), 0.0)
-    normals = vertex_normals(v0, f).astype(np.float64)
     gsd_mean = float(np.median(median_gsd))
     px = spread_move / max(gsd_mean, 1e-300)
     return RimFit(
