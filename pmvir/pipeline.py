@@ -32,6 +32,7 @@ from pmvir.decode import decode_frame, write_decoded, write_previews
 from pmvir.errors import ConfigError, PmvirError
 from pmvir.export import write_previews as write_view_previews
 from pmvir.export import write_refined_outputs
+from pmvir.geometry.hull_fit import RimFit
 from pmvir.geometry.stage import GeometryResult, geometry_report, run_geometry, write_geometry
 from pmvir.io.illumination import illumination_from_arrays
 from pmvir.io.ply import Mesh
@@ -142,6 +143,28 @@ def specular_warning(median_dop: float | None, options: RefineOptions) -> str | 
         f"the object looks specular-dominated: its median DoP inside the masks is {median_dop:.2f} "
         f"(above {SPECULAR_MEDIAN_DOP}; diffuse plastic shows 0.02-0.12). The refinement's photometric "
         f"term models diffuse reflection, which a metal or a dark glossy surface lacks; {scan}. "
+        "Compare mesh.ply with initial.ply."
+    )
+
+
+MASK_MARGIN_WARNING_PX = 0.5
+"""An estimated mask margin (:class:`pmvir.geometry.hull_fit.RimFit`) at or above this is warned about."""
+
+
+def mask_margin_warning(fit: RimFit | None) -> str | None:
+    """The warning for masks that reach past the refined surface's rims everywhere (dilated masks, or a
+    surface inside all round), or None."""
+    if fit is None or fit.margin_estimate_px < MASK_MARGIN_WARNING_PX:
+        return None
+    done = (
+        "The rim fit discounted that margin (set refine.rim_fit_mask_margin_px if it is known)"
+        if fit.margin_estimated
+        else f"The rim fit discounted {fit.mask_margin_px:.2f} px as set (refine.rim_fit_mask_margin_px; 0 where "
+        "the offset scans are off) and may have pushed the surface out toward them"
+    )
+    return (
+        f"the masks reach about {fit.margin_estimate_px:.2f} px past the refined surface's rims nearly "
+        f"everywhere (exact masks give 0): they look dilated, or the surface lies inside all round. {done}. "
         "Compare mesh.ply with initial.ply."
     )
 
@@ -285,6 +308,8 @@ def run(
                 refined, registered = _refine_stage(cap, views, geometry, config, refine_options, p, share=0.85)
                 mesh = _write_refined(result, geometry, refined, [views[i].file for i in registered])
                 sections["refine"] = {**refine_report(refined), "offset_scan": refine_options.offset_scan}
+                if (warning := mask_margin_warning(refined.rim_fit)) is not None:
+                    warnings.append(warning)
                 with p.step("exports", 0.15) as q:
                     sections["exports"] = write_refined_outputs(
                         result,

@@ -14,10 +14,12 @@ from pmvir.cli import main
 from pmvir.config import DecodeOptions, PipelineConfig, RefineOptions
 from pmvir.decode import decode_frame
 from pmvir.errors import CanceledError, ConfigError
+from pmvir.geometry.hull_fit import RimFit
 from pmvir.io.frames import write_frame
 from pmvir.pipeline import (
     SPECULAR_MEDIAN_DOP,
     decode_views,
+    mask_margin_warning,
     refinement_observations,
     refinement_options,
     run,
@@ -115,6 +117,21 @@ def test_specular_captures_are_refined_without_the_offset_scan() -> None:
     assert refinement_options(keep, 0.35).offset_scan == default.offset_scan
     assert "runs as set" in (specular_warning(0.35, keep) or "")
     assert specular_warning(0.1, default) is None
+
+
+def test_masks_past_every_rim_are_warned_about() -> None:
+    """An estimated mask margin of 0.5 px or more (the rim fit found the masks past every rim) is warned
+    about, saying whether the fit discounted it; a small estimate or no fit is not."""
+    def fit(estimate: float, used: float | None) -> RimFit:
+        margin = estimate if used is None else used
+        return RimFit(np.zeros((1, 3)), 10, 5, 0.1, 0.2, 0.5, 0.25, margin, used is None, estimate)
+
+    warning = mask_margin_warning(fit(1.0, None)) or ""
+    assert "about 1.00 px" in warning and "dilated" in warning and "discounted that margin" in warning
+    trusted = mask_margin_warning(fit(1.25, 0.0)) or ""  # a margin set (or the scans off): said so
+    assert "about 1.25 px" in trusted and "discounted 0.00 px as set" in trusted and "pushed" in trusted
+    for quiet in (fit(0.25, None), fit(0.25, 0.0), None):
+        assert mask_margin_warning(quiet) is None
 
 
 def test_cancel_stops_at_a_boundary(capture: Path, tmp_path: Path) -> None:

@@ -68,6 +68,9 @@ def test_result_files_follow_the_spec(result) -> None:
     # the shoulders inside the masks' rims moved out after the last hull fit (refine.rim_fit_gain 0.5)
     rims = report["refine"]["rim_fit"]
     assert rims["gain"] == 0.5 and 0 < rims["inside"] <= rims["rim_vertices"] and rims["mean_move_px"] >= 0.0
+    # the synthetic masks are exact (pixel-centre hits): no margin found, no warning
+    assert rims["margin_estimated"] and rims["mask_margin_px"] < 0.5
+    assert not any("dilated" in w for w in report["warnings"])
     assert not any(p.name.startswith(".work") for p in out.iterdir())
 
 

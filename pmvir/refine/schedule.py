@@ -1126,12 +1126,30 @@ def _inside_hull(
     return replace(state, vertices=moved)
 
 
+def rim_fit_margin(opts: RefineOptions) -> float | None:
+    """The masks' margin the rim fit discounts: ``rim_fit_mask_margin_px`` where set; else estimated from the
+    rims (None) where the offset scans run, and 0 where they are off. The estimate takes a surface that lies
+    inside all round for a margin of the masks, and the scans are what moves such a surface; without them
+    (a specular-dominated capture, whose stereo surface lies inside at the depth of its reflections) the
+    rims are the only measure of it."""
+    if opts.rim_fit_mask_margin_px is not None:
+        return opts.rim_fit_mask_margin_px
+    return None if opts.offset_scan != "off" else 0.0
+
+
 def _to_rims(
     setup: _Setup, state: _Unknowns, masks: Sequence[np.ndarray | None]
 ) -> tuple[_Unknowns, RimFit]:
     """``state`` with the shoulders whose rims lie inside the masks moved outward (``rim_fit_gain``)."""
     v = state.vertices.detach().cpu().numpy().astype(np.float64)
-    fit = fit_to_rims(v, setup.faces_np, setup.cameras, masks, gain=setup.opts.rim_fit_gain)
+    fit = fit_to_rims(
+        v,
+        setup.faces_np,
+        setup.cameras,
+        masks,
+        gain=setup.opts.rim_fit_gain,
+        mask_margin_px=rim_fit_margin(setup.opts),
+    )
     moved = torch.from_numpy(fit.vertices).to(device=setup.device, dtype=setup.dtype)
     return replace(state, vertices=moved), fit
 

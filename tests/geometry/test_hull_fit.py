@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import open3d as o3d
 import pytest
 
 from pmvir.errors import ConfigError
-from pmvir.geometry.hull_fit import fit_inside_hull, fit_to_rims, hull_depth, mask_distance
+from pmvir.geometry.hull_fit import RimFit, fit_inside_hull, fit_to_rims, hull_depth, mask_distance
 from pmvir.synth.rig import ring_cameras
 
 W, H = 160, 128
@@ -94,16 +95,17 @@ def _gsd(cameras: list) -> float:
     return float(np.linalg.norm(cameras[0].center) / cameras[0].K[0, 0])
 
 
-def test_a_shrunk_surface_moves_out_to_its_rims_and_the_truth_stays(sphere_views: tuple) -> None:
-    """The unit sphere shrunk by 1 and 2 px: gain 1 brings it back within 0.2 px, gain 0.5 halfway; every
-    vertex moves outward; the true sphere moves under 0.1 px on average (the rims' own inset)."""
+def test_a_shrunk_surface_moves_out_to_masks_trusted_as_drawn(sphere_views: tuple) -> None:
+    """The unit sphere shrunk by 1 and 2 px, the masks trusted as drawn (margin 0): gain 1 brings it back
+    within 0.2 px, gain 0.5 halfway; every vertex moves outward; the true sphere moves under 0.1 px on
+    average (the rims' own inset)."""
     cameras, masks = sphere_views
     v, f = _sphere()
     gsd = _gsd(cameras)
     for shrink_px in (1.0, 2.0):
         scale = 1.0 - shrink_px * gsd
         for gain, left in ((1.0, 0.2), (0.5, 0.6)):
-            fit = fit_to_rims(scale * v, f, cameras, masks, gain=gain)
+            fit = fit_to_rims(scale * v, f, cameras, masks, gain=gain, mask_margin_px=0.0)
             r = np.linalg.norm(fit.vertices, axis=1)
             assert np.all(r >= scale - 1e-12)  # never inward
             error_px = np.abs(r - 1.0).mean() / gsd
@@ -112,6 +114,54 @@ def test_a_shrunk_surface_moves_out_to_its_rims_and_the_truth_stays(sphere_views
     on_truth = fit_to_rims(v, f, cameras, masks, gain=0.5)
     assert np.abs(np.linalg.norm(on_truth.vertices, axis=1) - 1.0).mean() / gsd < 0.1, on_truth
     assert on_truth.mean_move_px < 0.1
+
+
+def _dented(v: np.ndarray, depth: float) -> np.ndarray:
+    """The unit sphere with its upper cap (z > 0.4) sunk by ``depth``, blending in over 0.2 < z < 0.4."""
+    return v * (1.0 - depth * np.clip((v[:, 2] - 0.2) / 0.2, 0.0, 1.0))[:, None]
+
+
+def test_a_dented_surface_moves_out_to_its_rims(sphere_views: tuple) -> None:
+    """The upper cap sunk 1 and 2 px, the masks' margin estimated: the rest of the rims lie on the outline,
+    so the margin is 0; the cap comes back halfway at gain 0.5 and within 0.15x at gain 1, and the rest
+    stays within 0.2 px on average (the spread carries the cap's moves a little way)."""
+    cameras, masks = sphere_views
+    v, f = _sphere()
+    gsd = _gsd(cameras)
+    cap, rest = v[:, 2] > 0.4, v[:, 2] < 0.2
+    for depth_px in (1.0, 2.0):
+        dented = _dented(v, depth_px * gsd)
+        for gain, left in ((1.0, 0.15), (0.5, 0.6)):
+            fit = fit_to_rims(dented, f, cameras, masks, gain=gain)
+            assert fit.margin_estimated and fit.mask_margin_px == 0.0, fit
+            error_px = np.abs(np.linalg.norm(fit.vertices, axis=1) - 1.0) / gsd
+            assert error_px[cap].mean() < left * depth_px, (depth_px, gain, error_px[cap].mean())
+            assert error_px[rest].mean() < 0.2, (depth_px, gain, error_px[rest].mean())
+            assert np.all(np.linalg.norm(fit.vertices, axis=1) >= np.linalg.norm(dented, axis=1) - 1e-12)
+
+
+def test_dilated_masks_are_discounted_not_followed(sphere_views: tuple) -> None:
+    """The true sphere with masks dilated by one pixel (a generous segmentation): trusted as drawn they
+    push it out more than half a pixel; the estimated margin (0.75-1.25 px) or the known one (1 px) keeps
+    it within 0.2 px. A uniformly shrunk surface looks the same to the silhouettes: its estimated margin
+    takes up most of the shrink (the offset scans, not this fit, are there for a uniform offset)."""
+    cameras, masks = sphere_views
+    v, f = _sphere()
+    gsd = _gsd(cameras)
+    dilated = [cv2.dilate(m.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) for m in masks]
+
+    def error_px(fit: RimFit) -> float:
+        return float(np.abs(np.linalg.norm(fit.vertices, axis=1) - 1.0).mean() / gsd)
+
+    trusted = fit_to_rims(v, f, cameras, dilated, mask_margin_px=0.0)
+    assert error_px(trusted) > 0.5 and trusted.mask_margin_px == 0.0 and not trusted.margin_estimated
+    estimated = fit_to_rims(v, f, cameras, dilated)
+    assert 0.75 <= estimated.mask_margin_px <= 1.25 and estimated.margin_estimated, estimated
+    assert error_px(estimated) < 0.2, estimated
+    known = fit_to_rims(v, f, cameras, dilated, mask_margin_px=1.0)
+    assert error_px(known) < 0.2 and known.to_dict()["mask_margin_px"] == 1.0, known
+    uniform = fit_to_rims((1.0 - gsd) * v, f, cameras, masks)
+    assert 0.5 <= uniform.mask_margin_px <= 1.0 and uniform.mean_move_px < 0.3, uniform
 
 
 def test_a_rim_fit_needs_masks_and_a_gain(sphere_views: tuple) -> None:
@@ -141,5 +191,8 @@ def test_bad_rim_fit_arguments_are_config_errors(sphere_views: tuple) -> None:
     for options in ({"gain": -0.1}, {"tolerance_px": -1.0}, {"rim_cos": 0.0}, {"rim_cos": 1.0}, {"reach_px": 0.0}):
         with pytest.raises(ConfigError, match="expected gain"):
             fit_to_rims(v, f, cameras, masks, **options)
+    for margin in (-0.5, 4.0):
+        with pytest.raises(ConfigError, match="mask_margin_px"):
+            fit_to_rims(v, f, cameras, masks, mask_margin_px=margin)
     with pytest.raises(ConfigError, match="masks"):
         fit_to_rims(v, f, cameras, masks[:3])

@@ -14,6 +14,7 @@ from pmvir.config import PipelineConfig, RefineOptions
 from pmvir.errors import CanceledError, ConfigError, MeshError, ReconstructionError
 from pmvir.progress import Progress
 from pmvir.refine import Observation, make_visibility_fn, observation_from_decoded, refine_surface
+from pmvir.refine.schedule import rim_fit_margin
 from pmvir.sh import sh9_shading
 
 #: The tests run the default options (three stages of at most 80 L-BFGS iterations).
@@ -323,6 +324,18 @@ def test_unknown_option_is_rejected_and_config_tree_has_refine() -> None:
     cfg = PipelineConfig.model_validate({"refine": {"polarimetric": False, "intensity": "int"}})
     assert cfg.refine.polarimetric is False and cfg.refine.n_stages == 3
     assert RefineOptions().tau_pol == [15.0, 30.0, 90.0] and RefineOptions().pol_k == 0.5
+
+
+def test_the_rim_fit_estimates_the_masks_margin_only_where_the_offset_scans_run() -> None:
+    """Default: estimated (None) with the scans, 0 without them (a surface inside all round is then the rim
+    fit's to move); a margin set wins either way; out of range is refused."""
+    assert rim_fit_margin(RefineOptions()) is None
+    assert rim_fit_margin(RefineOptions(offset_scan="off")) == 0.0
+    for scan in ("off", RefineOptions().offset_scan):
+        assert rim_fit_margin(RefineOptions(offset_scan=scan, rim_fit_mask_margin_px=1.5)) == 1.5
+    for bad in (-0.5, 4.0):
+        with pytest.raises(ValidationError, match="rim_fit_mask_margin_px"):
+            RefineOptions(rim_fit_mask_margin_px=bad)
 
 
 def test_median_intensity_scale_makes_the_result_independent_of_the_exposure(plastic) -> None:
