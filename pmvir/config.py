@@ -861,7 +861,8 @@ class RefineOptions(_Options):
         "out: the path-traced bunny's accuracy went from 0.089 to 0.149e-2), where the offset scans run; 0 where "
         "they are off (a specular-dominated capture: its surface lies inside all round, which the estimate would "
         "take for a margin). A number: the known margin (0 trusts the masks as drawn). An estimate of 0.5 px or "
-        "more adds a warning to report.json. Measured in the README.",
+        "more beyond the margin used (beyond 0, where estimated) adds a warning to report.json. Measured in the "
+        "README.",
     )
     relax_iterations: int = Field(
         default=20,

@@ -153,8 +153,12 @@ MASK_MARGIN_WARNING_PX = 0.5
 
 def mask_margin_warning(fit: RimFit | None) -> str | None:
     """The warning for masks that reach past the refined surface's rims everywhere (dilated masks, or a
-    surface inside all round), or None."""
-    if fit is None or fit.margin_estimate_px < MASK_MARGIN_WARNING_PX:
+    surface inside all round), or None. With a margin set (or 0 where the offset scans are off), only
+    what the estimate finds beyond it is warned about: a known margin that matches is not."""
+    if fit is None:
+        return None
+    unaccounted = fit.margin_estimate_px - (0.0 if fit.margin_estimated else fit.mask_margin_px)
+    if unaccounted < MASK_MARGIN_WARNING_PX:
         return None
     done = (
         "The rim fit discounted that margin (set refine.rim_fit_mask_margin_px if it is known)"

@@ -121,7 +121,8 @@ def test_specular_captures_are_refined_without_the_offset_scan() -> None:
 
 def test_masks_past_every_rim_are_warned_about() -> None:
     """An estimated mask margin of 0.5 px or more (the rim fit found the masks past every rim) is warned
-    about, saying whether the fit discounted it; a small estimate or no fit is not."""
+    about, saying whether the fit discounted it; a small estimate, one a set margin accounts for, or no fit
+    is not."""
     def fit(estimate: float, used: float | None) -> RimFit:
         margin = estimate if used is None else used
         return RimFit(np.zeros((1, 3)), 10, 5, 0.1, 0.2, 0.5, 0.25, margin, used is None, estimate)
@@ -130,8 +131,10 @@ def test_masks_past_every_rim_are_warned_about() -> None:
     assert "about 1.00 px" in warning and "dilated" in warning and "discounted that margin" in warning
     trusted = mask_margin_warning(fit(1.25, 0.0)) or ""  # a margin set (or the scans off): said so
     assert "about 1.25 px" in trusted and "discounted 0.00 px as set" in trusted and "pushed" in trusted
-    for quiet in (fit(0.25, None), fit(0.25, 0.0), None):
+    # a small estimate, a set margin the estimate matches (1.0 set, 1.25 found), or no fit: quiet
+    for quiet in (fit(0.25, None), fit(0.25, 0.0), fit(1.25, 1.0), None):
         assert mask_margin_warning(quiet) is None
+    assert "about 1.75 px" in (mask_margin_warning(fit(1.75, 1.0)) or "")  # 0.75 px beyond the set margin
 
 
 def test_cancel_stops_at_a_boundary(capture: Path, tmp_path: Path) -> None:

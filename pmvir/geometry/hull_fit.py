@@ -178,7 +178,7 @@ def fit_inside_hull(
 
 MARGIN_QUANTILE = 0.1
 """The quantile of the rim vertices' distances inside the masks that :func:`fit_to_rims` takes as the
-masks' margin. Measured (README, "Shoulders inside the silhouettes"): exact masks give 0 on the truth and
+masks' margin. Measured (README, "Masks drawn generously"): exact masks give 0 on the truth and
 on refined meshes (a third to a half of all rim samples lie on the outline), masks dilated by 1 and 2 px
 give 1.0 and 2.25."""
 
