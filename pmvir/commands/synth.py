@@ -37,6 +37,7 @@ _FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
     ("--supersample", "supersample", {"type": int, "metavar": "N"}),
     ("--aop-frame", "aop_frame", {"choices": ["ray", "normal"]}),
     ("--spp", "spp", {"type": int, "metavar": "N"}),
+    ("--max-depth", "max_depth", {"type": int, "metavar": "N"}),
     ("--roughness", "roughness", {"type": float, "metavar": "R"}),
     ("--mesh-up", "mesh_up", {"choices": ["x", "y", "z"]}),
     ("--focal-factor", "focal_factor", {"type": float, "metavar": "F"}),

@@ -211,6 +211,7 @@ def _mitsuba_view(mesh: Mesh, camera: Camera, light: ViewLight, opts: SynthOptio
         specular=opts.specular,
         normals=mesh.normals,
         spp=opts.spp,
+        max_depth=opts.max_depth,
         seed=opts.seed * 100_003 + index,
         **kwargs,
     )

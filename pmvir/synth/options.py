@@ -84,6 +84,13 @@ class SynthOptions(BaseModel):
         "atan2(-ny, nx) rule, up to about 14 degrees off away from the image centre.",
     )
     spp: int = Field(default=64, ge=1, description="Mitsuba: samples per pixel.")
+    max_depth: int = Field(
+        default=6,
+        ge=2,
+        le=64,
+        description="Mitsuba: longest light path in bounces (2: direct lighting only, no interreflection; "
+        "6 by default).",
+    )
     roughness: float = Field(default=0.05, gt=0.0, description="Mitsuba: plastic's Beckmann roughness.")
     mesh_up: Literal["x", "y", "z"] = Field(
         default="z", description="Axis of a loaded mesh that points up (turned to world +z)."
