@@ -15,6 +15,9 @@ always means the same surface:
   diagonal; genus 1 as seen from outside). Body and handle are two closed
   components; the handle's capped ends lie 0.4 tube radii inside the body
   (hidden: about 1 % of the ground truth's area cannot be seen).
+* ``spring``: a coil spring, a tube along a helix of three turns, capped at both
+  ends (genus 0; a thin part: the tube is a tenth of the diagonal across, and
+  each turn hides parts of its neighbours across gaps of 0.7 tube widths).
 
 :func:`normalize_mesh` centres a mesh on its bounding-box centre and scales it
 to a bounding-box diagonal of 1 (the unit of the spec's metrics).
@@ -31,7 +34,7 @@ import numpy as np
 from pmvir.errors import ConfigError, MeshError
 from pmvir.io.ply import Mesh, read_mesh, vertex_normals
 
-SHAPES: tuple[str, ...] = ("sphere", "blob", "dented", "knot", "gear", "mug")
+SHAPES: tuple[str, ...] = ("sphere", "blob", "dented", "knot", "gear", "mug", "spring")
 UpAxis = Literal["x", "y", "z"]
 
 
@@ -205,6 +208,38 @@ def _gear(teeth: int = 14, n_u: int = 448, n_v: int = 52) -> tuple[np.ndarray, n
     return verts, _orient_outward(verts, _periodic_grid_faces(n_u, n_v))
 
 
+def _capped_tube(
+    centre: np.ndarray, tangent: np.ndarray, normal: np.ndarray, radius: float, n_s: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """A closed tube of ``radius`` round an open centre line (n_t, 3) with unit tangents and normals:
+    ``n_s`` vertices a ring, flat caps fanned round the two end centres, faces outward."""
+    n_t = len(centre)
+    binormal = np.cross(tangent, normal)
+    w = np.linspace(0.0, 2.0 * np.pi, n_s, endpoint=False)
+    ring = np.cos(w)[None, :, None] * normal[:, None] + np.sin(w)[None, :, None] * binormal[:, None]
+    tube = (centre[:, None] + radius * ring).reshape(-1, 3)
+    ti, tj = np.meshgrid(np.arange(n_t - 1), np.arange(n_s), indexing="ij")
+    p, q = ti * n_s + tj, (ti + 1) * n_s + tj
+    rr, ss = (ti + 1) * n_s + (tj + 1) % n_s, ti * n_s + (tj + 1) % n_s
+    side = np.concatenate([np.stack([p, q, rr], -1).reshape(-1, 3), np.stack([p, rr, ss], -1).reshape(-1, 3)])
+    # outward: the faces must point away from the centre line (the first face's corners are on ring 0)
+    e1, e2 = tube[side[0, 1]] - tube[side[0, 0]], tube[side[0, 2]] - tube[side[0, 0]]
+    if float(np.cross(e1, e2) @ (tube[side[0, 0]] - centre[0])) < 0:
+        side = side[:, ::-1].copy()
+    ends = len(tube) + np.arange(2)
+    first, last = np.arange(n_s), (n_t - 1) * n_s + np.arange(n_s)
+    nxt = np.roll(np.arange(n_s), -1)
+    caps = np.concatenate(
+        [
+            np.stack([np.full(n_s, ends[0]), first[nxt], first], 1),
+            np.stack([np.full(n_s, ends[1]), last, last[nxt]], 1),
+        ]
+    )
+    if float(np.cross(*(tube[caps[0, 1:]] - centre[0])) @ tangent[0]) > 0:  # cap 0 must face -tangent
+        caps = caps[:, ::-1].copy()
+    return np.concatenate([tube, centre[[0, -1]]]), np.concatenate([side, caps])
+
+
 def _mug(n_u: int = 160, n_v: int = 120, n_t: int = 160, n_s: int = 24) -> tuple[np.ndarray, np.ndarray]:
     """A rounded cup-shaped body (superellipse of revolution) and a thin handle tube on its side."""
     a, b = 0.5, 0.6  # body radius and half-height
@@ -230,35 +265,20 @@ def _mug(n_u: int = 160, n_v: int = 120, n_t: int = 160, n_s: int = 24) -> tuple
     centre = np.stack([a + rho * np.cos(t), np.zeros_like(t), rho * np.sin(t)], 1)
     tangent = np.stack([-np.sin(t), np.zeros_like(t), np.cos(t)], 1)
     normal = np.stack([np.cos(t), np.zeros_like(t), np.sin(t)], 1)
-    binormal = np.cross(tangent, normal)
-    w = np.linspace(0.0, 2.0 * np.pi, n_s, endpoint=False)
-    ring = np.cos(w)[None, :, None] * normal[:, None] + np.sin(w)[None, :, None] * binormal[:, None]
-    tube = (centre[:, None] + tau * ring).reshape(-1, 3)
-    ti, tj = np.meshgrid(np.arange(n_t - 1), np.arange(n_s), indexing="ij")
-    p, q = ti * n_s + tj, (ti + 1) * n_s + tj
-    rr, ss = (ti + 1) * n_s + (tj + 1) % n_s, ti * n_s + (tj + 1) % n_s
-    tube_faces = np.concatenate(
-        [np.stack([p, q, rr], -1).reshape(-1, 3), np.stack([p, rr, ss], -1).reshape(-1, 3)]
-    )
-    # outward: the faces must point away from the centre line (the first face's corners are on ring 0)
-    e1, e2 = tube[tube_faces[0, 1]] - tube[tube_faces[0, 0]], tube[tube_faces[0, 2]] - tube[tube_faces[0, 0]]
-    if float(np.cross(e1, e2) @ (tube[tube_faces[0, 0]] - centre[0])) < 0:
-        tube_faces = tube_faces[:, ::-1].copy()
-    # caps (fans round the end centres, inside the body) close the tube: two closed components
-    ends = len(tube) + np.arange(2)
-    first, last = np.arange(n_s), (n_t - 1) * n_s + np.arange(n_s)
-    nxt = np.roll(np.arange(n_s), -1)
-    caps = np.concatenate(
-        [
-            np.stack([np.full(n_s, ends[0]), first[nxt], first], 1),
-            np.stack([np.full(n_s, ends[1]), last, last[nxt]], 1),
-        ]
-    )
-    if float(np.cross(*(tube[caps[0, 1:]] - centre[0])) @ tangent[0]) > 0:  # cap 0 must face -tangent
-        caps = caps[:, ::-1].copy()
-    tube = np.concatenate([tube, centre[[0, -1]]])
-    tube_faces = np.concatenate([tube_faces, caps])
+    # its capped ends lie inside the body: two closed components
+    tube, tube_faces = _capped_tube(centre, tangent, normal, tau, n_s)
     return np.concatenate([body, tube]), np.concatenate([body_faces, tube_faces + len(body)])
+
+
+def _spring(turns: float = 3.0, n_t: int = 720, n_s: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """A tube of radius 0.22 along a helix of radius 1 and pitch 0.75, closed by flat caps."""
+    radius, pitch, tube_radius = 1.0, 0.75, 0.22
+    t = np.linspace(0.0, 2.0 * np.pi * turns, n_t)
+    centre = np.stack([radius * np.cos(t), radius * np.sin(t), pitch * t / (2.0 * np.pi)], 1)
+    tangent = np.stack([-radius * np.sin(t), radius * np.cos(t), np.full_like(t, pitch / (2.0 * np.pi))], 1)
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    normal = np.stack([np.cos(t), np.sin(t), np.zeros_like(t)], 1)  # radial: already normal to the tangent
+    return _capped_tube(centre, tangent, normal, tube_radius, n_s)
 
 
 def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
@@ -283,6 +303,8 @@ def _builtin(name: str) -> tuple[np.ndarray, np.ndarray]:
         return _gear()
     if name == "mug":
         return _mug()
+    if name == "spring":
+        return _spring()
     return _torus_knot()
 
 

@@ -159,3 +159,27 @@ def test_mug_has_a_thin_handle_with_a_hole() -> None:
     x_hole = 0.5 * (body[:, 0].max() + inner)  # between the body's wall and the loop
     ray = o3d.core.Tensor([[x_hole, -2.0, 0.0, 0.0, 1.0, 0.0]], dtype=o3d.core.Dtype.Float32)
     assert not np.isfinite(scene.cast_rays(ray)["t_hit"].numpy()[0])
+
+
+def test_spring_is_one_thin_coil_with_open_gaps() -> None:
+    """One closed component of genus 0 (V - E + F = 2); rays across the coil's side hit a turn
+    at its height and pass through the gap between two turns; the tube is thin."""
+    m = builtin_shape("spring")
+    tm = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(m.vertices), o3d.utility.Vector3iVector(m.faces))
+    _, counts, _ = tm.cluster_connected_triangles()
+    assert len(counts) == 1
+    e = np.unique(np.sort(np.concatenate([m.faces[:, [0, 1]], m.faces[:, [1, 2]], m.faces[:, [2, 0]]]), axis=1), axis=0)
+    assert len(np.unique(m.faces)) - len(e) + len(m.faces) == 2
+    # In the unnormalized frame (helix radius 1, pitch 0.75, tube radius 0.22) the centre line
+    # crosses the side x = 1, y = 0 at heights 0, 0.75, 1.5, 2.25.
+    from pmvir.synth.shapes import _spring
+
+    raw_v, raw_f = _spring()
+    raw = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(raw_v), o3d.utility.Vector3iVector(raw_f))
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(raw))
+    rays = [[1.0, -3.0, z, 0.0, 1.0, 0.0] for z in (0.75, 1.5, 0.75 + 0.375, 1.5 + 0.375)]
+    hits = scene.cast_rays(o3d.core.Tensor(rays, dtype=o3d.core.Dtype.Float32))["t_hit"].numpy()
+    assert np.all(np.isfinite(hits[:2])) and not np.any(np.isfinite(hits[2:]))
+    scale = np.ptp(m.vertices[:, 0]) / np.ptp(raw_v[:, 0])
+    assert 0.44 * scale < 0.105  # thin: the tube is a tenth of the diagonal across
