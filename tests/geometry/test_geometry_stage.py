@@ -138,7 +138,7 @@ TWO_CONFIRMING = GeometryOptions(mvs={"sparse_rig_views": 0})
 
 
 def test_textureless_capture_raises(textureless_capture: Path, textureless_views, tmp_path: Path):
-    """Known poses need no sparse points, so a textureless object now fails in dense stereo, naming views."""
+    """Known poses need no sparse points, so a textureless object fails in dense stereo, naming views."""
     with (
         open_capture(textureless_capture) as cap,
         pytest.raises(ReconstructionError, match="dense stereo fused") as info,
@@ -150,7 +150,7 @@ def test_textureless_capture_raises(textureless_capture: Path, textureless_views
 @pytest.mark.parametrize("views", [8, 12])
 def test_few_low_resolution_views_with_known_poses_reconstruct(views: int, tmp_path: Path, decode_capture):
     """8 and 12 views of 320 x 256 with known poses: too few sparse points in 3 views (measured 9 and 57)
-    used to fail; the masks' visual hull bounds the depths now. Measured accuracy 0.0063 (8 views) and
+    to bound the depths, so the masks' visual hull bounds them. Measured accuracy 0.0063 (8 views) and
     0.0029 (12), completeness 0.035 and 0.017."""
     capture = synthesize(tmp_path / "cap", shape="blob", views=views, size=(320, 256), seed=5)
     with open_capture(capture) as cap:

@@ -142,12 +142,12 @@ def test_the_dragons_two_one_sided_models_are_joined(tmp_path: Path, monkeypatch
     err = np.linalg.norm(umeyama(est, tru).apply(est) - tru, axis=1)
     rig = float(np.linalg.norm(tru.max(0) - tru.min(0)))
     # The frontier adjustment (sfm.frontier_weight) holds the joined poses to the masks: without it
-    # the largest centre error was 1.10 % (the tracks' bend), with it 0.19 % (Nov 27, session 25).
+    # the largest centre error is 1.10 % (the tracks' bend), with it 0.19 %.
     assert model.frontier is not None and model.frontier["accepted"], model.frontier
     # the report is the last adjustment's (after the silhouette registration): the masks fit the
     # poses within 0.5 px RMS (the SfM poses: 7.5 px; the true poses: 0.34 px)
     assert model.frontier["frontier_rms_after"] < 0.5, model.frontier
     # and the four end-on views SfM leaves out are registered from their masks
-    # (sfm.silhouette_register_px): 36 of 36 views within 0.18 % of the rig (session 25)
+    # (sfm.silhouette_register_px): 36 of 36 views within 0.18 % of the rig
     assert len(model.silhouette_registered) >= 3 and len(reg) >= 35, (model.silhouette_registered, len(reg))
     assert err.max() <= 0.005 * rig, f"largest centre error {100 * err.max() / rig:.2f}% of the rig"

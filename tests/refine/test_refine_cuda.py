@@ -77,7 +77,7 @@ def test_refinement_on_cuda_gives_the_cpus_surface() -> None:
     """The three stages end to end (20 iterations each) with device='cuda' and 'cpu', float64: both
     improve on the initial surface, to the same accuracy within 10%, with vertices on average within
     1e-3 of the diagonal of each other. Not closer: CUDA's sums run in no fixed order and L-BFGS's
-    line searches branch on the last digits; measured on an H100 (Nov 27), CUDA runs ended at 0.00331,
+    line searches branch on the last digits; measured on an H100, CUDA runs ended at 0.00331,
     0.00335 and 0.00336 (and once within 2%) against the CPU's 0.00345 (initial 0.00430), their
     vertices a mean 1.8-2.7e-4 (largest 1.0-1.6e-3) of the diagonal from the CPU's."""
     scene = make_scene(two_colours=True)

@@ -1,5 +1,5 @@
-"""Few, low-resolution views through the HTTP service (issue 12): a 12-view 320x256 plastic capture with
-known poses and masks, which used to fail in the geometric stage for want of sparse points, goes
+"""Few, low-resolution views through the HTTP service: a 12-view 320x256 plastic capture with
+known poses and masks, too few sparse points for the geometric stage without the masks' hull, goes
 through the real stack (Redis, API, Celery worker) to a finished job with a mesh (one refinement
 iteration; measured 39 s on 2 busy cores)."""
 
