@@ -19,7 +19,7 @@ Angle of polarization reference (``aop_frame``):
   ``alpha = atan2(e . r1, e . r0)`` with ``e = n - (n . d) d``
   (:func:`pmvir.polarization.azimuth.perspective_azimuth`, the frame Mitsuba 3
   reports in), so diffuse light has phi = alpha and specular light phi = alpha + pi/2.
-* ``"normal"``: a legacy switch, kept only to reproduce captures of earlier versions:
+* ``"normal"``: kept only to reproduce captures made with it:
   the orthographic ``alpha = atan2(-n_y, n_x)`` of the camera-frame normal, exact only
   on the optical axis; off it the AoP is wrong by up to about 14 degrees (spec section 2).
 """
@@ -180,7 +180,7 @@ def render_view(
         extinction: imaginary part of the conductor's index, >= 0.
         specular: plastic specular scale (1 = physical), >= 0.
         supersample: sub-pixel grid size for edge pixels (1 = no anti-aliasing).
-        aop_frame: "ray" (perspective-exact, default) or "normal" (legacy; see the module docstring).
+        aop_frame: "ray" (perspective-exact, default) or "normal" (orthographic; see the module docstring).
 
     Returns:
         The Stokes image (H, W, 3, 3) float32 and the geometry.

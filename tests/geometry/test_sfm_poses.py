@@ -129,7 +129,7 @@ def test_sfm_recovers_camera_centres_and_focal_length(sfm_views: dict, tmp_path:
     assert err.mean() <= 0.0025 * scene, f"mean centre error {err.mean():.4f} of scene size {scene:.3f}"
     focal = np.array([c.K[0, 0] for c in model.cameras])
     assert np.allclose(focal, focal[0])  # one shared camera
-    # 1.06% off on this capture since synthetic captures are perspective-exact (the changed AoP field
+    # 1.06% off on this capture since synthetic captures are perspective-exact (their AoP field
     # reaches I_int through demosaicing, and the features with it); 0.3% on the orthographic ones
     assert abs(focal[0] / true[0].K[0, 0] - 1.0) <= 0.015, f"focal {focal[0]:.2f}, true {true[0].K[0, 0]:.2f}"
     assert np.array_equal(model.cameras[0].K[:2, 2], true[0].K[:2, 2])  # principal point at the centre

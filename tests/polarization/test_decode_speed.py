@@ -1,8 +1,7 @@
-"""The fast decoding paths equal the straightforward ones they replaced (up to float rounding).
+"""The fast decoding paths equal straightforward reference implementations (up to float rounding).
 
-The references below are the implementations of ``guided_polarization`` and
-``polarization_images`` before they were restructured for speed (whole-plane
-OpenCV calls, no strips, no shared intermediates), kept verbatim here.
+The references below compute ``guided_polarization`` and ``polarization_images``
+plainly (whole-plane OpenCV calls, no strips, no shared intermediates).
 """
 
 from __future__ import annotations
@@ -28,10 +27,10 @@ _WEIGHT_FLOOR_MIN = 1e-7
 
 
 def _reference_guided(planes: np.ndarray, *, weight_k: float | None = GUIDED_WEIGHT_K,
-                      legacy_floor: bool = False) -> None:
-    """``guided_polarization`` as it was: whole planes, upsampled coefficients at full resolution.
+                      tiny_floor: bool = False) -> None:
+    """``guided_polarization`` computed plainly: whole planes, upsampled coefficients at full resolution.
 
-    With ``legacy_floor``, the weights' floor of before the speed-up (see below).
+    With ``tiny_floor``, the weights' floor is 1e-20 instead of the dark threshold (see below).
     """
     n_col, h, w = planes.shape[1:]
     size = (2 * GUIDED_RADIUS + 1, 2 * GUIDED_RADIUS + 1)
@@ -81,10 +80,10 @@ def _reference_guided(planes: np.ndarray, *, weight_k: float | None = GUIDED_WEI
     else:
         per_intensity = cv2.multiply(mse, inv_mean_g)[::2, ::2][lit[::2, ::2] > 0]
         typical = float(np.median(per_intensity)) if per_intensity.size else 0.0
-        # changed with the speed-up: the floor's intensity is at least the dark threshold (was: floor
-        # >= 1e-20, whose 1e20 weights in dark windows broke the box sums below them, see
+        # the floor's intensity is at least the dark threshold (a floor of 1e-20 gives dark windows
+        # weights of 1e20, which break the box sums below them, see
         # test_a_dark_area_does_not_change_the_polarization_beyond_the_reach)
-        floor_img = np.maximum(mean_g, np.float32(1e-20 if legacy_floor else floor))
+        floor_img = np.maximum(mean_g, np.float32(1e-20 if tiny_floor else floor))
         floor_img *= np.float32(max(weight_k * typical, _WEIGHT_FLOOR_MIN))
         weight = cv2.divide(1.0, cv2.max(mse, floor_img))
         inv_weight_sum = cv2.divide(1.0, box(weight))
@@ -103,7 +102,7 @@ def _reference_guided(planes: np.ndarray, *, weight_k: float | None = GUIDED_WEI
 
 def _reference_polarization_images(intensities: np.ndarray, *, noise_floor: float,
                                    invalid: np.ndarray | None) -> dict[str, np.ndarray]:
-    """``polarization_images`` as it was, in float64 numpy: the spec's formulas on the colour means."""
+    """``polarization_images`` computed plainly, in float64 numpy: the spec's formulas on the colour means."""
     i = intensities.astype(np.float64)
     i_int = i.mean(axis=2)
     means = i.mean(axis=3)
@@ -193,19 +192,19 @@ def test_polarization_images_of_strided_intensities_equal_the_planar_ones() -> N
     np.testing.assert_allclose(a.aop[polarized], b.aop[polarized], rtol=0, atol=1e-4)
 
 
-def test_dark_windows_no_longer_break_the_box_sums_below_them() -> None:
-    """The one intended change: the old floor (1e-20) gave dark windows weights of ~1e20, and the
-    rounding of OpenCV's running box sums (double) then left errors ~1e4 in the weight sums of the
-    columns below a dark area, ~100x a lit window's weight. Old and new differ only there."""
+def test_dark_windows_do_not_break_the_box_sums_below_them() -> None:
+    """A floor of 1e-20 would give dark windows weights of ~1e20, and the rounding of OpenCV's
+    running box sums (double) would then leave errors ~1e4 in the weight sums of the columns below
+    a dark area, ~100x a lit window's weight. The dark-threshold floor differs from it only there."""
     raw = _noisy_frame(IMX250MYR, 200, 264, seed=3)  # dark top-left corner: rows < 40, columns < 52
-    old = demosaic(raw, IMX250MYR, method="bilinear").transpose(2, 3, 0, 1).copy()
-    _reference_guided(old, legacy_floor=True)
-    new = demosaic(raw, IMX250MYR, method="guided").transpose(2, 3, 0, 1)
-    scale = np.abs(new).max()
+    tiny = demosaic(raw, IMX250MYR, method="bilinear").transpose(2, 3, 0, 1).copy()
+    _reference_guided(tiny, tiny_floor=True)
+    floored = demosaic(raw, IMX250MYR, method="guided").transpose(2, 3, 0, 1)
+    scale = np.abs(floored).max()
     below = (slice(None), slice(None), slice(40 + 14, None), slice(0, 52 - 14))
     beside = (slice(None), slice(None), slice(None), slice(52 + 14, None))
-    assert np.abs(old - new)[below].max() > 1e-3 * scale
-    assert np.abs(old - new)[beside].max() <= 1e-5 * scale
+    assert np.abs(tiny - floored)[below].max() > 1e-3 * scale
+    assert np.abs(tiny - floored)[beside].max() <= 1e-5 * scale
 
 
 @pytest.mark.parametrize("method", ["bilinear", "edge-aware", "guided", "eari", "eari-guided"])

@@ -1,6 +1,6 @@
 """Hostile input gets a 4xx JSON error naming the file or field and the problem, never a 5xx.
 
-One test per case found by a corpus of hostile requests (issue 14): huge integers and deep
+One test per case found by a corpus of hostile requests: huge integers and deep
 nesting in every JSON the API reads, a PNG whose header declares a huge image, zip member
 names and compression methods Python's zipfile cannot handle, a chunked body with a bad
 chunk size, a zip of many small highly compressible members, unbounded options and a path
