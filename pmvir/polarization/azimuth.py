@@ -84,9 +84,9 @@ def perspective_azimuth(normal_cam: Array, ray_cam: Array) -> tuple[Array, Array
 
 
 def orthographic_azimuth(normal_cam: Array) -> Array:
-    """The legacy rule ``atan2(-n_y, n_x)`` in [0, 2 pi) (exact only on the optical axis).
+    """The orthographic rule ``atan2(-n_y, n_x)`` in [0, 2 pi) (exact only on the optical axis).
 
     Kept for comparisons (how far a model that ignores perspective is off) and for the
-    built-in renderer's documented legacy switch ``aop_frame="normal"``.
+    built-in renderer's documented switch ``aop_frame="normal"``.
     """
     return _atan2(-normal_cam[..., 1], normal_cam[..., 0]) % (2.0 * math.pi)

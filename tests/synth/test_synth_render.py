@@ -121,8 +121,8 @@ def test_lambert_pixels_are_albedo_times_sh_shading(sphere) -> None:
     np.testing.assert_allclose(got, expect, rtol=1e-4, atol=1e-6)
 
 
-def test_legacy_normal_frame_is_off_the_exact_rule_away_from_the_axis(sphere) -> None:
-    """The default (aop_frame="ray") is the spec's perspective-exact rule; the legacy orthographic
+def test_orthographic_normal_frame_is_off_the_exact_rule_away_from_the_axis(sphere) -> None:
+    """The default (aop_frame="ray") is the spec's perspective-exact rule; the orthographic
     switch agrees with it at the image centre only and is measurably off toward the edges."""
     scene, cams = sphere
     light = sh_lights(6, seed=0)[0]
@@ -130,12 +130,12 @@ def test_legacy_normal_frame_is_off_the_exact_rule_away_from_the_axis(sphere) ->
     R, t = look_at(c0.center, 0.25 * c0.R[0] - 0.2 * c0.R[1])  # the sphere off the optical axis, wider lens
     cam = Camera.from_intrinsics(0.6 * k[0, 0], 0.6 * k[1, 1], k[0, 2], k[1, 2], W, H, R, t)
     view = render_view(scene, cam, light, material="conductor", supersample=1)
-    legacy = render_view(scene, cam, light, material="conductor", aop_frame="normal", supersample=1)
+    ortho = render_view(scene, cam, light, material="conductor", aop_frame="normal", supersample=1)
     exact = polarization_truth(view.stokes, 1.0)
     sel = view.geometry.mask & (exact["dop"] > 0.01)
     alpha = _azimuth(cam, view.geometry.normal_cam.astype(np.float64))
     assert np.degrees(_diff_mod_pi(exact["aop"][sel], alpha[sel] + np.pi / 2)).max() < 0.05
-    off = np.degrees(_diff_mod_pi(polarization_truth(legacy.stokes, 1.0)["aop"][sel], exact["aop"][sel]))
+    off = np.degrees(_diff_mod_pi(polarization_truth(ortho.stokes, 1.0)["aop"][sel], exact["aop"][sel]))
     assert np.median(off) > 3.0  # the sphere sits off the optical axis
 
 
