@@ -6,10 +6,11 @@ result file is one entry here plus the code that writes it through
 :class:`ResultFolder`. Files are written under a temporary name and renamed, so a
 killed run never leaves a half-written file and a repeated run replaces its own.
 
->>> [f.name for f in RESULT_FILES if f.stage == "refine"][:2]
-['mesh.ply', 'illumination.json']
->>> result_file("report.json").media_type
-'application/json'
+Examples:
+    >>> [f.name for f in RESULT_FILES if f.stage == "refine"][:2]
+    ['mesh.ply', 'illumination.json']
+    >>> result_file("report.json").media_type
+    'application/json'
 """
 
 from __future__ import annotations
