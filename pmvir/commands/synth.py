@@ -42,6 +42,7 @@ _FLAGS: tuple[tuple[str, str, dict[str, Any]], ...] = (
     ("--mesh-up", "mesh_up", {"choices": ["x", "y", "z"]}),
     ("--focal-factor", "focal_factor", {"type": float, "metavar": "F"}),
     ("--rig", "rig", {"choices": ["rings", "turntable"]}),
+    ("--scene", "scene", {"choices": ["object", "table", "turntable"]}),
 )
 
 
@@ -78,6 +79,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="do not write gt/views/<stem>.npz",
     )
     p.add_argument(
+        "--no-masks",
+        dest="masks",
+        action="store_false",
+        default=None,
+        help="write no masks/ (the true object masks go to gt/masks/)",
+    )
+    p.add_argument(
         "--save-stokes",
         dest="save_stokes",
         action="store_true",
@@ -96,6 +104,8 @@ def run(args: argparse.Namespace) -> int:
     options = {field: getattr(args, field) for _, field, _ in _FLAGS if getattr(args, field) is not None}
     if args.gt_views is not None:
         options["gt_views"] = args.gt_views
+    if args.masks is not None:
+        options["masks"] = args.masks
     if args.save_stokes is not None:
         options["save_stokes"] = args.save_stokes
     bars: list[Any] = []

@@ -6,6 +6,7 @@ Output layout::
     frames/000.png ...      raw mosaics (16-bit PNG containers, values 0..4095)
     masks/000.png ...       8-bit, 255 = object (pixel-centre ray hits the mesh)
                             (``rig="turntable"``: the object turns before a still, textured backdrop)
+                            (``masks=False``: no masks/; the same masks go to gt/masks/)
     gt/mesh.ply             the normalized mesh with its true per-vertex albedo
     gt/illumination.json    per-frame true lighting (SH9 shading; for envmap its projection)
     gt/views/000.npz ...    per-view ground truth (pmvir extension; see below)
@@ -24,6 +25,13 @@ Units: the decoded ``I_int`` of a Lambertian pixel is ``K * S(N) * rgb_scale``
 exactly (before noise) with the ``sh`` and ``rgb_scale`` of
 ``gt/illumination.json``; for plastic that is the diffuse part of I_int (the
 specular reflection adds to it); conductor pixels have no diffuse part.
+``scene`` "table" and "turntable" (:mod:`pmvir.synth.table`) render the object
+standing on a textured support; the masks, ``gt/mesh.ply`` and the depth and
+normals of ``gt/views`` are the object's alone, ``i_int``/``aop``/``dop`` and
+``stokes`` are of the whole image. The built-in renderer shows the lighting
+environment where a pixel-centre ray of a table scene misses the table (Mitsuba
+always shows it).
+
 ``capture.json`` is written last: a capture folder without it is incomplete.
 """
 
@@ -59,10 +67,11 @@ from pmvir.io.ply import Mesh, write_mesh_ply
 from pmvir.synth.builtin_renderer import render_geometry, render_view
 from pmvir.synth.lighting import EnvLight, ViewLight, env_lights, sh_lights
 from pmvir.synth.options import SynthOptions, synth_options
-from pmvir.synth.raycast import MeshScene
-from pmvir.synth.rig import rig_cameras
+from pmvir.synth.raycast import MeshScene, pixel_directions
+from pmvir.synth.rig import rig_cameras, turntable_cameras
 from pmvir.synth.sensor import SensorModel, capture_mosaic
 from pmvir.synth.shapes import builtin_shape, load_mesh
+from pmvir.synth.table import combine, handheld_cameras, support_mesh
 from pmvir.synth.texture import procedural_albedo, uniform_albedo
 
 #: Auto exposure, as a careful operator sets a polarization camera: the brightest polarizer sample
@@ -90,7 +99,7 @@ class ViewDone:
     total_s: float
 
 
-def _prepare_output(out: Path, overwrite: bool) -> None:
+def _prepare_output(out: Path, overwrite: bool, *, masks: bool = True) -> None:
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{out}: output exists and is not a folder")
     if out.is_dir() and any(out.iterdir()):
@@ -104,7 +113,7 @@ def _prepare_output(out: Path, overwrite: bool) -> None:
                 shutil.rmtree(p)
             elif p.exists():
                 p.unlink()
-    for sub in ("frames", "masks", "gt/views"):
+    for sub in ("frames", "masks" if masks else "gt/masks", "gt/views"):
         (out / sub).mkdir(parents=True, exist_ok=True)
 
 
@@ -218,6 +227,28 @@ def _mitsuba_view(mesh: Mesh, camera: Camera, light: ViewLight, opts: SynthOptio
     return result.stokes
 
 
+def _cameras(opts: SynthOptions, radius: float) -> list[Camera]:
+    """The views of the options' scene and rig."""
+    size = (opts.views, opts.width, opts.height)
+    if opts.scene == "table":
+        return handheld_cameras(*size, object_radius=radius, focal_factor=opts.focal_factor, seed=opts.seed)
+    if opts.scene == "turntable":
+        return turntable_cameras(*size, object_radius=radius, focal_factor=opts.focal_factor)
+    return rig_cameras(opts.rig, *size, object_radius=radius, focal_factor=opts.focal_factor)
+
+
+def _environment_behind(stokes: np.ndarray, hit: np.ndarray, camera: Camera, light: ViewLight) -> np.ndarray:
+    """Stokes (H, W, 3, 3) with the unpolarized lighting environment where the pixel-centre ray misses."""
+    rows, cols = np.nonzero(~hit)
+    if not len(rows):
+        return stokes
+    d_world, _ = pixel_directions(camera, cols + 0.5, rows + 0.5)
+    out = stokes.copy()
+    out[rows, cols, :, 0] = light.radiance(d_world.astype(np.float64))
+    out[rows, cols, :, 1:] = 0.0
+    return out
+
+
 def _lights(opts: SynthOptions) -> tuple[list[ViewLight], list[dict[str, Any]]]:
     if opts.lighting == "sh":
         lights = sh_lights(opts.views, seed=opts.seed)
@@ -280,15 +311,18 @@ def synthesize(
     else:
         albedo = uniform_albedo(len(geometry.vertices))
     truth = Mesh(geometry.vertices, geometry.faces, albedo=albedo, normals=geometry.normals)
-    scene = MeshScene.from_mesh(truth)
+    # ``rendered``: what the cameras see (the object, or the object on its support); ``truth``: the object.
+    rendered = truth if opts.scene == "object" else combine(truth, support_mesh(truth.vertices, opts.scene, seed=opts.seed))
+    scene = MeshScene.from_mesh(rendered)
+    object_scene = scene if rendered is truth else MeshScene.from_mesh(truth)
     radius = float(np.linalg.norm(truth.vertices[np.unique(truth.faces)], axis=1).max())
-    cameras = rig_cameras(
-        opts.rig, opts.views, opts.width, opts.height, object_radius=radius, focal_factor=opts.focal_factor
-    )
-    backdrop = backdrop_texture(opts.width, opts.height, seed=opts.seed) if opts.rig == "turntable" else None
+    cameras = _cameras(opts, radius)
+    turntable = opts.rig == "turntable" or opts.scene == "turntable"
+    backdrop = backdrop_texture(opts.width, opts.height, seed=opts.seed) if turntable else None
     lights, light_info = _lights(opts)
     sensor = SensorModel(black_level=opts.black_level, full_well=opts.full_well, read_noise=opts.noise)
-    _prepare_output(out, overwrite)
+    _prepare_output(out, overwrite, masks=opts.masks)
+    mask_dir = "masks" if opts.masks else "gt/masks"
 
     gain: float | None = opts.exposure  # None: chosen on the first view
     entries, names = [], []
@@ -306,21 +340,24 @@ def synthesize(
                 supersample=opts.supersample,
                 aop_frame=opts.aop_frame,
             )
-            stokes, geom = view.stokes, view.geometry
+            stokes, seen = view.stokes, view.geometry
+            if opts.scene == "table":
+                stokes = _environment_behind(stokes, seen.mask, cam, light)
         else:
-            geom = render_geometry(scene, cam)[0]
-            stokes = _mitsuba_view(truth, cam, light, opts, i)
+            seen = render_geometry(scene, cam)[0]
+            stokes = _mitsuba_view(rendered, cam, light, opts, i)
+        geom = seen if rendered is truth else render_geometry(object_scene, cam)[0]
         t_render = time.perf_counter() - t0
         if gain is None:
             gain = _auto_gain(stokes, geom.mask)
         if backdrop is not None:
-            stokes = _with_backdrop(stokes, geom.mask, backdrop, level=0.6 / (2.0 * gain))
+            stokes = _with_backdrop(stokes, seen.mask, backdrop, level=0.6 / (2.0 * gain))
         stem = f"{i:03d}"
         samples = capture_mosaic(
             stokes, gain=gain, sensor=sensor, rng=np.random.default_rng([opts.seed, 17, i])
         )
         write_frame(out / "frames" / f"{stem}.png", samples, bit_depth=sensor.bit_depth)
-        _write_png8(out / "masks" / f"{stem}.png", geom.mask.astype(np.uint8) * 255)
+        _write_png8(out / mask_dir / f"{stem}.png", geom.mask.astype(np.uint8) * 255)
         if opts.gt_views:
             write_npz(
                 out / "gt" / "views" / f"{stem}.npz",
@@ -335,7 +372,7 @@ def synthesize(
         entries.append(
             FrameEntry(
                 file=f"frames/{stem}.png",
-                mask=f"masks/{stem}.png",
+                mask=f"masks/{stem}.png" if opts.masks else None,
                 cam_from_world=CamFromWorld.from_arrays(cam.R, cam.t),
             )
         )

@@ -25,6 +25,16 @@ class SynthOptions(BaseModel):
         "object turning on a table by 360/views degrees per frame before a textured backdrop that looks "
         "the same in every frame (poses are given in the object's frame).",
     )
+    scene: Literal["object", "table", "turntable"] = Field(
+        default="object",
+        description="object: the object alone; table: on a textured table, hand-held views 15-60 deg above "
+        "it; turntable: on a textured disc, the turntable rig. gt/ holds the object alone.",
+    )
+    masks: bool = Field(
+        default=True,
+        description="Write masks/ and name them in capture.json; false: a capture without masks (the true "
+        "object masks go to gt/masks/ for evaluation).",
+    )
     size: tuple[int, int] = Field(
         default=(612, 512), description="Image width and height in pixels (multiples of 4), e.g. 612x512."
     )
@@ -131,6 +141,8 @@ class SynthOptions(BaseModel):
     def _check_ior(self) -> SynthOptions:
         if self.material == "plastic" and self.ior <= 1.0:
             raise ValueError(f"plastic needs ior > 1, got {self.ior}")
+        if self.scene == "table" and self.rig == "turntable":
+            raise ValueError("scene 'table' has hand-held views; for a turntable use scene 'turntable'")
         return self
 
     @property
