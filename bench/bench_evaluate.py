@@ -5,14 +5,12 @@ Prints a table and writes bench/results/evaluate.json. Run: .venv/bin/python ben
 
 from __future__ import annotations
 
-import json
 import os
-import platform
 import time
-from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from _results import table, write_results
 
 from pmvir.evaluate import SurfaceQuery, evaluate, sample_surface
 from pmvir.io.ply import Mesh
@@ -44,23 +42,27 @@ def main() -> None:
     for name, s in rows:
         print(f"{name:<40} {s:8.2f}")
     print(f"accuracy {res.accuracy:.6f} completeness {res.completeness:.6f}")
-    out = Path(__file__).parent / "results"
-    out.mkdir(exist_ok=True)
-    (out / "evaluate.json").write_text(
-        json.dumps(
-            {
-                "gt_faces": len(gt.faces),
-                "est_vertices": len(est.vertices),
-                "cpu_count": os.cpu_count(),
-                "machine": platform.processor() or platform.machine(),
-                "seconds": dict(rows),
-                "accuracy": res.accuracy,
-                "completeness": res.completeness,
-            },
-            indent=1,
-        )
+    write_results(
+        "evaluate",
+        title="Evaluation (accuracy and completeness of a mesh against ground truth)",
+        tables=[
+            table(
+                f"A {len(est.vertices):,}-vertex estimate against a {len(gt.faces):,}-face ground truth, "
+                "1,000,000 samples",
+                ["step", "seconds"],
+                [[name, round(s, 3)] for name, s in rows],
+                note=f"accuracy {res.accuracy:.6f}, completeness {res.completeness:.6f} (a sphere of radius "
+                "1.01 against one of radius 1)",
+            )
+        ],
+        data={
+            "gt_faces": len(gt.faces),
+            "est_vertices": len(est.vertices),
+            "seconds": dict(rows),
+            "accuracy": res.accuracy,
+            "completeness": res.completeness,
+        },
     )
-
 
 if __name__ == "__main__":
     main()

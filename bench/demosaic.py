@@ -19,8 +19,8 @@ affinity limited to 2 cores when there are more):
   validity) vs polanalyser demosaicing + ``calcStokes`` of the colour-mean
   intensities + ``cvtStokesToAoLP`` / ``cvtStokesToDoLP``.
 
-The end-to-end target (issue 11: ``decode_frame`` with the default ``guided`` at
->= 2x polanalyser's chain) is timed first and on its own, robust to a shared
+The end-to-end target (``decode_frame`` with the default ``guided`` at
+>= 2x polanalyser's chain's throughput) is timed first and on its own, robust to a shared
 machine: the two chains alternate call by call on the same frames (``--pairs``
 repeats, the order flipped from pair to pair), and the table gives each side's
 median wall time and median process CPU time per frame, the ratio of the
@@ -68,7 +68,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.metadata
-import json
 import os
 import platform
 import time
@@ -78,6 +77,8 @@ from typing import Any
 
 import cv2
 import numpy as np
+from _results import table as results_table
+from _results import write_results
 
 from pmvir.config import DecodeOptions
 from pmvir.decode import decode_frame
@@ -305,6 +306,61 @@ def print_end_to_end(e2e: dict[str, Any], args: argparse.Namespace) -> None:
           f"{e2e['cpu_ratio_of_medians']:.2f}x / {e2e['cpu_median_paired_ratio']:.2f}x")
 
 
+def end_to_end_table(e2e: dict[str, Any]) -> dict[str, Any]:
+    """The alternating end-to-end comparison, for the benchmarks page."""
+    return results_table(
+        f"End to end: {W}x{H} 12-bit mosaic to 12 channels, Stokes, AoP and DoP ({e2e['pairs']} alternating pairs)",
+        ["chain", "median wall ms", "median CPU ms"],
+        [
+            ["pmvir decode_frame (guided, the default)", round(1000 * e2e["wall_ours_s"], 1),
+             round(1000 * e2e["cpu_ours_s"], 1)],
+            ["polanalyser demosaicing + calcStokes + AoLP/DoLP", round(1000 * e2e["wall_theirs_s"], 1),
+             round(1000 * e2e["cpu_theirs_s"], 1)],
+        ],
+        note=f"throughput pmvir / polanalyser: wall {e2e['wall_ratio_of_medians']:.2f}x, "
+        f"CPU {e2e['cpu_ratio_of_medians']:.2f}x (ratios of the medians)",
+    )
+
+
+def page_tables(table_rows: list[dict[str, Any]], rendered: dict[str, dict[str, float]],
+                lambert: dict[str, dict[str, float]], e2e: dict[str, Any]) -> list[dict[str, Any]]:
+    """The benchmarks page's tables: end to end, speed and accuracy on synthetic frames, rendered frames."""
+    tables = [end_to_end_table(e2e)]
+    tables.append(results_table(
+        f"Speed per {W}x{H} frame (2 threads)",
+        ["method", "median ms", "frames/s", "MPix/s", "x polanalyser (wall)", "x polanalyser (CPU)"],
+        [[r["name"], round(1000 * r["median_s"], 1), round(r["frames_per_s"], 2), round(r["mpix_per_s"], 1),
+          round(r["throughput_vs_polanalyser"], 2), round(r["throughput_vs_polanalyser_cpu"], 2)]
+         for r in table_rows],
+        note="demosaicing rows against polanalyser COLOR_PolarRGB, decode_frame rows against its whole chain",
+    ))
+    acc_rows = []
+    for r in table_rows:
+        a = r.get("accuracy")
+        if a:
+            acc_rows.append([r["name"], round(a["aop_smooth"]["mean"], 3), round(a["aop_smooth"]["p90"], 3),
+                             round(a["dop_smooth"]["mean"], 4), round(a["aop_textured"]["mean"], 2),
+                             round(a["dop_textured"]["mean"], 4)])
+    tables.append(results_table(
+        "Accuracy on synthetic frames (shot and read noise, 12 bits)",
+        ["method", "AoP smooth mean deg", "AoP smooth p90 deg", "DoP smooth mean", "AoP textured mean deg",
+         "DoP textured mean"],
+        acc_rows,
+        note="valid pixels of every method, 8 px from the border and the texture edge",
+    ))
+    if rendered:
+        names = [f"pmvir {m}" for m in PMVIR_METHODS] + list(PA_METHODS)
+        tables.append(results_table(
+            "Path-traced plastic frames (Mitsuba 3), noise through pmvir's sensor model",
+            ["method", "AoP DoP-weighted deg (dented)", "AoP (knot)", "AoP (all)", "DoP error (all)",
+             "false DoP at edges (Lambert)", "false DoP flat (Lambert)"],
+            [[n, round(rendered[f"{n}|plastic"]["aop_dopw_deg"], 2), round(rendered[f"{n}|plastic-hq"]["aop_dopw_deg"], 2),
+              round(rendered[f"{n}|all"]["aop_dopw_deg"], 2), round(rendered[f"{n}|all"]["dop_err"], 4),
+              round(lambert[n]["edges"], 4), round(lambert[n]["flat"], 4)] for n in names],
+        ))
+    return tables
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=3)
@@ -354,15 +410,16 @@ def main() -> None:
                                    len(frames), args.pairs)
     print_end_to_end(end_to_end, args)
     if args.only_end_to_end:
-        out = Path(__file__).parent / "results"
-        out.mkdir(exist_ok=True)
-        (out / "demosaic_end_to_end.json").write_text(json.dumps({
-            "benchmark": "demosaic end to end, alternating pairs", "frames": args.frames, "pairs": args.pairs,
-            "frame": {"width": W, "height": H, "bit_depth": 12, "layout": "IMX250MYR"},
-            "ours": "pmvir decode_frame (guided)", "theirs": "polanalyser demosaic+Stokes+AoLP/DoLP",
-            "machine": {"cpus_used": sorted(os.sched_getaffinity(0)), "cv2_threads": cv2.getNumThreads()},
-            "results": end_to_end,
-        }, indent=2))
+        write_results(
+            "demosaic_end_to_end", title="Decoding end to end against polanalyser",
+            peer="polanalyser demosaicing + calcStokes + cvtStokesToAoLP/DoLP",
+            tables=[end_to_end_table(end_to_end)],
+            data={"frames": args.frames, "pairs": args.pairs,
+                  "frame": {"width": W, "height": H, "bit_depth": 12, "layout": "IMX250MYR"},
+                  "ours": "pmvir decode_frame (guided)", "theirs": "polanalyser demosaic+Stokes+AoLP/DoLP",
+                  "machine": {"cpus_used": sorted(os.sched_getaffinity(0)), "cv2_threads": cv2.getNumThreads()},
+                  "results": end_to_end},
+        )
         return
     times: dict[str, list[float]] = {name: [] for name in {**demosaic_runs, **chain_runs}}
     cpu_times: dict[str, list[float]] = {name: [] for name in times}
@@ -481,10 +538,9 @@ def main() -> None:
 
     print_end_to_end(end_to_end, args)
 
-    out = Path(__file__).parent / "results"
-    out.mkdir(exist_ok=True)
-    (out / "demosaic.json").write_text(json.dumps({
-        "benchmark": "demosaic",
+    write_results("demosaic", title="Demosaicing and decoding against polanalyser",
+                  peer=f"polanalyser {importlib.metadata.version('polanalyser')}",
+                  tables=page_tables(table, rendered, lambert, end_to_end), data={
         "frame": {"width": W, "height": H, "bit_depth": 12, "layout": "IMX250MYR",
                   "full_well_e": FULL_WELL, "read_noise_e": READ_NOISE},
         "frames": args.frames, "reps": args.reps,
@@ -500,7 +556,7 @@ def main() -> None:
         "throughput_ratio_bilinear_vs_polanalyser": ratio,
         "end_to_end_guided_vs_polanalyser": end_to_end,
         "rendered": {"renders": RENDERS, "accuracy": rendered, "lambert_false_dop": lambert},
-    }, indent=2))
+    })
 
 
 if __name__ == "__main__":

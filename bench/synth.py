@@ -5,16 +5,13 @@ Usage: .venv/bin/python bench/synth.py [--views 36] [--size 612x512] [--shape bl
 
 Prints one row per view (render = ray casting + shading; view = render + sensor
 + writing frame, mask and gt/views/*.npz) and a summary, and writes
-bench/results/synth.json. Target (issue 3): 36 views at 612x512 in under 60 s
-on a 2-core machine.
+bench/results/synth.json. Target: 36 views at 612x512 in under 60 s on a
+2-core machine.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import sys
 import tempfile
 import time
@@ -23,6 +20,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from _results import table, write_results
 
 from pmvir.synth.generate import ViewDone, synthesize
 
@@ -72,13 +71,7 @@ def main() -> int:
         f"total {total:.2f} s (target < 60 s); capture {size_mb:.1f} MB"
     )
     result = {
-        "benchmark": "synth",
         "options": vars(args) | {"keep": str(args.keep) if args.keep else None},
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-        },
         "per_view_render_s": render.round(4).tolist(),
         "per_view_total_s": view.round(4).tolist(),
         "render_mean_s": float(render.mean()),
@@ -88,9 +81,31 @@ def main() -> int:
         "target_s": 60.0,
         "capture_mb": float(size_mb),
     }
-    out_dir = Path(__file__).resolve().parent / "results"
-    out_dir.mkdir(exist_ok=True)
-    (out_dir / "synth.json").write_text(json.dumps(result, indent=1))
+    rows_out = [
+        [
+            f"{args.shape}, {args.material}, {args.lighting}",
+            len(rows),
+            args.size,
+            round(render.mean() * 1000, 1),
+            round(view.mean() * 1000, 1),
+            round(setup, 2),
+            round(total, 2),
+            round(size_mb, 1),
+        ]
+    ]
+    write_results(
+        "synth",
+        title="Synthetic captures (pmvir synth, built-in renderer)",
+        tables=[
+            table(
+                "Time per view and in total (target: 36 views of 612x512 in under 60 s on 2 cores)",
+                ["capture", "views", "size", "render ms/view", "view ms", "setup + final s", "total s", "MB"],
+                rows_out,
+                note="render = ray casting + shading; view = render + sensor + writing frame, mask and truth",
+            )
+        ],
+        data=result,
+    )
     return 0
 
 
