@@ -1,0 +1,100 @@
+"""MkDocs hooks: pages whose content comes from the code, built fresh on every `mkdocs build`.
+
+- ``options.md``: the ``<!-- options-table -->`` marker becomes the reference of every option,
+  from :func:`pmvir.config.option_catalog` (name, type, default, unit, range, level, description).
+- ``layout.md``: the ``<!-- module-table -->`` marker becomes the modules of ``pmvir/`` with the
+  first line of each module's docstring, read with :mod:`ast` (nothing is imported).
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+OPTIONS_MARKER = "<!-- options-table -->"
+MODULES_MARKER = "<!-- module-table -->"
+
+
+def _cell(value: Any) -> str:
+    """A Markdown table cell: code for values, pipes escaped, empty as a dash."""
+    if value is None or value == "":
+        return "-"
+    text = value if isinstance(value, str) else json.dumps(value)
+    return text.replace("|", "\\|").replace("\n", " ")
+
+
+def _code(value: Any) -> str:
+    cell = _cell(value)
+    return cell if cell == "-" else f"`{cell}`"
+
+
+def options_markdown() -> str:
+    """One table per top-level section of the configuration tree, basic options first."""
+    from pmvir.config import option_catalog
+
+    sections: dict[str, list[Any]] = {}
+    for info in option_catalog():
+        sections.setdefault(info.name.split(".")[0], []).append(info)
+    out: list[str] = []
+    for section, infos in sections.items():
+        infos.sort(key=lambda i: (i.level != "basic", i.name))
+        out += [
+            f"## `{section}`",
+            "",
+            "| option | type | default | unit | range | level | description |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for i in infos:
+            level = "**basic**" if i.level == "basic" else "advanced"
+            out.append(
+                f"| `{_cell(i.name)}` | {_code(i.type)} | {_code(i.default)} | {_cell(i.unit)} "
+                f"| {_cell(i.range)} | {level} | {_cell(i.description)} |"
+            )
+        out.append("")
+    return "\n".join(out)
+
+
+def _summary(path: Path) -> str:
+    """The first line of a module's docstring ('' when it has none)."""
+    doc = ast.get_docstring(ast.parse(path.read_text(encoding="utf-8")))
+    return doc.strip().splitlines()[0] if doc else ""
+
+
+def modules_markdown(package: Path = ROOT / "pmvir") -> str:
+    """A table of every module and subpackage under ``package``, in path order."""
+    rows = ["| module | what it holds |", "|---|---|"]
+    for path in sorted(package.rglob("*.py")):
+        if "__pycache__" in path.parts:
+            continue
+        rel = path.relative_to(package.parent)
+        name = str(rel.parent) + "/" if path.name == "__init__.py" else str(rel)
+        rows.append(f"| `{name}` | {_cell(_summary(path)) if _summary(path) else ''} |")
+    return "\n".join(rows)
+
+
+def on_page_markdown(markdown: str, page: Any, **_: Any) -> str:
+    """Fill the generated tables into their pages."""
+    src = page.file.src_uri
+    if src == "options.md" and OPTIONS_MARKER in markdown:
+        return markdown.replace(OPTIONS_MARKER, options_markdown())
+    if src == "layout.md" and MODULES_MARKER in markdown:
+        return markdown.replace(MODULES_MARKER, modules_markdown())
+    return markdown
+
+
+#: The offline plugin adds a script from a CDN (a shim for search under file://); nothing of
+#: the site may come from outside, so it is left out: search works when the site is served.
+_CDN_SHIM = '<script src="https://unpkg.com/iframe-worker/shim"></script>'
+
+
+def on_post_page(output: str, **_: Any) -> str:
+    """Leave out the one script the offline plugin would fetch from a CDN."""
+    return output.replace(_CDN_SHIM, "")
+
+
+def on_post_template(output_content: str, **_: Any) -> str:
+    """The same for pages rendered from templates alone (404.html)."""
+    return output_content.replace(_CDN_SHIM, "")
