@@ -1,6 +1,6 @@
 # Two commands do everything on a fresh machine:
 #   make demo   set up, then run the main job on an embedded synthetic capture
-#   make test   set up, lint (ruff + mypy), then run the whole test suite
+#   make test   set up, lint (ruff + mypy), build the docs (mkdocs --strict), then run the whole test suite
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
@@ -11,6 +11,8 @@ APT_PACKAGES := libusb-1.0-0 libgomp1 redis-server libllvm19 chromium
 # Installed only when their command is missing (a NodeSource nodejs already brings npm).
 APT_COMMANDS := node:nodejs npm:npm
 DEMO_OUT ?= demo-out
+# The built documentation site (mkdocs.yml, docs/); `make docs` writes it here.
+DOCS_SITE ?= build/site
 
 # torch: the CPU build, this version, from TORCH_INDEX when set (e.g. https://download.pytorch.org/whl/cpu);
 # unset, pip's configured index is used (on machines with a local CPU build of torch).
@@ -19,7 +21,7 @@ TORCH_INDEX ?=
 TORCH_PIP := $(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX))
 FLOORS_VENV := .venv-floors
 
-.PHONY: setup system-packages demo lint test test-floors lock bench clean
+.PHONY: setup system-packages demo lint docs test test-floors lock bench clean
 
 setup: system-packages $(STAMP) $(NPM_STAMP)
 
@@ -41,7 +43,7 @@ $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q $(TORCH_PIP) 'torch==$(TORCH_VERSION)'
-	$(PY) -m pip install -q $(TORCH_PIP) -e '.[full,service,dev,mitsuba]'
+	$(PY) -m pip install -q $(TORCH_PIP) -e '.[full,service,dev,mitsuba,docs]'
 	touch $(STAMP)
 
 # The JavaScript the service serves (never from a CDN) and the glTF validator, pinned by package-lock.json.
@@ -54,10 +56,15 @@ demo: setup
 
 # ruff (rules and complexity limit in pyproject.toml) and mypy on the library and the service.
 lint: setup
-	$(PY) -m ruff check pmvir service tests bench conftest.py
+	$(PY) -m ruff check pmvir service tests bench docs conftest.py
 	$(PY) -m mypy
 
-test: setup lint
+# The documentation site, offline, with every warning an error (a broken link, a docstring the API
+# reference cannot render, a page missing from the nav).
+docs: setup
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet -d $(DOCS_SITE)
+
+test: setup lint docs
 	$(PY) -m pytest -q
 
 # The declared lower bounds are true: a fresh venv with every dependency at its floor release
@@ -83,4 +90,4 @@ bench: setup
 	$(PY) bench/demosaic.py
 
 clean:
-	rm -rf $(VENV) $(FLOORS_VENV) $(DEMO_OUT) .pytest_cache .ruff_cache .mypy_cache $(NPM_DIR)/node_modules
+	rm -rf $(VENV) $(FLOORS_VENV) $(DEMO_OUT) $(DOCS_SITE) .pytest_cache .ruff_cache .mypy_cache $(NPM_DIR)/node_modules
