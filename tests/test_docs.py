@@ -1,0 +1,104 @@
+"""The README and the documentation site: short, current, and every link resolves.
+
+`make docs` builds the site with `mkdocs build --strict`; these tests check what the build
+does not: the README's length and links, that no page speaks of work sessions or dates, that
+every page is in the navigation, and the README's headline numbers against the benchmarks page.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+README = ROOT / "README.md"
+DOCS = ROOT / "docs"
+
+#: The issue's check for history in the documents: "session 12", "Nov 27", "November 3".
+HISTORY = re.compile(r"session [0-9]|\bnov(ember)? [0-9]{1,2}\b", re.IGNORECASE)
+#: Markdown links and images: [text](target) and ![alt](target).
+LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
+
+
+def _text_files() -> list[Path]:
+    return [README, ROOT / "CHANGELOG.md", ROOT / "mkdocs.yml"] + sorted(
+        p for p in DOCS.rglob("*") if p.suffix in {".md", ".py", ".yml", ".yaml"}
+    )
+
+
+def test_readme_is_short() -> None:
+    n = len(README.read_text(encoding="utf-8").splitlines())
+    assert n <= 300, f"README.md has {n} lines; at most 300 (details belong in docs/)"
+
+
+def test_readme_opens_with_the_two_commands() -> None:
+    head = "\n".join(README.read_text(encoding="utf-8").splitlines()[:8])
+    assert "make demo" in head and "make test" in head
+
+
+@pytest.mark.parametrize("path", _text_files(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_no_history_in_documents(path: Path) -> None:
+    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        assert not HISTORY.search(line), f"{path.relative_to(ROOT)}:{number}: {line.strip()}"
+
+
+def test_readme_relative_links_point_at_files() -> None:
+    text = README.read_text(encoding="utf-8")
+    targets = [t for t in LINK.findall(text) if not re.match(r"[a-z][a-z0-9+.-]*:", t)]
+    assert targets, "the README links to its documentation"
+    missing = [t for t in targets if not t.startswith("#") and not (ROOT / t.split("#")[0]).exists()]
+    assert not missing, f"README.md links to files that do not exist: {missing}"
+
+
+def test_every_page_is_in_the_navigation() -> None:
+    yaml = pytest.importorskip("yaml")
+    config = yaml.safe_load((ROOT / "mkdocs.yml").read_text(encoding="utf-8"))
+
+    def pages(entries: list) -> list[str]:
+        out: list[str] = []
+        for entry in entries:
+            value = next(iter(entry.values())) if isinstance(entry, dict) else entry
+            out += pages(value) if isinstance(value, list) else [value]
+        return out
+
+    nav = pages(config["nav"])
+    on_disk = sorted(str(p.relative_to(DOCS)) for p in DOCS.rglob("*.md"))
+    assert sorted(nav) == on_disk, "every page in docs/ is in mkdocs.yml's nav, and only those"
+
+
+def test_readme_headline_numbers_come_from_the_benchmarks_page() -> None:
+    text = README.read_text(encoding="utf-8")
+    section = text.split("\n## Results", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in section.splitlines() if line.startswith("| [")]
+    assert rows, "the README's results table has rows linked to the benchmarks page"
+    page = (DOCS / "benchmarks.md").read_text(encoding="utf-8")
+    for row in rows:
+        result = row.rstrip(" |").rsplit("|", 1)[1]
+        for number in re.findall(r"\d+(?:\.\d+)?", result):
+            assert number in page, f"README result {number!r} is not on docs/benchmarks.md: {row}"
+
+
+def _hooks():
+    spec = importlib.util.spec_from_file_location("docs_hooks", DOCS / "hooks.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_module_table_lists_every_module() -> None:
+    table = _hooks().modules_markdown()
+    modules = [p for p in (ROOT / "pmvir").rglob("*.py") if "__pycache__" not in p.parts]
+    assert len(table.splitlines()) == 2 + len(modules)
+    assert "| `pmvir/pipeline.py` |" in table and "| `pmvir/refine/` |" in table
+
+
+def test_options_page_lists_every_option() -> None:
+    from pmvir.config import option_catalog
+
+    table = _hooks().options_markdown()
+    for info in option_catalog():
+        assert f"| `{info.name}` |" in table
