@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -34,6 +33,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _results import table, write_results
 
 from pmvir.camera import Camera, look_at
 from pmvir.synth.mitsuba_renderer import VARIANT, _mitsuba, render_view_stokes
@@ -147,12 +147,24 @@ def main() -> None:
             rate = WIDTH * HEIGHT * args.scalar_spp / cpu
             print(f"  {material:<10} {wall:8.2f} {cpu:8.2f}  ({rate:,.0f} paths/CPU s, 4 wavelengths each)")
     out = {"variant": VARIANT, "width": WIDTH, "height": HEIGHT, "faces": len(faces),
-           "cpus": os.cpu_count(), "load_before": load_before, "load_after": load_after,
-           "peak_rss_mib": round(peak_mib), "python": platform.python_version(), "rows": rows,
+           "load_before": load_before, "load_after": load_after,
+           "peak_rss_mib": round(peak_mib), "rows": rows,
            "scalar_spectral_polarized": scalar, "scalar_spp": args.scalar_spp if scalar else None}
-    path = Path(__file__).parent / "results" / "mitsuba_render.json"
-    path.parent.mkdir(exist_ok=True)
-    path.write_text(json.dumps(out, indent=2) + "\n")
+    tables = [table(
+        f"One {WIDTH}x{HEIGHT} view of the blob per material ({VARIANT})",
+        ["material", "spp", "wall s", "CPU s", "camera paths per CPU s", "median DoP on the object"],
+        [[r["material"], r["spp"], r["wall_s"], r["cpu_s"], r["paths_per_cpu_s"], r["median_dop_on_object"]]
+         for r in rows],
+        note=f"peak resident memory {round(peak_mib)} MiB",
+    )]
+    if scalar:
+        tables.append(table(
+            f"Mitsuba's scalar_spectral_polarized variant (mi.render, stokes integrator, {args.scalar_spp} spp)",
+            ["material", "wall s", "CPU s"],
+            [[material, round(wall, 2), round(cpu, 2)] for material, (wall, cpu) in scalar.items()],
+        ))
+    write_results("mitsuba_render", title="Path tracing (Mitsuba 3)", tables=tables,
+                  peer="Mitsuba's own scalar_spectral_polarized variant" if scalar else None, data=out)
 
 
 if __name__ == "__main__":

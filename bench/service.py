@@ -21,9 +21,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import json
 import os
-import platform
 import statistics
 import sys
 import tempfile
@@ -34,6 +32,8 @@ from pathlib import Path
 import httpx
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from _results import table, write_results  # bench/, the script's folder
 
 from service.testing import ServiceStack, write_noise_capture
 
@@ -207,10 +207,25 @@ def main() -> int:
         print(f"\nintegrity: {len(problems)} PROBLEMS")
     for p in problems[:20]:
         print("  ", p)
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(
-        json.dumps(
-            {
+    rows = [
+        [kind, p["n"], round(p["p50"] * 1e3, 1), round(p["p90"] * 1e3, 1), round(p["p99"] * 1e3, 1),
+         round(p["max"] * 1e3, 1)]
+        for kind, p in lat.items()
+        if p
+    ]
+    write_results(
+        "service",
+        title="Service uploads",
+        path=RESULTS,
+        tables=[
+            table(
+                f"{args.clients} clients x {len(files)} files ({args.width}x{args.height} frames): "
+                f"{total / 1e6 / wall:.0f} MB/s, every file intact: {intact}",
+                ["request", "n", "p50 ms", "p90 ms", "p99 ms", "max ms"],
+                rows,
+            )
+        ],
+        data={
                 "clients": args.clients,
                 "frames": args.frames,
                 "width": args.width,
@@ -225,14 +240,7 @@ def main() -> int:
                 "problems": problems[:100],
                 "api_workers": args.api_workers,
                 "server": args.server or "local stack",
-                "machine": {
-                    "cpus": os.cpu_count(),
-                    "platform": platform.platform(),
-                    "python": platform.python_version(),
-                },
-            },
-            indent=1,
-        )
+        },
     )
     print(f"wrote {RESULTS}")
     return 0 if intact else 1
