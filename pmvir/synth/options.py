@@ -89,9 +89,8 @@ class SynthOptions(BaseModel):
     )
     aop_frame: Literal["ray", "normal"] = Field(
         default="ray",
-        description="Builtin: 'ray' orients polarization perspective-exactly per viewing ray (spec section 2, "
-        "the default); 'normal' is a legacy switch reproducing earlier captures with the orthographic "
-        "atan2(-ny, nx) rule, up to about 14 degrees off away from the image centre.",
+        description="Builtin: 'ray' orients polarization per viewing ray (spec section 2); 'normal' uses the "
+        "orthographic atan2(-ny, nx) rule, up to about 14 degrees off away from the image centre.",
     )
     spp: int = Field(default=64, ge=1, description="Mitsuba: samples per pixel.")
     max_depth: int = Field(
