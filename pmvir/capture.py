@@ -1,23 +1,29 @@
 """Reading and validating captures (shared/spec/capture-format.md, section 1).
 
 A capture is a folder, or a ``.zip`` of it, holding ``capture.json``,
-``frames/<name>.<ext>`` and optional ``masks/<name>.png``.
+``frames/<name>.<ext>`` and optional ``masks/<name>.png``. A folder (or zip) of
+frames without ``capture.json`` is a capture too: its manifest is inferred
+(:mod:`pmvir.io.inference`). The frames may lie directly in the folder instead of
+in ``frames/`` (a folder without ``frames/``): the manifest still names them
+``frames/<name>.<ext>``, and error messages name the files as they lie.
 
 Public API
 ==========
 
-``with open_capture(path) as cap:``
+``with open_capture(path, infer=InferOptions(...)) as cap:``
     ``path`` is a capture folder, its ``capture.json``, or a ``.zip`` (every
     member checked, then extracted to a temporary folder that ``close()`` / the
     ``with`` exit removes; see :mod:`pmvir.io.capture_zip` for the limits, which
-    are keyword options here too). Raises CaptureError / ManifestError.
+    are keyword options here too). ``infer`` is used only where there is no
+    ``capture.json``. Raises CaptureError / ManifestError.
 
 :func:`validate_capture` ``(path, *, decode_frames=True) -> list[CaptureError]``
     opens and validates, returning every problem (each naming its file) instead
     of raising: what an HTTP 422 answer lists.
 
 :class:`Capture`
-    ``root`` (Path), ``manifest`` (:class:`CaptureManifest`), ``sensor``,
+    ``root`` (Path), ``manifest`` (:class:`CaptureManifest`), ``inferred``
+    (the notes of what was inferred, or None for a given manifest), ``sensor``,
     ``layout`` (MosaicLayout, angles ccw), ``frames`` (tuple of
     :class:`CaptureFrame`), ``len(cap)``, ``index(name)``, ``has_all_poses``,
     ``frame_size(i)`` -> (H, W), ``read_samples(i)`` -> (H, W) uint8/uint16,
@@ -55,7 +61,7 @@ from typing import Any
 import numpy as np
 
 from pmvir.camera import Camera
-from pmvir.errors import CaptureError, FrameError, ManifestError
+from pmvir.errors import CaptureError, FrameError
 from pmvir.io.capture_zip import (
     DEFAULT_MAX_MEMBERS,
     DEFAULT_MAX_RATIO,
@@ -64,6 +70,7 @@ from pmvir.io.capture_zip import (
     zip_capture,
 )
 from pmvir.io.frames import RawFormat, container_bits, read_frame, read_frame_size
+from pmvir.io.inference import InferOptions, frames_folder, infer_manifest
 from pmvir.io.manifest import (
     FORMAT,
     MANIFEST_NAME,
@@ -81,7 +88,8 @@ from pmvir.polarization.layout import MosaicLayout
 
 __all__ = [
     "FORMAT", "MANIFEST_NAME", "ROTATION_TOLERANCE", "CamFromWorld", "Capture", "CaptureFrame",
-    "CaptureManifest", "FrameEntry", "Intrinsics", "RawFrame", "RawSpec", "SensorSpec", "open_capture",
+    "CaptureManifest", "FrameEntry", "InferOptions", "Intrinsics", "RawFrame", "RawSpec", "SensorSpec",
+    "open_capture",
     "parse_manifest", "validate_capture", "write_capture_manifest", "zip_capture",
 ]
 
@@ -139,11 +147,28 @@ class RawFrame:
 
 
 class Capture:
-    """An opened capture. Use as a context manager, or call :meth:`close`."""
+    """An opened capture. Use as a context manager, or call :meth:`close`.
 
-    def __init__(self, root: str | Path, manifest: CaptureManifest, *, tmpdir: str | Path | None = None):
+    Args:
+        root: the capture folder.
+        manifest: its manifest, as given or inferred.
+        tmpdir: a temporary folder that :meth:`close` removes (a zip's extraction).
+        inferred: the notes of what was inferred (:class:`pmvir.io.inference.InferredManifest`),
+            or None when the manifest was given.
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        manifest: CaptureManifest,
+        *,
+        tmpdir: str | Path | None = None,
+        inferred: tuple[str, ...] | None = None,
+    ):
         self.root = Path(root)
         self.manifest = manifest
+        self.inferred = inferred
+        self._flat = frames_folder(self.root) == self.root
         self.sensor: SensorSpec = manifest.sensor
         self.layout: MosaicLayout = manifest.sensor.layout_value()
         self._raw: RawFormat | None = manifest.raw.to_format() if manifest.raw else None
@@ -157,7 +182,7 @@ class Capture:
                     index=i,
                     name=f.name,
                     file=f.file,
-                    path=self.root / f.file,
+                    path=self.root / self.on_disk(f.file),
                     mask=f.mask,
                     mask_path=None if f.mask is None else self.root / f.mask,
                     intrinsics=f.intrinsics or manifest.intrinsics,
@@ -197,11 +222,16 @@ class Capture:
         """Known-pose mode: every frame has intrinsics (own or shared) and a cam_from_world."""
         return all(f.camera is not None for f in self.frames)
 
+    def on_disk(self, rel: str) -> str:
+        """A manifest path as the file lies in the capture folder: ``frames/<name>`` is ``<name>``
+        where the frames lie in the folder itself (no ``frames/`` folder)."""
+        return rel.removeprefix("frames/") if self._flat else rel
+
     def _path(self, rel: str) -> Path:
         """The file of a manifest path; FrameError if a link takes it outside the capture."""
-        path = self.root / rel
+        path = self.root / self.on_disk(rel)
         if path.exists() and not path.resolve().is_relative_to(self.root.resolve()):
-            raise FrameError(rel, "resolves outside the capture (symbolic link)")
+            raise FrameError(self.on_disk(rel), "resolves outside the capture (symbolic link)")
         return path
 
     def _expected_size(self, i: int) -> tuple[int, int] | None:
@@ -211,7 +241,7 @@ class Capture:
     def frame_size(self, i: int) -> tuple[int, int]:
         """(height, width) of frame i from its header."""
         f = self.frames[i]
-        return read_frame_size(self._path(f.file), raw=self._raw, label=f.file)
+        return read_frame_size(self._path(f.file), raw=self._raw, label=self.on_disk(f.file))
 
     def _size_problems(self, i: int, size: tuple[int, int]) -> list[str]:
         h, w = size
@@ -241,10 +271,10 @@ class Capture:
     def read_samples(self, i: int) -> np.ndarray:
         """(H, W) uint8/uint16 samples of frame i, checked (FrameError naming the file)."""
         f = self.frames[i]
-        samples = read_frame(self._path(f.file), raw=self._raw, label=f.file)
+        samples = read_frame(self._path(f.file), raw=self._raw, label=self.on_disk(f.file))
         problems = self._size_problems(i, samples.shape) + self._sample_problems(i, samples)
         if problems:
-            raise FrameError(f.file, "; ".join(problems))
+            raise FrameError(self.on_disk(f.file), "; ".join(problems))
         return samples
 
     def read_raw(self, i: int) -> RawFrame:
@@ -264,7 +294,7 @@ class Capture:
         m = read_frame(self._path(f.mask), label=f.mask)
         if m.shape != size:
             raise FrameError(
-                f.mask, f"mask is {m.shape[1]}x{m.shape[0]} but frame {f.file} is {size[1]}x{size[0]}"
+                f.mask, f"mask is {m.shape[1]}x{m.shape[0]} but frame {self.on_disk(f.file)} is {size[1]}x{size[0]}"
             )
         return m != 0
 
@@ -291,7 +321,7 @@ class Capture:
         for f in self.frames:
             try:
                 if decode_frames:
-                    samples = read_frame(self._path(f.file), raw=self._raw, label=f.file)
+                    samples = read_frame(self._path(f.file), raw=self._raw, label=self.on_disk(f.file))
                     size = samples.shape
                     found = self._sample_problems(f.index, samples)
                 else:
@@ -308,14 +338,14 @@ class Capture:
             found = self._size_problems(f.index, size) + found
             if f.intrinsics is None:
                 if common is None:
-                    common = (f.file, size)
+                    common = (self.on_disk(f.file), size)
                 elif common[1] != size:
                     found.append(
                         f"size {size[1]}x{size[0]} differs from {common[0]}'s {common[1][1]}x{common[1][0]}; "
                         "frames without intrinsics must all have one size"
                     )
             if found:
-                problems.append(FrameError(f.file, "; ".join(found)))
+                problems.append(FrameError(self.on_disk(f.file), "; ".join(found)))
             if f.mask is not None:
                 try:
                     if decode_frames:
@@ -323,7 +353,7 @@ class Capture:
                     else:
                         msize = read_frame_size(self._path(f.mask), label=f.mask)
                         if msize != size:
-                            raise FrameError(f.mask, f"mask is {msize[1]}x{msize[0]} but frame {f.file} "
+                            raise FrameError(f.mask, f"mask is {msize[1]}x{msize[0]} but frame {self.on_disk(f.file)} "
                                              f"is {size[1]}x{size[0]}")
                 except CaptureError as exc:
                     problems.append(exc)
@@ -337,11 +367,14 @@ def open_capture(
     max_members: int = DEFAULT_MAX_MEMBERS,
     max_total_bytes: int = DEFAULT_MAX_TOTAL_BYTES,
     max_ratio: float = DEFAULT_MAX_RATIO,
+    infer: InferOptions | None = None,
 ) -> Capture:
     """Open a capture folder, its ``capture.json``, or a zipped capture.
 
     Args:
         path: folder, ``.../capture.json``, or ``.zip``.
+        infer: what a folder of frames without ``capture.json`` cannot say (layout, black
+            level, size of headerless frames); unused where there is a ``capture.json``.
         workdir: where a zip is extracted (a new temporary folder inside it;
             default: the system temporary folder).
         max_members, max_total_bytes, max_ratio: zip limits (see :mod:`pmvir.io.capture_zip`).
@@ -350,14 +383,17 @@ def open_capture(
         The Capture; frames are read lazily. The manifest is fully validated.
 
     Raises:
-        CaptureError: the path is neither a folder nor a zip, or the zip is unsafe/corrupt.
-        ManifestError: capture.json is missing, not JSON, or invalid (each bad field named).
+        CaptureError: the path is neither a folder nor a zip, or the zip is unsafe/corrupt;
+            no capture.json and no frames.
+        FrameError: no capture.json, and a frame cannot give the manifest (see
+            :func:`pmvir.io.inference.infer_manifest`).
+        ManifestError: capture.json is not JSON, or invalid (each bad field named).
     """
     path = Path(path)
     if path.is_dir():
-        return _open_folder(path)
+        return _open_folder(path, infer)
     if path.is_file() and path.name == MANIFEST_NAME:
-        return _open_folder(path.parent)
+        return _open_folder(path.parent, infer)
     if not path.exists():
         raise CaptureError(str(path), "no such capture folder or zip")
     tmp = Path(tempfile.mkdtemp(prefix="pmvir-capture-", dir=workdir))
@@ -365,22 +401,19 @@ def open_capture(
         root = extract_capture_zip(
             path, tmp, max_members=max_members, max_total_bytes=max_total_bytes, max_ratio=max_ratio
         )
-        manifest = _load_manifest(root)
-        return Capture(root, manifest, tmpdir=tmp)
+        return _open_folder(root, infer, tmpdir=tmp)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
 
 
-def _load_manifest(root: Path) -> CaptureManifest:
+def _open_folder(root: Path, infer: InferOptions | None, *, tmpdir: Path | None = None) -> Capture:
+    """The capture of a folder: its capture.json, else the manifest inferred from its frames."""
     mpath = root / MANIFEST_NAME
-    if not mpath.is_file():
-        raise ManifestError(MANIFEST_NAME, f"not found in {root}")
-    return parse_manifest(mpath.read_bytes())
-
-
-def _open_folder(root: Path) -> Capture:
-    return Capture(root, _load_manifest(root))
+    if mpath.is_file():
+        return Capture(root, parse_manifest(mpath.read_bytes()), tmpdir=tmpdir)
+    inferred = infer_manifest(root, infer)
+    return Capture(root, inferred.manifest, tmpdir=tmpdir, inferred=inferred.notes)
 
 
 def validate_capture(path: str | Path, *, decode_frames: bool = True, **open_options: Any) -> list[CaptureError]:

@@ -404,9 +404,11 @@ def test_manifest_not_json(tmp_path):
     assert "not valid JSON" in _manifest_error(tmp_path)
 
 
-def test_manifest_missing(tmp_path):
+def test_manifest_missing_and_no_frames_to_infer_it_from(tmp_path):
     (tmp_path / "frames").mkdir()
-    assert "not found" in _manifest_error(tmp_path)
+    (tmp_path / "frames" / "notes.txt").write_text("not a frame")
+    problem = _manifest_error(tmp_path)
+    assert "not found" in problem and "no frame files" in problem and "notes.txt" in problem
 
 
 def test_manifest_missing_sensor(tmp_path):

@@ -2,7 +2,9 @@
 
 A zipped capture holds the capture folder either at the zip's root
 (``capture.json``, ``frames/...``) or inside exactly one top-level folder
-(``mycapture/capture.json``, ...). Uploads are untrusted, so every member is
+(``mycapture/capture.json``, ...). A zip of bare frames (no ``capture.json``;
+frames directly there or in ``frames/``) is a capture whose manifest is
+inferred once extracted (:mod:`pmvir.io.inference`). Uploads are untrusted, so every member is
 checked before anything is written:
 
 * names: relative, ``/``-separated, no ``..``/``.``/empty segments, no absolute
@@ -19,7 +21,7 @@ checked before anything is written:
 
 macOS metadata (``__MACOSX/``, ``.DS_Store``) is skipped.
 
-Public API: :func:`extract_capture_zip`, :func:`zip_capture`, and the default
+Public API: :func:`extract_capture_zip`, :func:`zip_capture`, :func:`capture_prefix`, and the default
 limits :data:`DEFAULT_MAX_MEMBERS`, :data:`DEFAULT_MAX_TOTAL_BYTES`,
 :data:`DEFAULT_MAX_RATIO`. Problems raise :class:`pmvir.errors.CaptureError`
 (or :class:`pmvir.errors.ManifestError` when there is no ``capture.json``)
@@ -32,9 +34,11 @@ import os
 import stat
 import zipfile
 import zlib
-from pathlib import Path
+from collections.abc import Iterable
+from pathlib import Path, PurePosixPath
 
 from pmvir.errors import CaptureError, ManifestError
+from pmvir.io.frames import FRAME_SUFFIXES
 
 DEFAULT_MAX_MEMBERS = 10_000
 DEFAULT_MAX_TOTAL_BYTES = 8 * 1024**3
@@ -146,16 +150,38 @@ def _check_members(zf: zipfile.ZipFile, label: str, *, max_members: int, max_tot
     return kept
 
 
-def _capture_prefix(infos: list[zipfile.ZipInfo], label: str) -> str:
-    names = {i.filename.rstrip("/") for i in infos}
-    if "capture.json" in names:
-        return ""
+def _holds_frames(names: set[str], prefix: str) -> bool:
+    """Whether frame files lie directly under ``prefix`` or in its ``frames/``."""
+    for n in names:
+        rest = n[len(prefix) :] if n.startswith(prefix) else None
+        if rest is None:
+            continue
+        rest = rest.removeprefix("frames/")
+        if "/" not in rest and PurePosixPath(rest).suffix.lower() in FRAME_SUFFIXES:
+            return True
+    return False
+
+
+def capture_prefix(names: Iterable[str], label: str) -> str:
+    """Where the capture lies in a zip of these member names: ``""`` (its root) or ``"<top>/"``.
+
+    The root, else the single top-level folder, holding ``capture.json``, or else (a zip
+    of bare frames, whose manifest is inferred) frame files directly or in ``frames/``.
+    ManifestError naming the zip when neither holds either.
+    """
+    names = {n.rstrip("/") for n in names if not _is_ignored(n)}
     tops = {n.split("/")[0] for n in names}
-    if len(tops) == 1:
-        top = next(iter(tops))
-        if f"{top}/capture.json" in names:
-            return top + "/"
-    raise ManifestError(label, "no capture.json at the zip's root or inside its single top-level folder")
+    prefixes = [""] + ([next(iter(tops)) + "/"] if len(tops) == 1 else [])
+    for prefix in prefixes:
+        if f"{prefix}capture.json" in names:
+            return prefix
+    for prefix in prefixes:
+        if _holds_frames(names, prefix):
+            return prefix
+    raise ManifestError(
+        label, "no capture.json, and no frame files to infer it from, at the zip's root or inside its single "
+        "top-level folder"
+    )
 
 
 def extract_capture_zip(
@@ -181,7 +207,7 @@ def extract_capture_zip(
 
     Raises:
         CaptureError: not a zip, a corrupt zip, an unsafe member, a limit exceeded.
-        ManifestError: no ``capture.json`` where one is expected.
+        ManifestError: neither ``capture.json`` nor frame files where a capture is expected.
     """
     zip_path, dest = Path(zip_path), Path(dest)
     label = zip_path.name
@@ -194,7 +220,7 @@ def extract_capture_zip(
             max_ratio=max_ratio,
             zip_bytes=zip_path.stat().st_size,
         )
-        prefix = _capture_prefix(infos, label)
+        prefix = capture_prefix((i.filename for i in infos), label)
         written = 0
         for info in infos:
             target = dest.joinpath(*info.filename.rstrip("/").split("/"))

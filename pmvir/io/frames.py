@@ -31,6 +31,8 @@ Public API:
 * :func:`read_frame` -> (H, W) uint8 or uint16 samples
 * :func:`read_frame_size` -> (height, width) from the header only
 * :func:`container_bits` -> bits per sample of the file's container (8, 12, 16)
+* :func:`png_significant_bits`, :func:`tiff_max_sample_value`, :func:`dng_levels`: what a
+  container says of its samples' range (PNG ``sBIT``, TIFF ``MaxSampleValue``, DNG black/white level)
 * :func:`write_frame` (atomic: temporary name, then rename)
 * :func:`pack_mono12p`, :func:`unpack_mono12p`
 
@@ -398,6 +400,48 @@ def read_frame_size(
             rp.close()
     r = _check_raw_length(path, label, raw)
     return r.height, r.width
+
+
+def png_significant_bits(path: str | Path) -> int | None:
+    """Significant bits of a greyscale PNG from its ``sBIT`` chunk (e.g. 12 for 12-bit data in a
+    16-bit PNG), or None when it has none. Reads the chunks before the image data only."""
+    with open(path, "rb") as f:
+        if f.read(len(_PNG_SIGNATURE)) != _PNG_SIGNATURE:
+            return None
+        while len(head := f.read(8)) == 8:
+            length, ctype = struct.unpack(">I4s", head)
+            if ctype == b"sBIT":
+                body = f.read(length)
+                return body[0] if body and 1 <= body[0] <= 16 else None
+            if ctype in (b"IDAT", b"IEND"):
+                return None
+            f.seek(length + 4, os.SEEK_CUR)
+    return None
+
+
+def tiff_max_sample_value(path: str | Path) -> int | None:
+    """The ``MaxSampleValue`` tag of a TIFF's first page, or None when absent or unreadable."""
+    try:
+        with tifffile.TiffFile(path) as tif:
+            tag = tif.pages.first.tags.get("MaxSampleValue") if tif.pages else None
+            value = None if tag is None else tag.value
+    except Exception:  # noqa: BLE001 - a hint only; read_frame reports unreadable files
+        return None
+    if isinstance(value, tuple | list):
+        value = value[0] if value else None
+    return int(value) if isinstance(value, int) and value > 0 else None
+
+
+def dng_levels(path: str | Path, *, label: str | None = None) -> tuple[float, int]:
+    """(black level, white level) of a DNG as LibRaw reads them: the mean of the per-channel black
+    levels, and the white level. FrameError when rawpy cannot open the file."""
+    path = Path(path)
+    raw = _open_dng(path, _label(path, label))
+    try:
+        black = [float(b) for b in raw.black_level_per_channel]
+        return (sum(black) / len(black) if black else 0.0), int(raw.white_level)
+    finally:
+        raw.close()
 
 
 # ----------------------------------------------------------------------------- writing

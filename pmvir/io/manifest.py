@@ -20,7 +20,9 @@ Unknown keys are errors at every level. Choices the spec leaves open:
   :data:`ROTATION_TOLERANCE`; :meth:`CamFromWorld.arrays` returns the nearest
   exact rotation (SVD);
 * headerless frames need the top-level ``"raw"`` object;
-* intrinsics ``model`` defaults to ``"PINHOLE"`` (the only model).
+* intrinsics ``model`` defaults to ``"PINHOLE"`` (the only model); ``"estimated": true``
+  marks intrinsics that are a starting point (from EXIF, see :mod:`pmvir.io.inference`):
+  SfM refines their focal length instead of holding them fixed.
 """
 
 from __future__ import annotations
@@ -85,6 +87,10 @@ class Intrinsics(_Closed):
     fy: float = Field(gt=0, description="Focal length along y, pixels")
     cx: float = Field(description="Principal point x, pixels (image centre = width / 2)")
     cy: float = Field(description="Principal point y, pixels (image centre = height / 2)")
+    estimated: bool | None = Field(
+        default=None,
+        description="True: an estimate (e.g. from EXIF) that SfM refines; absent or false: calibrated, held fixed",
+    )
 
     def K(self) -> np.ndarray:
         """(3, 3) float64 intrinsic matrix."""
