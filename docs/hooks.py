@@ -4,6 +4,8 @@
   from :func:`pmvir.config.option_catalog` (name, type, default, unit, range, level, description).
 - ``layout.md``: the ``<!-- module-table -->`` marker becomes the modules of ``pmvir/`` with the
   first line of each module's docstring, read with :mod:`ast` (nothing is imported).
+- ``service.md``: the ``<!-- settings-table -->`` marker becomes the service's environment
+  variables, from the fields of :class:`service.settings.Settings`.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 OPTIONS_MARKER = "<!-- options-table -->"
 MODULES_MARKER = "<!-- module-table -->"
+SETTINGS_MARKER = "<!-- settings-table -->"
 
 
 def _cell(value: Any) -> str:
@@ -75,6 +78,28 @@ def modules_markdown(package: Path = ROOT / "pmvir") -> str:
     return "\n".join(rows)
 
 
+def _setting_default(name: str, value: Any) -> str:
+    """A setting's default as a reader writes it: sizes in MiB/GiB, empty values as (none)."""
+    if value in ("", (), None):
+        return "(none)"
+    if isinstance(value, int) and name.endswith("_bytes"):
+        for unit, size in (("GiB", 1024**3), ("MiB", 1024**2)):
+            if value % size == 0:
+                return f"{value // size} {unit}"
+    return f"`{value}`"
+
+
+def settings_markdown() -> str:
+    """One row per environment variable of the service, in the order the settings declare them."""
+    from service.settings import Settings
+
+    rows = ["| variable | default | meaning |", "|---|---|---|"]
+    for name, field in Settings.model_fields.items():
+        default = _setting_default(name, field.get_default(call_default_factory=True))
+        rows.append(f"| `PMVIR_{name.upper()}` | {default} | {_cell(field.description)} |")
+    return "\n".join(rows)
+
+
 def on_page_markdown(markdown: str, page: Any, **_: Any) -> str:
     """Fill the generated tables into their pages."""
     src = page.file.src_uri
@@ -82,6 +107,8 @@ def on_page_markdown(markdown: str, page: Any, **_: Any) -> str:
         return markdown.replace(OPTIONS_MARKER, options_markdown())
     if src == "layout.md" and MODULES_MARKER in markdown:
         return markdown.replace(MODULES_MARKER, modules_markdown())
+    if src == "service.md" and SETTINGS_MARKER in markdown:
+        return markdown.replace(SETTINGS_MARKER, settings_markdown())
     return markdown
 
 
