@@ -33,6 +33,7 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         None,
     ),
     "geometry": ("Geometric stage (initial surface)", f"{PY} bench/geometry.py", None),
+    "nomask": ("The object found without masks", f"{PY} bench/nomask.py", "the same captures with their true masks"),
     "subdivision": ("Visibility and subdivision", f"{PY} bench/subdivision.py", None),
     "refine": (
         "Refinement against ground truth (the paper's Tables 3 and 4)",
@@ -41,7 +42,7 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
     ),
     "refine_from_truth": (
         "Refinement started from the true surface",
-        f"{PY} bench/refine_from_truth.py CAPTURE --variant mvir polarimetric=false --variant full",
+        f"{PY} bench/refine_from_truth.py CAPTURE --variant mvir pol.enabled=false --variant full",
         "MVIR",
     ),
     "refine_speed": (
