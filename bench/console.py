@@ -43,7 +43,7 @@ from service.testing import ServiceStack  # noqa: E402
 
 KEY = "bench-key"
 #: The demo's schedule (service/demo.py), as job options.
-DEMO_OPTIONS = {"geometry": {"subdivision_max_area_px": 8.0}, "refine": {"max_iterations": 15}}
+DEMO_OPTIONS = {"geometry": {"subdivision": {"max_area_px": 8.0}}, "refine": {"solver": {"max_iterations": 15}}}
 
 
 def main(argv: list[str] | None = None) -> int:

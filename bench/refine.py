@@ -54,7 +54,8 @@ import numpy as np
 
 from pmvir.camera import Camera
 from pmvir.capture import open_capture
-from pmvir.config import DecodeOptions, GeometryOptions, PipelineConfig, RefineOptions
+from pmvir.commands.options import parse_overrides
+from pmvir.config import DecodeOptions, GeometryOptions, PipelineConfig, RefineOptions, merge_options
 from pmvir.errors import PmvirError
 from pmvir.evaluate import evaluate
 from pmvir.geometry.stage import run_geometry
@@ -71,14 +72,14 @@ MATERIALS = ("lambert", "plastic", "conductor")
 TABLES = ("main", "ablation", "materials")
 #: Refinement variants: RefineOptions overrides (on top of the defaults and --iterations).
 VARIANTS: dict[str, dict] = {
-    "mvir": {"polarimetric": False},
+    "mvir": {"pol": {"enabled": False}},
     "full": {},
-    "no_dop_weight": {"dop_weight": False},
-    "i_int": {"intensity": "int"},
-    "least_squares": {"pho_robust": "none"},
-    "raw_dop_weight": {"dop_weight_normalized": False},
-    "previous": {"pho_robust": "none", "dop_weight_normalized": False},
-    "no_relax": {"relax_iterations": 0},
+    "no_dop_weight": {"pol": {"dop_weight": False}},
+    "i_int": {"pho": {"intensity": "int"}},
+    "least_squares": {"pho": {"robust": "none"}},
+    "raw_dop_weight": {"pol": {"dop_weight_normalized": False}},
+    "previous": {"pho": {"robust": "none"}, "pol": {"dop_weight_normalized": False}},
+    "no_relax": {"surface": {"relax_iterations": 0}},
 }
 LABELS = {
     "initial": "initial surface",
@@ -237,26 +238,18 @@ class Case:
 
 
 def refine_options(variant: str, args: argparse.Namespace) -> RefineOptions:
-    values = {**args.refine_option, **VARIANTS[variant]}
+    values = merge_options(args.refine_option, VARIANTS[variant])
     if args.iterations is not None:
-        values["max_iterations"] = args.iterations
+        values = merge_options(values, {"solver": {"max_iterations": args.iterations}})
     return RefineOptions(**values)
 
 
 def parse_refine_options(parser: argparse.ArgumentParser, items: list[str]) -> dict:
-    """``KEY=VALUE`` pairs (VALUE as JSON, else a string), each key a RefineOptions field, validated."""
-    out: dict = {}
-    for item in items:
-        key, sep, raw = item.partition("=")
-        if not sep or key not in RefineOptions.model_fields:
-            parser.error(f"--refine-option {item!r}: expected KEY=VALUE with KEY a refine option")
-        try:
-            out[key] = json.loads(raw)
-        except json.JSONDecodeError:
-            out[key] = raw
+    """``KEY=VALUE`` pairs (KEY dotted within refine, e.g. ``pol.k``; VALUE as JSON, else a string), validated."""
     try:
+        out = parse_overrides(items)
         RefineOptions(**out)
-    except ValueError as exc:
+    except (PmvirError, ValueError) as exc:
         parser.error(f"--refine-option: {exc}")
     return out
 
@@ -554,7 +547,7 @@ def main() -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="a refine option for every refined row (JSON value, e.g. offset_scan_deblur_px=1.6); the rows' own "
+        help="a refine option for every refined row (JSON value, e.g. offset_scan.deblur_px=1.6); the rows' own "
         "variant wins where both set a key. Repeatable",
     )
     parser.add_argument(

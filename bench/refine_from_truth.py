@@ -17,7 +17,7 @@ reconstruction's.
 Prints a markdown table and writes bench/results/refine_from_truth.json (or --out).
 Run: .venv/bin/python bench/refine_from_truth.py CAPTURE [--subdivide 1] [--iterations 40]
      [--variant NAME key=value ...] [--samples 200000] [--offset D]
-     e.g. --variant mvir polarimetric=false --variant full --variant rho1 dop_weight_power=1
+     e.g. --variant mvir pol.enabled=false --variant full --variant rho1 pol.dop_weight_power=1
 """
 
 from __future__ import annotations
@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from pmvir.capture import open_capture
-from pmvir.config import PipelineConfig, RefineOptions
+from pmvir.commands.options import parse_overrides
+from pmvir.config import PipelineConfig, RefineOptions, merge_options
 from pmvir.errors import PmvirError
 from pmvir.evaluate import bbox_diagonal, evaluate
 from pmvir.geometry.subdivision import sqrt3_subdivide
@@ -44,27 +45,18 @@ ROOT = Path(__file__).resolve().parent
 
 
 def parse_variants(tokens: list[list[str]]) -> dict[str, dict]:
-    """``[[name, key=value, ...], ...]`` -> {name: {refine option: value}} (values parsed as JSON)."""
-    variants: dict[str, dict] = {}
-    for name, *pairs in tokens:
-        opts: dict = {}
-        for pair in pairs:
-            key, sep, raw = pair.partition("=")
-            if not sep:
-                raise SystemExit(f"--variant {name}: expected key=value, got {pair!r}")
-            try:
-                opts[key] = json.loads(raw)
-            except json.JSONDecodeError:
-                opts[key] = raw
-        variants[name] = opts
-    return variants
+    """``[[name, key=value, ...], ...]`` -> {name: nested refine options} (keys dotted, values parsed as JSON)."""
+    try:
+        return {name: parse_overrides(pairs) for name, *pairs in tokens}
+    except PmvirError as exc:
+        raise SystemExit(f"--variant: {exc}") from exc
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("capture", type=Path, help="a synthetic capture with true poses and gt/mesh.ply")
     parser.add_argument("--subdivide", type=int, default=1, help="sqrt(3) steps applied to the true mesh")
-    parser.add_argument("--iterations", type=int, default=40, help="refine.max_iterations per stage")
+    parser.add_argument("--iterations", type=int, default=40, help="refine.solver.max_iterations per stage")
     parser.add_argument(
         "--variant",
         nargs="+",
@@ -82,7 +74,7 @@ def main() -> None:
     )
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "refine_from_truth.json")
     args = parser.parse_args()
-    variants = parse_variants(args.variant or [["mvir", "polarimetric=false"], ["full"]])
+    variants = parse_variants(args.variant or [["mvir", "pol.enabled=false"], ["full"]])
     try:
         rows = run(
             args.capture,
@@ -161,7 +153,7 @@ def run(
     ]
     for name, overrides in variants.items():
         opts = RefineOptions.model_validate(
-            {**config.refine.model_dump(), "max_iterations": iterations, **overrides}
+            merge_options(config.refine.model_dump(), merge_options({"solver": {"max_iterations": iterations}}, overrides))
         )
         with open_capture(capture) as cap:  # refine.demosaic may decode the frames once more
             observations = refinement_observations(cap, views, list(range(len(views))), config.decode, opts)

@@ -127,7 +127,7 @@ def main() -> None:
     if cuda:
         torch.cuda.reset_peak_memory_stats()
     if args.max_iterations is not None:
-        opts.max_iterations = args.max_iterations
+        opts.solver.max_iterations = args.max_iterations
     t1 = time.perf_counter()
     res = refine_surface(
         init_v,

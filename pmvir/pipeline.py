@@ -134,10 +134,10 @@ def specular_warning(median_dop: float | None, options: RefineOptions) -> str | 
     if not is_specular(median_dop):
         return None
     scan = (
-        "the offset scan is off for it (refine.specular_offset_scan; the scan moved a path-traced "
+        "the offset scan is off for it (refine.offset_scan.specular; the scan moved a path-traced "
         "conductor armadillo 37% away from the truth)"
-        if refinement_options(options, median_dop).offset_scan != options.offset_scan
-        else "the offset scan runs as set (refine.specular_offset_scan 'same')"
+        if refinement_options(options, median_dop).offset_scan.mode != options.offset_scan.mode
+        else "the offset scan runs as set (refine.offset_scan.specular 'same')"
     )
     return (
         f"the object looks specular-dominated: its median DoP inside the masks is {median_dop:.2f} "
@@ -161,9 +161,9 @@ def mask_margin_warning(fit: RimFit | None) -> str | None:
     if unaccounted < MASK_MARGIN_WARNING_PX:
         return None
     done = (
-        "The rim fit discounted that margin (set refine.rim_fit_mask_margin_px if it is known)"
+        "The rim fit discounted that margin (set refine.surface.rim_fit_mask_margin_px if it is known)"
         if fit.margin_estimated
-        else f"The rim fit discounted {fit.mask_margin_px:.2f} px as set (refine.rim_fit_mask_margin_px; 0 where "
+        else f"The rim fit discounted {fit.mask_margin_px:.2f} px as set (refine.surface.rim_fit_mask_margin_px; 0 where "
         "the offset scans are off) and may have pushed the surface out toward them"
     )
     return (
@@ -175,9 +175,9 @@ def mask_margin_warning(fit: RimFit | None) -> str | None:
 
 def refinement_options(options: RefineOptions, median_dop: float | None) -> RefineOptions:
     """The refinement's options for a capture of this median DoP inside the masks: a specular-dominated
-    one is refined without the offset scan unless ``refine.specular_offset_scan`` is 'same'."""
-    if is_specular(median_dop) and options.specular_offset_scan == "off" and options.offset_scan != "off":
-        return options.model_copy(update={"offset_scan": "off"})
+    one is refined without the offset scan unless ``refine.offset_scan.specular`` is 'same'."""
+    if is_specular(median_dop) and options.offset_scan.specular == "off" and options.offset_scan.mode != "off":
+        return options.model_copy(update={"offset_scan": options.offset_scan.model_copy(update={"mode": "off"})})
     return options
 
 
@@ -199,21 +199,21 @@ def refinement_observations(
     With ``refine.demosaic`` 'same' (or the decode stage's method) these are the decoded
     ``views``; otherwise each frame is decoded once more with ``refine.demosaic`` (the decode
     stage's noise floor, saturation and mask), one at a time, so only the observations stay
-    in memory. With ``refine.aop_noise`` 'closure' (and E_pol on) each observation carries its
+    in memory. With ``refine.pol.aop_noise`` 'closure' (and E_pol on) each observation carries its
     frame's polarization noise (:func:`pmvir.polarization.noise.closure_noise` over its valid
     pixels), measured from the raw mosaic read once more.
     """
     progress = progress or Progress.none()
     redecode = redecodes_for_refinement(decode, refine)
     options = decode.model_copy(update={"demosaic": refine.demosaic}) if redecode else decode
-    noise = refine.polarimetric and refine.aop_noise == "closure"
+    noise = refine.pol.enabled and refine.pol.aop_noise == "closure"
     observations = []
     for k, i in enumerate(indices):
         raw = cap.read_raw(i) if redecode or noise else None
         images = _decode_frame(cap, i, options, raw) if redecode else views[i].images
-        obs = observation_from_decoded(vars(images), intensity=refine.intensity)
+        obs = observation_from_decoded(vars(images), intensity=refine.pho.intensity)
         if raw is not None and noise:
-            sigma = closure_noise(raw.mosaic, cap.layout, valid=images.valid, sigma_px=refine.aop_noise_px)
+            sigma = closure_noise(raw.mosaic, cap.layout, valid=images.valid, sigma_px=refine.pol.aop_noise_px)
             obs = replace(obs, aop_noise=sigma)
         observations.append(obs)
         if redecode:
@@ -311,7 +311,7 @@ def run(
                 refine_options = refinement_options(config.refine, median_dop)
                 refined, registered = _refine_stage(cap, views, geometry, config, refine_options, p, share=0.85)
                 mesh = _write_refined(result, geometry, refined, [views[i].file for i in registered])
-                sections["refine"] = {**refine_report(refined), "offset_scan": refine_options.offset_scan}
+                sections["refine"] = {**refine_report(refined), "offset_scan": refine_options.offset_scan.mode}
                 if (warning := mask_margin_warning(refined.rim_fit)) is not None:
                     warnings.append(warning)
                 with p.step("exports", 0.15) as q:

@@ -27,7 +27,7 @@ from pmvir.pipeline import AVAILABLE_STAGES
 API_KEY = "demo-key"
 #: A lighter schedule than the defaults so the demo ends in a few minutes on 2 cores:
 #: coarser subdivision (about 8 px^2 per triangle) and fewer L-BFGS iterations per stage.
-DEMO_OPTIONS = ("--set", "geometry.subdivision.max_area_px=8", "--set", "refine.max_iterations=15")
+DEMO_OPTIONS = ("--set", "geometry.subdivision.max_area_px=8", "--set", "refine.solver.max_iterations=15")
 
 
 def _parse_args(argv: list[str] | None) -> argparse.Namespace:

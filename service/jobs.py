@@ -19,7 +19,7 @@ from pydantic import ValidationError
 
 from pmvir import stage_cache
 from pmvir.capture import open_capture, validate_capture
-from pmvir.config import PipelineConfig, nest_deprecated_geometry_keys
+from pmvir.config import PipelineConfig, merge_options
 from pmvir.errors import CaptureError
 from pmvir.stages import Stage
 from service.deps import Services
@@ -238,16 +238,7 @@ def rerun_job(
             f"the source job is {source.status}; a rerun needs a job that was started and finished"
         )
     try:
-        merged = merge_options(_nested(source.options), _nested(changes))
-    except ValueError as exc:  # an old flat key and its new place both given
-        raise ApiError(
-            422,
-            "validation_error",
-            f"the options are invalid: {exc}",
-            errors=[ErrorItem(loc=["body", "options", "geometry"], msg=str(exc), type="value_error")],
-        ) from exc
-    try:
-        config = PipelineConfig.model_validate(merged)
+        config = PipelineConfig.model_validate(merge_options(source.options, changes))
     except ValidationError as exc:
         raise invalid(exc, ("body", "options"), "the merged options are invalid") from exc
     if from_stage.position > Stage(config.stop_after).position:
@@ -279,27 +270,6 @@ def rerun_job(
         _discard(svc, owner, job.id, None)
         raise
     return _get(svc, job.id)
-
-
-def _nested(options: dict[str, Any]) -> dict[str, Any]:
-    """Options with deprecated flat geometry keys moved into their groups, so a merge sees one key each."""
-    geometry = options.get("geometry")
-    return {**options, "geometry": nest_deprecated_geometry_keys(geometry)} if isinstance(geometry, dict) else options
-
-
-def merge_options(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
-    """``base`` with ``changes`` applied: nested dicts merged key by key, anything else replaced.
-
-    >>> merge_options({"refine": {"pol_k": 0.5, "dop_min": 0.1}}, {"refine": {"pol_k": 0.7}})
-    {'refine': {'pol_k': 0.7, 'dop_min': 0.1}}
-    """
-    out = dict(base)
-    for key, value in changes.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = merge_options(out[key], value)
-        else:
-            out[key] = value
-    return out
 
 
 def cancel_job(svc: Services, *, job: Job) -> None:

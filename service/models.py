@@ -51,7 +51,7 @@ class JobRerun(BaseModel):
     options: dict[str, Any] = Field(
         default_factory=dict,
         description="Changes to the source job's options, merged into them key by key (nested groups "
-        'merged, lists replaced), e.g. {"refine": {"max_iterations": 40}}; the result is validated '
+        'merged, lists replaced), e.g. {"refine": {"solver": {"max_iterations": 40}}}; the result is validated '
         "as PipelineConfig.",
     )
     from_stage: Stage = Field(

@@ -107,13 +107,13 @@ def test_a_specular_dominated_object_is_warned_about(tmp_path: Path, capsys) -> 
 
 def test_specular_captures_are_refined_without_the_offset_scan() -> None:
     """refinement_options: above SPECULAR_MEDIAN_DOP the offset scan is turned off, unless
-    refine.specular_offset_scan is 'same'; below it, or without masks (None), the options stay."""
+    refine.offset_scan.specular is 'same'; below it, or without masks (None), the options stay."""
     default = RefineOptions()
-    assert default.offset_scan != "off"
-    assert refinement_options(default, SPECULAR_MEDIAN_DOP + 0.05).offset_scan == "off"
+    assert default.offset_scan.mode != "off"
+    assert refinement_options(default, SPECULAR_MEDIAN_DOP + 0.05).offset_scan.mode == "off"
     assert refinement_options(default, SPECULAR_MEDIAN_DOP - 0.05) is default
     assert refinement_options(default, None) is default
-    keep = RefineOptions(specular_offset_scan="same")
+    keep = RefineOptions(offset_scan={"specular": "same"})
     assert refinement_options(keep, 0.35).offset_scan == default.offset_scan
     assert "runs as set" in (specular_warning(0.35, keep) or "")
     assert specular_warning(0.1, default) is None
@@ -206,7 +206,7 @@ def test_refinement_images_can_come_from_another_demosaicing(capture: Path) -> N
                 raw.mosaic, cap.layout, saturated=raw.saturated, options=DecodeOptions(demosaic="eari", noise_floor=0.24)
             )
             np.testing.assert_array_equal(eari[k].aop, expected.aop)
-            np.testing.assert_array_equal(eari[k].intensity, expected.i_min)  # refine.intensity 'min'
+            np.testing.assert_array_equal(eari[k].intensity, expected.i_min)  # refine.pho.intensity 'min'
             np.testing.assert_array_equal(eari[k].valid, expected.valid)  # the decode stage's noise floor
             # the sensor noise of the frames makes the two methods' estimates differ pixel by pixel
             assert np.abs(eari[k].dop - views[i].images.dop).max() > 1e-3
@@ -215,7 +215,7 @@ def test_refinement_images_can_come_from_another_demosaicing(capture: Path) -> N
 
 
 def test_refinement_images_carry_their_frames_polarization_noise(capture: Path) -> None:
-    """refine.aop_noise 'closure' measures each frame's closure noise over the refinement images'
+    """refine.pol.aop_noise 'closure' measures each frame's closure noise over the refinement images'
     valid pixels; 'uniform' and the MVIR baseline (no E_pol) measure none."""
     config = PipelineConfig()
     with open_capture(capture) as cap:
@@ -223,10 +223,10 @@ def test_refinement_images_carry_their_frames_polarization_noise(capture: Path) 
         for refine in (config.refine, config.refine.model_copy(update={"demosaic": "same"})):
             obs = refinement_observations(cap, views, [2], config.decode, refine)[0]
             raw = cap.read_raw(2)
-            expected = closure_noise(raw.mosaic, cap.layout, valid=obs.valid, sigma_px=refine.aop_noise_px)
+            expected = closure_noise(raw.mosaic, cap.layout, valid=obs.valid, sigma_px=refine.pol.aop_noise_px)
             np.testing.assert_array_equal(obs.aop_noise, expected)
             measured = obs.aop_noise[obs.valid]
             assert np.isfinite(measured).all() and measured.min() > 0.0
-        for update in ({"aop_noise": "uniform"}, {"polarimetric": False}):
-            refine = config.refine.model_copy(update=update)
+        for update in ({"pol": {"aop_noise": "uniform"}}, {"pol": {"enabled": False}}):
+            refine = RefineOptions.model_validate(update)
             assert refinement_observations(cap, views, [2], config.decode, refine)[0].aop_noise is None

@@ -26,7 +26,7 @@ def result(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, list[t
     config = PipelineConfig.model_validate(
         {
             "geometry": {"subdivision": {"max_area_px": 8.0}},
-            "refine": {"max_iterations": 6},
+            "refine": {"solver": {"max_iterations": 6}},
         }
     )
     events: list[tuple[str, float, str]] = []
@@ -65,7 +65,7 @@ def test_result_files_follow_the_spec(result) -> None:
         assert len(scan["scan_px"]) == len(scan["scan_cost"]) == (13 if k == 0 else 7)
         assert scan["pixel_size"] > 0
         assert scan["applied"] == (scan["reason"] == "") and abs(scan["offset_px"]) <= scan["scan_px"][-1]
-    # the shoulders inside the masks' rims moved out after the last hull fit (refine.rim_fit_gain 0.5)
+    # the shoulders inside the masks' rims moved out after the last hull fit (refine.surface.rim_fit_gain 0.5)
     rims = report["refine"]["rim_fit"]
     assert rims["gain"] == 0.5 and 0 < rims["inside"] <= rims["rim_vertices"] and rims["mean_move_px"] >= 0.0
     # the synthetic masks are exact (pixel-centre hits): no margin found, no warning

@@ -69,7 +69,7 @@ def test_bad_orders_and_counts_are_named() -> None:
 
 
 def test_illumination_json_keeps_the_richer_terms_only_when_there_are_some(tmp_path) -> None:
-    """A default (pmvir-sh9) document is exactly the spec's layout; one from refine.sh_order 4 adds
+    """A default (pmvir-sh9) document is exactly the spec's layout; one from refine.lighting.sh_order 4 adds
     'sh_high' per frame and reads back."""
     import json
 

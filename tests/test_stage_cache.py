@@ -19,16 +19,16 @@ def _config(**groups: dict) -> PipelineConfig:
 
 
 def test_a_saved_output_loads_back_only_with_the_options_it_was_made_with(tmp_path: Path) -> None:
-    base = _config(geometry={"mvs_planes": 32})
+    base = _config(geometry={"mvs": {"planes": 32}})
     stage_cache.save_stage(tmp_path, Stage.GEOMETRY, base, {"vertices": [1, 2, 3]})
     assert stage_cache.load_stage(tmp_path, Stage.GEOMETRY, base) == {"vertices": [1, 2, 3]}
     # later stages' options do not matter, its own and earlier ones do
     assert stage_cache.has_stage(
-        tmp_path, Stage.GEOMETRY, _config(geometry={"mvs_planes": 32}, refine={"pol_k": 0.7})
+        tmp_path, Stage.GEOMETRY, _config(geometry={"mvs": {"planes": 32}}, refine={"pol": {"k": 0.7}})
     )
     for other in (
-        _config(geometry={"mvs_planes": 48}),
-        _config(geometry={"mvs_planes": 32}, decode={"noise_floor": 0.02}),
+        _config(geometry={"mvs": {"planes": 48}}),
+        _config(geometry={"mvs": {"planes": 32}}, decode={"noise_floor": 0.02}),
     ):
         assert not stage_cache.has_stage(tmp_path, Stage.GEOMETRY, other)
         with pytest.raises(PmvirError, match="made with other options"):

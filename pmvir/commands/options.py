@@ -32,7 +32,7 @@ def add_option_arguments(p: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="set one option, e.g. --set refine.pol_k=0.6 (VALUE is JSON, or a bare string)",
+        help="set one option, e.g. --set refine.pol.k=0.6 (VALUE is JSON, or a bare string)",
     )
     p.add_argument("--stop-after", choices=[str(s) for s in Stage], help="last stage to run")
     p.add_argument("--no-polarimetric", action="store_true", help="drop E_pol (the MVIR baseline)")
@@ -54,9 +54,9 @@ def build_config(args: argparse.Namespace) -> PipelineConfig:
     _apply_overrides(tree, args.overrides)
     named = {
         ("stop_after",): args.stop_after,
-        ("refine", "polarimetric"): False if args.no_polarimetric else None,
-        ("refine", "dop_weight"): False if args.no_dop_weight else None,
-        ("refine", "intensity"): args.intensity,
+        ("refine", "pol", "enabled"): False if args.no_polarimetric else None,
+        ("refine", "pol", "dop_weight"): False if args.no_dop_weight else None,
+        ("refine", "pho", "intensity"): args.intensity,
         ("refine", "device"): args.device,
     }
     for path, value in named.items():

@@ -77,7 +77,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="change one option, e.g. --set refine.max_iterations=40 (VALUE is JSON, or a bare string)",
+        help="change one option, e.g. --set refine.solver.max_iterations=40 (VALUE is JSON, or a bare string)",
     )
     r.add_argument("--label", default=None, help="label of the new job (default: the source's)")
     r.add_argument("--wait", action="store_true", help="wait for the new job to finish")

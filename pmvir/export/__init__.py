@@ -129,7 +129,7 @@ def write_refined_outputs(
         result: the result folder.
         mesh: the refined mesh with albedo.
         views: per registered view its stem and decoded images; cameras: theirs.
-        sh, rgb_scale: (V, T) shading coefficients (T = 9, 16 or 25, as refine.sh_order) and (V, 3) scales of those views.
+        sh, rgb_scale: (V, T) shading coefficients (T = 9, 16 or 25, as refine.lighting.sh_order) and (V, 3) scales of those views.
         config: the run's configuration (``refine`` for the residuals, ``export``).
         progress: reports per file written.
 

@@ -139,9 +139,9 @@ def pixel_epol(model_aop: np.ndarray, aop: np.ndarray, dop: np.ndarray, options:
     eta = azimuth_distance(
         torch.from_numpy(model_aop.astype(np.float64)), torch.from_numpy(aop.astype(np.float64))
     )
-    cost = polarimetric_cost(eta, k=options.pol_k).numpy()
-    weight = dop if options.dop_weight else np.ones_like(dop)
-    return np.where(dop >= options.dop_min, weight * cost, 0.0).astype(np.float32)
+    cost = polarimetric_cost(eta, k=options.pol.k).numpy()
+    weight = dop if options.pol.dop_weight else np.ones_like(dop)
+    return np.where(dop >= options.pol.dop_min, weight * cost, 0.0).astype(np.float32)
 
 
 def write_residuals(
@@ -164,7 +164,7 @@ def write_residuals(
         views: per registered view its stem and decoded images.
         cameras: the views' cameras (same order).
         mesh_vertices, mesh_faces, albedo: the refined mesh (N, 3), (F, 3), (N, 3) linear.
-        sh, rgb_scale: (V, T) shading coefficients (T = 9, 16 or 25, as refine.sh_order) and (V, 3) scales of the views.
+        sh, rgb_scale: (V, T) shading coefficients (T = 9, 16 or 25, as refine.lighting.sh_order) and (V, 3) scales of the views.
         options: the refinement's options (which intensity it fitted, E_pol's parameters).
         max_size: widest image written, pixels.
     """
@@ -172,7 +172,7 @@ def write_residuals(
 
     from pmvir.refine.forward import render_decoded
 
-    key = "i_min" if options.intensity == "min" else "i_int"
+    key = "i_min" if options.pho.intensity == "min" else "i_int"
     factors = [reduction_factor(cam.width, max_size) for cam in cameras]
     small = [reduced_camera(cam, s) for cam, s in zip(cameras, factors, strict=True)]
     per_view = []

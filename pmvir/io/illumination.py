@@ -24,7 +24,7 @@ class FrameLighting(BaseModel):
         default=None,
         min_length=7,
         max_length=16,
-        description="Only when the refinement fitted a richer shading (refine.sh_order 3 or 4): the "
+        description="Only when the refinement fitted a richer shading (refine.lighting.sh_order 3 or 4): the "
         "coefficients of pmvir.sh.sh_basis's degree-3 (7) and degree-4 (9) terms. They are orthogonal to "
         "pmvir-sh9 over the sphere, so 'sh' is the least-squares pmvir-sh9 part of the full shading.",
     )

@@ -14,7 +14,7 @@ the AoP's signal-to-noise ratio.
 
 :func:`closure_noise` is the local root mean square of ``r / s0`` over blocks whose
 four samples are all valid, at full resolution. The refinement weights E_pol's pairs by
-it (``refine.aop_noise``).
+it (``refine.pol.aop_noise``).
 """
 
 from __future__ import annotations

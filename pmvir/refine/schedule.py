@@ -206,7 +206,7 @@ class _Unknowns:
 
     vertices: torch.Tensor  # (N, 3)
     albedo: torch.Tensor  # (N, 3)
-    sh: torch.Tensor  # (V, T): T = 9 (pmvir-sh9), 16 or 25 (refine.sh_order)
+    sh: torch.Tensor  # (V, T): T = 9 (pmvir-sh9), 16 or 25 (refine.lighting.sh_order)
     rgb_scale: torch.Tensor  # (V, 3)
 
 
@@ -393,10 +393,10 @@ class StageWeights:
     @classmethod
     def of_stage(cls, opts: RefineOptions, s: int) -> StageWeights:
         return cls(
-            tau_pol=opts.tau_pol[s] if opts.polarimetric else 0.0,
-            tau_gsm=opts.tau_gsm[s],
-            tau_psm=opts.tau_psm[s],
-            t=opts.gsm_exponent[s],
+            tau_pol=opts.stages.tau_pol[s] if opts.pol.enabled else 0.0,
+            tau_gsm=opts.stages.tau_gsm[s],
+            tau_psm=opts.stages.tau_psm[s],
+            t=opts.stages.gsm_exponent[s],
         )
 
 
@@ -433,7 +433,7 @@ def prepare_stage(
     opts, faces_np = setup.opts, setup.faces_np
     cur_np = state.vertices.detach().cpu().numpy().astype(np.float64)
     n, n_views = len(cur_np), len(setup.cameras)
-    if s > 0 and opts.refresh_visibility and setup.visibility_fn is not None:
+    if s > 0 and opts.views.refresh_visibility and setup.visibility_fn is not None:
         visibility = np.asarray(setup.visibility_fn(cur_np, faces_np))
         if visibility.shape != (n, n_views):
             raise ConfigError(f"visibility_fn returned shape {visibility.shape}, expected ({n}, {n_views})")
@@ -447,8 +447,8 @@ def prepare_stage(
         device=setup.device,
         dtype=setup.dtype,
         normals=normals_np,
-        min_cos=opts.min_view_cos,
-        keep_best=opts.min_view_pairs,
+        min_cos=opts.views.min_cos,
+        keep_best=opts.views.min_pairs,
     )
     if pairs.size == 0:
         raise ReconstructionError(
@@ -464,11 +464,11 @@ def prepare_stage(
         colour,
         observed,
         setup.topo.edges_np,
-        sigma_chroma=opts.psm_sigma_chroma,
-        sigma_log_intensity=opts.psm_sigma_log_intensity,
+        sigma_chroma=opts.pho.psm_sigma_chroma,
+        sigma_log_intensity=opts.pho.psm_sigma_log_intensity,
     )
     light_factor = _shadow_factor(setup, state, pairs, normals_np)
-    robust = opts.pho_robust != "none" and s > 0  # stage 1 starts from uniform lighting: no residuals yet
+    robust = opts.pho.robust != "none" and s > 0  # stage 1 starts from uniform lighting: no residuals yet
     pho_weight = _robust_pho_weights(setup, state, pairs, samples, light_factor) if robust else None
     floor = _stage_dop_floor(samples, opts)
     problem = _stage_problem(
@@ -491,7 +491,7 @@ def prepare_stage(
         n_observed=int(observed.sum()),
         h=mean_edge_length(cur_np, setup.topo.edges_np),
         dop_floor=floor,
-        pol_pairs=_pol_pair_count(samples, problem) if opts.polarimetric else 0,
+        pol_pairs=_pol_pair_count(samples, problem) if opts.pol.enabled else 0,
         pho_signal=_pho_signal(samples, problem),
     )
     return stage, state
@@ -507,7 +507,7 @@ def _pho_signal(samples: PairSamples, problem: StageProblem) -> float:
 def _stage_dop_floor(samples: PairSamples, opts: RefineOptions) -> torch.Tensor | float | None:
     """E_pol's DoP floor for a stage (:func:`dop_floor`), None where every pair is kept (no
     polarization, or ``dop_min`` 0 with a fixed floor)."""
-    if not opts.polarimetric or samples.dop is None:
+    if not opts.pol.enabled or samples.dop is None:
         return None
     floor = dop_floor(samples, opts)
     return None if isinstance(floor, float) and floor <= 0.0 else floor
@@ -551,11 +551,11 @@ def prefit_lighting(
         stage,
         state,
         progress=progress,
-        max_iterations=opts.lighting_prefit_iterations,
+        max_iterations=opts.lighting.prefit_iterations,
         freeze_motion=True,
     )
-    robust = opts.pho_robust != "none" and opts.pho_robust_first_stage
-    if not robust and opts.shadowing == "none":
+    robust = opts.pho.robust != "none" and opts.pho.robust_first_stage
+    if not robust and opts.pho.shadowing == "none":
         return stage, state
     _, _, samples = _stage_observations(state.vertices, setup.topo.faces, setup.views, stage.pairs)
     light_factor = _shadow_factor(setup, state, stage.pairs, None)
@@ -591,10 +591,10 @@ def final_lighting_fit(
         stage,
         index=opts.n_stages,
         problem=replace(stage.problem, light_scale=scale),
-        weights=replace(stage.weights, tau_light=opts.lighting_coupling),
+        weights=replace(stage.weights, tau_light=opts.lighting.coupling),
     )
     return solve_stage(
-        setup, stage, state, progress=progress, max_iterations=opts.lighting_final_iterations, freeze_motion=True
+        setup, stage, state, progress=progress, max_iterations=opts.lighting.final_iterations, freeze_motion=True
     )
 
 
@@ -604,7 +604,7 @@ def _shadow_factor(
     """(P,) each pair's unblocked share of its irradiance at the current geometry and lighting
     (:func:`pmvir.refine.shadowing.shadow_factors`), None without ``shadowing``."""
     opts = setup.opts
-    if opts.shadowing == "none":
+    if opts.pho.shadowing == "none":
         return None
     cur = state.vertices.detach().cpu().numpy().astype(np.float64)
     if normals_np is None:
@@ -615,8 +615,8 @@ def _shadow_factor(
         setup.faces_np,
         normals_np,
         state.sh.detach().cpu().numpy(),
-        n_directions=opts.shadow_directions,
-        bounce=opts.shadow_bounce,
+        n_directions=opts.pho.shadow_directions,
+        bounce=opts.pho.shadow_bounce,
         offset=mean_edge_length(cur, setup.topo.edges_np),
     )
     flat = torch.from_numpy(f.reshape(-1)).to(device=setup.device, dtype=setup.dtype)
@@ -642,10 +642,10 @@ def _stage_problem(
     pol_mask = None
     if samples.dop is not None and evidence is not None and floor is not None:
         pol_mask = _above_floor(samples.dop, evidence, floor, opts)
-    pol_weight = evidence if opts.dop_weight else None
-    if pol_weight is not None and opts.dop_weight_power != 1.0:
-        pol_weight = pol_weight.clamp_min(0.0) ** opts.dop_weight_power
-    if pol_weight is not None and opts.dop_weight_normalized:
+    pol_weight = evidence if opts.pol.dop_weight else None
+    if pol_weight is not None and opts.pol.dop_weight_power != 1.0:
+        pol_weight = pol_weight.clamp_min(0.0) ** opts.pol.dop_weight_power
+    if pol_weight is not None and opts.pol.dop_weight_normalized:
         used = pol_weight if pol_mask is None else pol_weight[pol_mask]
         pol_weight = pol_weight / (used.mean() if used.numel() else pol_weight.new_tensor(1.0)).clamp_min(
             1e-6
@@ -658,15 +658,15 @@ def _stage_problem(
         psm_weight=torch.from_numpy(psm_weight).to(device=setup.device, dtype=setup.dtype),
         views=setup.views,
         pairs=pairs,
-        polarimetric=opts.polarimetric,
+        polarimetric=opts.pol.enabled,
         pol_mask=pol_mask,
         pol_weight=pol_weight,
-        k=opts.pol_k,
+        k=opts.pol.k,
         t=t,
         units=setup.units,
         pho_weight=pho_weight,
-        diffuse_fresnel_ior=opts.diffuse_fresnel_ior,
-        diffuse_dop_ior=opts.diffuse_dop_ior,
+        diffuse_fresnel_ior=opts.pho.diffuse_fresnel_ior,
+        diffuse_dop_ior=opts.pho.diffuse_dop_ior,
         light_factor=light_factor,
     )
 
@@ -674,7 +674,7 @@ def _stage_problem(
 def pol_evidence(samples: PairSamples) -> torch.Tensor | None:
     """(P,) what E_pol weights and floors each pair by: its DoP, in units of its own AoP noise.
 
-    With the views' measured polarization noise sigma (``refine.aop_noise`` 'closure',
+    With the views' measured polarization noise sigma (``refine.pol.aop_noise`` 'closure',
     :func:`pmvir.polarization.noise.closure_noise`): ``rho * m / sigma`` with m the median sigma
     over the stage's pairs, i.e. the AoP's signal-to-noise ratio rho / sigma scaled to read as a
     DoP at the median noise. Unmeasured (NaN) noise counts as m; sigma is held above m / 4, so no
@@ -697,8 +697,8 @@ def _above_floor(
 ) -> torch.Tensor:
     """E_pol's pair mask: the 'evidence' floor applies to :func:`pol_evidence` (and the DoP stays at
     or above ``dop_min``); the 'fixed' and 'shot' floors to the DoP."""
-    if opts.dop_min_noise == "evidence":
-        return (evidence >= floor) & (dop >= opts.dop_min)
+    if opts.pol.dop_min_noise == "evidence":
+        return (evidence >= floor) & (dop >= opts.pol.dop_min)
     return dop >= floor
 
 
@@ -713,16 +713,16 @@ def dop_floor(samples: PairSamples, opts: RefineOptions) -> torch.Tensor | float
         a float (``'fixed'``; ``'evidence'``, see :func:`evidence_dop_floor`, ``inf`` when no pair
         is evidence) or a (P,) tensor (``'shot'``).
     """
-    if opts.dop_min_noise == "fixed" or samples.dop is None:
-        return opts.dop_min
-    if opts.dop_min_noise == "evidence":
+    if opts.pol.dop_min_noise == "fixed" or samples.dop is None:
+        return opts.pol.dop_min
+    if opts.pol.dop_min_noise == "evidence":
         return evidence_dop_floor(samples, opts)
     i = samples.intensity.mean(dim=-1)
-    if opts.intensity == "min":
+    if opts.pho.intensity == "min":
         i = i / (1.0 - samples.dop).clamp_min(0.05)
     i = i.clamp_min(1e-6)
     ratio = (i.median() / i).clamp_min(1.0)
-    return opts.dop_min * torch.sqrt(ratio)
+    return opts.pol.dop_min * torch.sqrt(ratio)
 
 
 #: Mean azimuth distance eta of an AoP unrelated to the surface (eta is uniform on [0, pi/4]).
@@ -747,30 +747,30 @@ def evidence_dop_floor(samples: PairSamples, opts: RefineOptions) -> float:
     """
     evidence = pol_evidence(samples)
     if evidence is None or samples.dop is None or samples.aop is None or samples.aop_defined is None:
-        return opts.dop_min
+        return opts.pol.dop_min
     alpha, defined = azimuth(samples.normal_cam, samples.ray_cam)
-    usable = defined & samples.aop_defined & (samples.dop >= opts.dop_min)
+    usable = defined & samples.aop_defined & (samples.dop >= opts.pol.dop_min)
     ranked = evidence[usable]
     if ranked.numel() == 0:
-        return opts.dop_min
+        return opts.pol.dop_min
     eta = azimuth_distance(alpha[usable], samples.aop[usable])
     order = torch.argsort(ranked, descending=True)
     ranked, eta = ranked[order], eta[order]
     n = ranked.numel()
-    size = min(n, max(opts.dop_evidence_bin, math.ceil(0.02 * n)))
+    size = min(n, max(opts.pol.dop_evidence_bin, math.ceil(0.02 * n)))
     starts = list(range(0, n, size))
     if len(starts) > 1 and n - starts[-1] < size:
         starts.pop()
     ends = [*starts[1:], n]
-    bound = opts.dop_evidence_ratio * CHANCE_ETA
+    bound = opts.pol.dop_evidence_ratio * CHANCE_ETA
     floor = math.inf
     for a, b in zip(starts, ends, strict=True):
         if float(eta[a:b].mean()) > bound:
             break
         floor = float(ranked[b - 1])
     else:
-        return opts.dop_min  # every bin is evidence: keep every pair above dop_min
-    return max(floor, opts.dop_min)
+        return opts.pol.dop_min  # every bin is evidence: keep every pair above dop_min
+    return max(floor, opts.pol.dop_min)
 
 
 def _robust_pho_weights(
@@ -793,8 +793,8 @@ def _robust_pho_weights(
         factor = diffuse_view_factor(
             samples.normal_cam,
             samples.ray_cam,
-            fresnel_ior=setup.opts.diffuse_fresnel_ior,
-            dop_ior=setup.opts.diffuse_dop_ior,
+            fresnel_ior=setup.opts.pho.diffuse_fresnel_ior,
+            dop_ior=setup.opts.pho.diffuse_dop_ior,
         )
         if factor is not None:
             light = light * factor[:, None]
@@ -802,9 +802,9 @@ def _robust_pho_weights(
             light = light * light_factor[:, None]
         diff = samples.intensity - state.albedo.index_select(0, pairs.vertex) * light
         r = torch.linalg.vector_norm(diff, dim=1)
-        scale = setup.opts.pho_robust_scale * r.median().clamp_min(1e-12)
+        scale = setup.opts.pho.robust_scale * r.median().clamp_min(1e-12)
         weight = 1.0 / (1.0 + (r / scale) ** 2)
-        if setup.opts.pho_robust == "specular":
+        if setup.opts.pho.robust == "specular":
             weight = torch.where(diff.mean(dim=1) > 0, weight, torch.ones_like(weight))
         return weight
 
@@ -849,9 +849,9 @@ def _minimize(
         precondition=param.preconditioner(smoother),
         first_step=0.1,
         max_iterations=max_iterations,
-        history_size=opts.history_size,
-        rel_tolerance=opts.rel_tolerance,
-        grad_tolerance=opts.grad_tolerance,
+        history_size=opts.solver.history_size,
+        rel_tolerance=opts.solver.rel_tolerance,
+        grad_tolerance=opts.solver.grad_tolerance,
         on_iteration=log,
     )
 
@@ -887,13 +887,13 @@ def solve_stage(
     """
     t0 = time.perf_counter()
     opts = setup.opts
-    joint = opts.albedo_solve == "joint"
+    joint = opts.solver.albedo_solve == "joint"
     param = _Parametrization(
         state,
         pairs=stage.pairs,
         faces=setup.topo.faces,
         h=stage.h,
-        motion=opts.vertex_motion,
+        motion=opts.solver.vertex_motion,
         joint_albedo=joint,
     )
     solver = (
@@ -903,7 +903,7 @@ def solve_stage(
             stage.pairs, setup.topo.edges_np, stage.psm_weight, stage.weights.tau_psm, state.albedo
         )
     )
-    iterations = opts.max_iterations if max_iterations is None else max_iterations
+    iterations = opts.solver.max_iterations if max_iterations is None else max_iterations
     log = _IterationLog(max_iterations=iterations, progress=progress)
     res = _minimize(
         param,
@@ -923,11 +923,11 @@ def solve_stage(
         tau_gsm=w.tau_gsm,
         tau_psm=w.tau_psm,
         t=w.t,
-        k=opts.pol_k,
+        k=opts.pol.k,
         n_pairs=stage.pairs.size,
         n_observed=stage.n_observed,
         pol_pairs=stage.pol_pairs,
-        dop_floor=_floor_summary(stage.dop_floor) if opts.polarimetric else None,
+        dop_floor=_floor_summary(stage.dop_floor) if opts.pol.enabled else None,
         energies=log.energies,
         grad_max=log.grad_max,
         evaluations=res.evaluations,
@@ -935,7 +935,7 @@ def solve_stage(
         seconds=time.perf_counter() - t0,
     )
     accepted = _accepted(param, stage.problem, solver, res.x)
-    if not freeze_motion and opts.relax_iterations > 0 and stage.index == opts.n_stages - 1:
+    if not freeze_motion and opts.surface.relax_iterations > 0 and stage.index == opts.n_stages - 1:
         accepted = _relaxed(setup, stage.problem, solver, accepted)
     return accepted, stage_log
 
@@ -947,7 +947,7 @@ def _relaxed(
     :func:`pmvir.refine.relax.relax_tangentially`); the albedo is solved again at the new positions
     (projected) or interpolated there (joint)."""
     verts = state.vertices.cpu().numpy().astype(np.float64)
-    relaxed, face_ids, bary = relax_tangentially(verts, setup.faces_np, setup.opts.relax_iterations)
+    relaxed, face_ids, bary = relax_tangentially(verts, setup.faces_np, setup.opts.surface.relax_iterations)
     vertices = torch.from_numpy(relaxed).to(device=setup.device, dtype=setup.dtype)
     if solver is not None:
         with torch.no_grad():
@@ -969,14 +969,14 @@ def intensity_units(observations: Sequence[Observation], opts: RefineOptions) ->
     Raises:
         ReconstructionError: 'median' asked for but no view has a valid pixel with positive intensity.
     """
-    if opts.intensity_scale == "absolute":
-        return opts.intensity_units
+    if opts.pho.intensity_scale == "absolute":
+        return opts.pho.intensity_units
     values = [obs.intensity[obs.valid].mean(axis=-1) for obs in observations]
     flat = np.concatenate(values) if values else np.zeros(0, np.float32)
     flat = flat[np.isfinite(flat) & (flat > 0)]
     if flat.size == 0:
         raise ReconstructionError("no view has a valid pixel with positive intensity to scale E_pho by")
-    return opts.intensity_units / float(np.median(flat))
+    return opts.pho.intensity_units / float(np.median(flat))
 
 
 def with_valid_margin(obs: Observation, margin: int) -> Observation:
@@ -1028,21 +1028,21 @@ def _setup(
 ) -> _Setup:
     device = resolve_device(opts.device)
     dtype = torch.float32 if opts.dtype == "float32" else torch.float64
-    if opts.silhouette_margin_px > 0:
-        observations = [with_valid_margin(obs, opts.silhouette_margin_px) for obs in observations]
-    if opts.aop_noise == "uniform":
+    if opts.views.silhouette_margin_px > 0:
+        observations = [with_valid_margin(obs, opts.views.silhouette_margin_px) for obs in observations]
+    if opts.pol.aop_noise == "uniform":
         observations = [replace(obs, aop_noise=None) for obs in observations]
-    if opts.stokes_smoothing_px > 0 and opts.polarimetric:
-        observations = [with_smoothed_stokes(obs, opts.stokes_smoothing_px) for obs in observations]
+    if opts.pol.stokes_smoothing_px > 0 and opts.pol.enabled:
+        observations = [with_smoothed_stokes(obs, opts.pol.stokes_smoothing_px) for obs in observations]
     views = build_view_stack(
-        cameras, observations, polarimetric=opts.polarimetric, device=device, dtype=dtype
+        cameras, observations, polarimetric=opts.pol.enabled, device=device, dtype=dtype
     )
     topo = _Topology.of(faces_np, device)
     smoother = GraphSmoother(
         topo.edges_np,
         n_vertices,
-        lam=opts.precondition_lambda,
-        iterations=opts.precondition_iterations,
+        lam=opts.solver.precondition_lambda,
+        iterations=opts.solver.precondition_iterations,
         device=device,
         dtype=dtype,
     )
@@ -1098,9 +1098,9 @@ def _offset_scan(
         setup.faces_np,
         setup.cameras,
         setup.observations,
-        min_cos=opts.offset_scan_min_cos,
+        min_cos=opts.offset_scan.min_cos,
         max_px=0.75 if scans else 1.5,
-        deblur_px=opts.offset_scan_deblur_px,
+        deblur_px=opts.offset_scan.deblur_px,
     )
     if not scan.applied:
         return state, [*scans, scan]
@@ -1114,7 +1114,7 @@ def _inside_hull(
 ) -> _Unknowns:
     """``state`` with the vertices outside the masks' visual hull moved inside (``hull_tolerance_px``);
     the fit is appended to ``fits``. Unchanged without masks or with the option off."""
-    tolerance = setup.opts.hull_tolerance_px
+    tolerance = setup.opts.surface.hull_tolerance_px
     if masks is None or tolerance is None:
         return state
     v = state.vertices.detach().cpu().numpy().astype(np.float64)
@@ -1132,9 +1132,9 @@ def rim_fit_margin(opts: RefineOptions) -> float | None:
     inside all round for a margin of the masks, and the scans are what moves such a surface; without them
     (a specular-dominated capture, whose stereo surface lies inside at the depth of its reflections) the
     rims are the only measure of it."""
-    if opts.rim_fit_mask_margin_px is not None:
-        return opts.rim_fit_mask_margin_px
-    return None if opts.offset_scan != "off" else 0.0
+    if opts.surface.rim_fit_mask_margin_px is not None:
+        return opts.surface.rim_fit_mask_margin_px
+    return None if opts.offset_scan.mode != "off" else 0.0
 
 
 def _to_rims(
@@ -1147,7 +1147,7 @@ def _to_rims(
         setup.faces_np,
         setup.cameras,
         masks,
-        gain=setup.opts.rim_fit_gain,
+        gain=setup.opts.surface.rim_fit_gain,
         mask_margin_px=rim_fit_margin(setup.opts),
     )
     moved = torch.from_numpy(fit.vertices).to(device=setup.device, dtype=setup.dtype)
@@ -1173,7 +1173,7 @@ def refine_surface(
         faces: (F, 3) int triangles, counter-clockwise seen from outside.
         cameras: V cameras (cam_from_world, COLMAP pixels).
         observations: V decoded views, same sizes as the cameras; their ``intensity`` is
-            I_min or I_int as ``options.intensity`` says (see :func:`observation_from_decoded`).
+            I_min or I_int as ``options.pho.intensity`` says (see :func:`observation_from_decoded`).
         visibility: (N, V) bool initial visibility.
         options: the stage's options (default :class:`pmvir.config.RefineOptions`).
         visibility_fn: recomputes visibility from (vertices, faces) between stages (e.g.
@@ -1203,7 +1203,7 @@ def refine_surface(
     if vis.shape != (n, n_views):
         raise ConfigError(f"expected ({n}, {n_views}) visibility, got {vis.shape}")
     state = _initial_unknowns(
-        verts_np, n_views, sh_order=opts.sh_order, device=setup.device, dtype=setup.dtype
+        verts_np, n_views, sh_order=opts.lighting.sh_order, device=setup.device, dtype=setup.dtype
     )
     if masks is not None and len(masks) != n_views:
         raise ConfigError(f"expected {n_views} masks (one per view), got {len(masks)}")
@@ -1217,44 +1217,44 @@ def refine_surface(
 
     scans: list[OffsetScan] = []
     t_scan = time.perf_counter()
-    if opts.offset_scan != "off":
+    if opts.offset_scan.mode != "off":
         with progress.step("offset scan", weight=0.01) as p:
             state, scans = scanned(state, scans, p)
     timings = {"setup": t_scan - t_start, "offset_scan": time.perf_counter() - t_scan}
     logs: list[StageLog] = []
     for s in range(opts.n_stages):
         t_stage = time.perf_counter()
-        lighting = _LIGHTING_WEIGHT if opts.lighting_coupling > 0.0 else 0.0
-        stage_weight = (1.0 - _SCAN_WEIGHT[opts.offset_scan] - lighting) / opts.n_stages
+        lighting = _LIGHTING_WEIGHT if opts.lighting.coupling > 0.0 else 0.0
+        stage_weight = (1.0 - _SCAN_WEIGHT[opts.offset_scan.mode] - lighting) / opts.n_stages
         with progress.step(f"stage {s + 1}", weight=stage_weight) as p:
             p.update(0.0, f"of {opts.n_stages}: visibility and pairs")
-            if s > 0 and opts.offset_scan == "stages":
+            if s > 0 and opts.offset_scan.mode == "stages":
                 state, scans = scanned(state, scans, p)
             stage, state = prepare_stage(setup, state, vis, s)
             vis = stage.visibility
-            if s == 0 and opts.lighting_prefit_iterations > 0:
+            if s == 0 and opts.lighting.prefit_iterations > 0:
                 with p.step("lighting", weight=0.1) as q:
                     stage, state = prefit_lighting(setup, stage, state, progress=q)
             state, log = solve_stage(setup, stage, state, progress=p)
         logs.append(log)
         timings[f"stage_{s + 1}"] = time.perf_counter() - t_stage
 
-    if opts.offset_scan == "stages":
+    if opts.offset_scan.mode == "stages":
         t_scan = time.perf_counter()
         with progress.step("offset scan", weight=0.01) as p:
             state, scans = _offset_scan(setup, state, opts, scans, p)
         timings["offset_scan"] += time.perf_counter() - t_scan
-    if masks is not None and opts.hull_tolerance_px is not None:
+    if masks is not None and opts.surface.hull_tolerance_px is not None:
         t_hull = time.perf_counter()
         state = _inside_hull(setup, state, masks, hull_fits)
         timings["hull_fit"] = time.perf_counter() - t_hull
     rim_fit = None
-    if masks is not None and opts.rim_fit_gain > 0.0:
+    if masks is not None and opts.surface.rim_fit_gain > 0.0:
         t_rim = time.perf_counter()
         state, rim_fit = _to_rims(setup, state, masks)
         timings["rim_fit"] = time.perf_counter() - t_rim
     lighting_fit = None
-    if opts.lighting_coupling > 0.0:
+    if opts.lighting.coupling > 0.0:
         t_fit = time.perf_counter()
         with progress.step("lighting", weight=_LIGHTING_WEIGHT) as p:
             state, lighting_fit = final_lighting_fit(setup, state, vis, progress=p)

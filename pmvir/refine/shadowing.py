@@ -1,4 +1,4 @@
-"""Cast shadows in E_pho's shading (``refine.shadowing``).
+"""Cast shadows in E_pho's shading (``refine.pho.shadowing``).
 
 The paper's shading ``S(N)`` is the irradiance of a point that sees the whole
 hemisphere above it, as on a convex surface. In a concavity (between a dragon's

@@ -87,7 +87,7 @@ def test_residuals_of_the_true_model_vanish_and_a_too_bright_model_shows_blue(
 
 
 def test_pixel_epol_is_zero_on_agreement_and_largest_halfway() -> None:
-    options = RefineOptions(dop_min=0.0)
+    options = RefineOptions(pol={"dop_min": 0.0})
     model = np.array([[0.3, 0.3, 0.3]])
     aop = np.array([[0.3, 0.3 + np.pi / 2, 0.3 + np.pi / 4]])
     dop = np.full((1, 3), 0.5)

@@ -320,7 +320,7 @@ def test_subdivide_until_negative_rounds_raises_value_error():
 def test_densify_for_views_follows_geometry_options():
     v, f = _sphere(5)
     cams = _cameras()
-    options = PipelineConfig().geometry.model_copy(update={"subdivision_max_area_px": 5.0})
+    options = PipelineConfig.model_validate({"geometry": {"subdivision": {"max_area_px": 5.0}}}).geometry
     res = densify_for_views(v, f, cams, None, options)
     assert res.converged and res.max_area_px < 5.0 and res.rounds >= 2
     np.testing.assert_array_equal(res.visibility[: len(v)], vertex_visibility(v, f, cams))

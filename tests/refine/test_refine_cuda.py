@@ -84,7 +84,7 @@ def test_refinement_on_cuda_gives_the_cpus_surface() -> None:
     obs, vis_fn, vis = _inputs(scene)
     results = {}
     for device in ("cpu", "cuda"):
-        opts = RefineOptions(device=device, dtype="float64", max_iterations=20, **NO_MOSAIC)
+        opts = RefineOptions(device=device, dtype="float64", solver={"max_iterations": 20}, **NO_MOSAIC)
         results[device] = refine_surface(
             scene.vertices, scene.faces, scene.cameras, obs, vis, options=opts, visibility_fn=vis_fn
         )

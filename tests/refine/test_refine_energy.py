@@ -544,7 +544,7 @@ def test_gradient_of_the_diffuse_factor_photometric_term(small_problem, fresnel,
 
 
 def test_gradient_of_the_photometric_term_with_shadow_factors(small_problem) -> None:
-    """refine.shadowing's per-pair factor (data, fixed for the stage) scales each pair's rendering."""
+    """refine.pho.shadowing's per-pair factor (data, fixed for the stage) scales each pair's rendering."""
     from dataclasses import replace
 
     problem, inputs = small_problem
@@ -588,7 +588,7 @@ def test_pair_light_is_each_pairs_basis_times_its_views_lighting(small_problem) 
 
 
 def test_gradient_of_the_photometric_term_with_degree_4_lighting(small_problem) -> None:
-    """refine.sh_order 4: E_pho through the 25-term shading basis, against finite differences in
+    """refine.lighting.sh_order 4: E_pho through the 25-term shading basis, against finite differences in
     every input; the degree-3 and degree-4 coefficients change its value."""
     problem, inputs = small_problem
     rng = np.random.default_rng(5)

@@ -35,14 +35,14 @@ def mitsuba_runs():
     vis = vis_fn(scene.vertices, scene.faces)
     obs = [observation_from_decoded(fr) for fr in scene.frames]
     runs = {"initial": accuracy(scene.vertices, scene.true_vertices, scene.true_faces)}
-    for name, extra in (("full", {}), ("mvir", {"polarimetric": False}), ("least_squares", {"pho_robust": "none"})):
+    for name, extra in (("full", {}), ("mvir", {"pol": {"enabled": False}}), ("least_squares", {"pho": {"robust": "none"}})):
         res = refine_surface(
             scene.vertices,
             scene.faces,
             scene.cameras,
             obs,
             vis,
-            options=RefineOptions(max_iterations=ITERATIONS, silhouette_margin_px=0, **extra),
+            options=RefineOptions(solver={"max_iterations": ITERATIONS}, views={"silhouette_margin_px": 0}, **extra),
             visibility_fn=vis_fn,
         )
         runs[name] = accuracy(res.vertices, scene.true_vertices, scene.true_faces)
@@ -50,7 +50,7 @@ def mitsuba_runs():
     for name, gain in (("full_masks", 0.0), ("full_rims", 0.5)):
         res = refine_surface(
             scene.vertices, scene.faces, scene.cameras, obs, vis,
-            options=RefineOptions(max_iterations=ITERATIONS, silhouette_margin_px=0, rim_fit_gain=gain),
+            options=RefineOptions(solver={"max_iterations": ITERATIONS}, views={"silhouette_margin_px": 0}, surface={"rim_fit_gain": gain}),
             visibility_fn=vis_fn, masks=[fr["mask"] for fr in scene.frames],
         )
         runs[name] = accuracy(res.vertices, scene.true_vertices, scene.true_faces)

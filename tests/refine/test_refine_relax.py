@@ -1,4 +1,4 @@
-"""Tangential relaxation (``refine.relax_iterations``): vertices spread out, the surface stays."""
+"""Tangential relaxation (``refine.surface.relax_iterations``): vertices spread out, the surface stays."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from pmvir.refine.mesh_ops import unique_edges
 from pmvir.refine.relax import carry_values, relax_tangentially
 from pmvir.synth.shapes import geodesic_sphere
 
-ONE_STAGE = {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]}
+ONE_STAGE = {"stages": {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]}}
 
 
 def _edge_cv(v: np.ndarray, f: np.ndarray) -> float:
@@ -120,11 +120,11 @@ def _first_stage_solved(scene_inputs, **options):
     from pmvir.refine.schedule import _initial_unknowns, _setup, prepare_stage, solve_stage
 
     scene, obs, vis = scene_inputs
-    opts = RefineOptions(silhouette_margin_px=0, **options)
+    opts = RefineOptions(views={"silhouette_margin_px": 0}, **options)
     faces = scene.faces.astype(np.int64)
     setup = _setup(faces, len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None)
     state = _initial_unknowns(
-        scene.vertices, len(scene.cameras), sh_order=opts.sh_order, device=setup.device, dtype=setup.dtype
+        scene.vertices, len(scene.cameras), sh_order=opts.lighting.sh_order, device=setup.device, dtype=setup.dtype
     )
     stage, state = prepare_stage(setup, state, vis, 0)
     return solve_stage(setup, stage, state, progress=Progress.none())[0], stage

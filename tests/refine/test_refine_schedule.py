@@ -21,7 +21,7 @@ from pmvir.sh import sh9_shading
 #: The scenes here are rendered straight to decoded frames (no mosaic, so no demosaicing mixes the
 #: background into the pixels along the silhouette, and ``valid`` already holds only pixels every
 #: sample of which hit the mesh): the silhouette margin, which is for demosaiced captures, is off.
-NO_MOSAIC = {"silhouette_margin_px": 0}
+NO_MOSAIC = {"views": {"silhouette_margin_px": 0}}
 DEFAULTS = RefineOptions(**NO_MOSAIC)
 
 
@@ -63,7 +63,7 @@ def plastic_runs(plastic):
         scene.cameras,
         obs,
         vis,
-        options=RefineOptions(polarimetric=False, **NO_MOSAIC),
+        options=RefineOptions(pol={"enabled": False}, **NO_MOSAIC),
         visibility_fn=vis_fn,
     )
     return full, baseline, calls, progress
@@ -83,7 +83,7 @@ def test_refinement_improves_accuracy_and_beats_the_mvir_baseline(plastic, plast
 def test_every_term_is_logged_per_iteration_and_the_cost_decreases(plastic_runs) -> None:
     full, baseline, _, _ = plastic_runs
     assert len(full.stages) == 3
-    for st, tau in zip(full.stages, DEFAULTS.tau_pol, strict=True):
+    for st, tau in zip(full.stages, DEFAULTS.stages.tau_pol, strict=True):
         assert st.tau_pol == tau and st.k == 0.5
         assert len(st.energies) == len(st.grad_max) >= 2
         for e in st.energies:
@@ -100,7 +100,7 @@ def test_every_term_is_logged_per_iteration_and_the_cost_decreases(plastic_runs)
     assert baseline.stages[0].tau_pol == 0.0
     # the plastic's AoP is evidence about the surface down to the fixed floor: E_pol keeps its pairs
     for st in full.stages:
-        assert st.dop_floor is not None and st.dop_floor >= DEFAULTS.dop_min
+        assert st.dop_floor is not None and st.dop_floor >= DEFAULTS.pol.dop_min
         assert 0 < st.pol_pairs < st.n_pairs
     assert all(st.pol_pairs == 0 and st.dop_floor is None for st in baseline.stages)
 
@@ -158,7 +158,7 @@ def test_lambert_capture_full_method_agrees_with_the_baseline(stokes_noise: floa
             scene.cameras,
             obs,
             vis,
-            options=RefineOptions(polarimetric=pol, **NO_MOSAIC),
+            options=RefineOptions(pol={"enabled": pol}, **NO_MOSAIC),
             visibility_fn=vis_fn,
         )
         for pol in (True, False)
@@ -174,7 +174,7 @@ def test_lambert_capture_full_method_agrees_with_the_baseline(stokes_noise: floa
             scene.cameras,
             obs,
             vis,
-            options=RefineOptions(dop_min_noise="fixed", **NO_MOSAIC),
+            options=RefineOptions(pol={"dop_min_noise": "fixed"}, **NO_MOSAIC),
             visibility_fn=vis_fn,
         )
         assert all(st.pol_pairs > 0 for st in fixed.stages)
@@ -185,17 +185,10 @@ def test_ablations_run_and_lower_the_cost(plastic) -> None:
     from the paper's start (uniform lighting: no lighting pre-fit)."""
     scene, _, _, vis = plastic
     obs_int = [observation_from_decoded(fr, intensity="int") for fr in scene.frames]
-    one_stage = {
-        "tau_pol": [60.0],
-        "tau_gsm": [0.1],
-        "tau_psm": [2.0],
-        "gsm_exponent": [2.2],
-        "max_iterations": 15,
-        "lighting_prefit_iterations": 0,
-    }
+    one_stage = {"stages": {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]}, "solver": {"max_iterations": 15}, "lighting": {"prefit_iterations": 0}}
     for opts, obs in [
-        (RefineOptions(intensity="int", dop_weight=False, **one_stage), obs_int),
-        (RefineOptions(vertex_motion="normal", albedo_solve="joint", dop_min=0.0, **one_stage), plastic[1]),
+        (RefineOptions(pho={"intensity": "int"}, pol={"dop_weight": False}, **one_stage), obs_int),
+        (RefineOptions(solver={"vertex_motion": "normal", "albedo_solve": "joint"}, pol={"dop_min": 0.0}, **one_stage), plastic[1]),
     ]:
         res = refine_surface(scene.vertices, scene.faces, scene.cameras, obs, vis, options=opts)
         e = res.stages[0].energies
@@ -217,7 +210,7 @@ def test_cancel_raises_at_an_iteration_boundary(plastic) -> None:
             scene.cameras,
             obs,
             vis,
-            options=RefineOptions(max_iterations=10, offset_scan="off"),
+            options=RefineOptions(solver={"max_iterations": 10}, offset_scan={"mode": "off"}),
             progress=Progress(should_cancel=cancel),
         )
     assert len(polls) == 6
@@ -233,7 +226,7 @@ def test_cancel_before_the_first_step(plastic, scan, first_step) -> None:
             scene.cameras,
             obs,
             vis,
-            options=RefineOptions(offset_scan=scan),
+            options=RefineOptions(offset_scan={"mode": scan}),
             progress=Progress(should_cancel=lambda: True),
         )
 
@@ -310,32 +303,32 @@ def test_unavailable_cuda_is_a_config_error(plastic, monkeypatch) -> None:
 
 def test_stage_lists_must_have_equal_lengths() -> None:
     with pytest.raises(ValidationError, match="one entry per stage"):
-        RefineOptions(tau_pol=[60.0, 120.0], tau_gsm=[0.1], tau_psm=[2.0], gsm_exponent=[2.2])
+        RefineOptions(stages={"tau_pol": [60.0, 120.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]})
 
 
 def test_gsm_exponent_below_one_is_rejected() -> None:
     with pytest.raises(ValidationError, match="gsm_exponent"):
-        RefineOptions(gsm_exponent=[0.5, 2.8, 3.4])
+        RefineOptions(stages={"gsm_exponent": [0.5, 2.8, 3.4]})
 
 
 def test_unknown_option_is_rejected_and_config_tree_has_refine() -> None:
     with pytest.raises(ValidationError):
         RefineOptions(tau1=[1.0])
-    cfg = PipelineConfig.model_validate({"refine": {"polarimetric": False, "intensity": "int"}})
-    assert cfg.refine.polarimetric is False and cfg.refine.n_stages == 3
-    assert RefineOptions().tau_pol == [15.0, 30.0, 90.0] and RefineOptions().pol_k == 0.5
+    cfg = PipelineConfig.model_validate({"refine": {"pol": {"enabled": False}, "pho": {"intensity": "int"}}})
+    assert cfg.refine.pol.enabled is False and cfg.refine.n_stages == 3
+    assert RefineOptions().stages.tau_pol == [15.0, 30.0, 90.0] and RefineOptions().pol.k == 0.5
 
 
 def test_the_rim_fit_estimates_the_masks_margin_only_where_the_offset_scans_run() -> None:
     """Default: estimated (None) with the scans, 0 without them (a surface inside all round is then the rim
     fit's to move); a margin set wins either way; out of range is refused."""
     assert rim_fit_margin(RefineOptions()) is None
-    assert rim_fit_margin(RefineOptions(offset_scan="off")) == 0.0
-    for scan in ("off", RefineOptions().offset_scan):
-        assert rim_fit_margin(RefineOptions(offset_scan=scan, rim_fit_mask_margin_px=1.5)) == 1.5
+    assert rim_fit_margin(RefineOptions(offset_scan={"mode": "off"})) == 0.0
+    for scan in ("off", RefineOptions().offset_scan.mode):
+        assert rim_fit_margin(RefineOptions(offset_scan={"mode": scan}, surface={"rim_fit_mask_margin_px": 1.5})) == 1.5
     for bad in (-0.5, 4.0):
         with pytest.raises(ValidationError, match="rim_fit_mask_margin_px"):
-            RefineOptions(rim_fit_mask_margin_px=bad)
+            RefineOptions(surface={"rim_fit_mask_margin_px": bad})
 
 
 def test_median_intensity_scale_makes_the_result_independent_of_the_exposure(plastic) -> None:
@@ -343,16 +336,10 @@ def test_median_intensity_scale_makes_the_result_independent_of_the_exposure(pla
     surface; with 'absolute' E_pho's weight against E_pol and E_gsm changes, and so does the result."""
     scene, obs, _, vis = plastic
     brighter = [Observation(o.intensity * 4.0, o.aop, o.dop, o.valid) for o in obs]
-    short = {
-        "max_iterations": 8,
-        "tau_pol": [60.0],
-        "tau_gsm": [0.1],
-        "tau_psm": [2.0],
-        "gsm_exponent": [2.2],
-    }
+    short = {"solver": {"max_iterations": 8}, "stages": {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]}}
 
     def run(observations, scale: str) -> np.ndarray:
-        opts = RefineOptions(intensity_scale=scale, dtype="float64", **short)
+        opts = RefineOptions(dtype="float64", pho={"intensity_scale": scale}, **short)
         res = refine_surface(scene.vertices, scene.faces, scene.cameras, observations, vis, options=opts)
         return res.vertices - scene.vertices
 
@@ -373,12 +360,12 @@ def test_median_intensity_units_follow_the_observations() -> None:
     grey[..., :] = np.array([0.1, 0.2, 0.4, 0.4, 0.4, 0.8], np.float32).reshape(2, 3, 1)
     obs = [Observation(grey, np.zeros((2, 3)), np.zeros((2, 3)), valid)]
     assert intensity_units(
-        obs, RefineOptions(intensity_units=4.0, intensity_scale="median")
+        obs, RefineOptions(pho={"intensity_units": 4.0, "intensity_scale": "median"})
     ) == pytest.approx(4.0 / 0.4)
-    assert intensity_units(obs, RefineOptions(intensity_units=4.0, intensity_scale="absolute")) == 4.0
+    assert intensity_units(obs, RefineOptions(pho={"intensity_units": 4.0, "intensity_scale": "absolute"})) == 4.0
     dark = [Observation(np.zeros((2, 3, 3), np.float32), np.zeros((2, 3)), np.zeros((2, 3)), valid)]
     with pytest.raises(ReconstructionError, match="no view has a valid pixel"):
-        intensity_units(dark, RefineOptions(intensity_scale="median"))
+        intensity_units(dark, RefineOptions(pho={"intensity_scale": "median"}))
 
 
 def test_lighting_prefit_holds_the_geometry_and_fits_the_lighting(plastic) -> None:
@@ -386,12 +373,12 @@ def test_lighting_prefit_holds_the_geometry_and_fits_the_lighting(plastic) -> No
     from pmvir.refine.schedule import _initial_unknowns, _setup, prefit_lighting, prepare_stage
 
     scene, obs, _, vis = plastic
-    opts = RefineOptions(lighting_prefit_iterations=15, pho_robust_first_stage=True)
+    opts = RefineOptions(lighting={"prefit_iterations": 15}, pho={"robust_first_stage": True})
     setup = _setup(
         scene.faces.astype(np.int64), len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None
     )
     state = _initial_unknowns(
-        scene.vertices, len(scene.cameras), sh_order=opts.sh_order, device=setup.device, dtype=setup.dtype
+        scene.vertices, len(scene.cameras), sh_order=opts.lighting.sh_order, device=setup.device, dtype=setup.dtype
     )
     stage, state = prepare_stage(setup, state, vis, 0)
     assert stage.problem.pho_weight is None  # stage 1 alone has no residuals to weight by
@@ -412,7 +399,7 @@ def _first_stage(plastic, opts: RefineOptions):
         scene.faces.astype(np.int64), len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None
     )
     state = _initial_unknowns(
-        scene.vertices, len(scene.cameras), sh_order=opts.sh_order, device=setup.device, dtype=setup.dtype
+        scene.vertices, len(scene.cameras), sh_order=opts.lighting.sh_order, device=setup.device, dtype=setup.dtype
     )
     stage, state = prepare_stage(setup, state, vis, 0)
     return setup, state, stage
@@ -427,7 +414,7 @@ def test_specular_robust_weights_spare_pairs_darker_than_rendered(plastic) -> No
 
     weights = {}
     for mode in ("cauchy", "specular"):
-        opts = RefineOptions(pho_robust=mode)
+        opts = RefineOptions(pho={"robust": mode})
         setup, state, stage = _first_stage(plastic, opts)
         _, _, samples = _stage_observations(state.vertices, setup.topo.faces, setup.views, stage.pairs)
         weights[mode] = _robust_pho_weights(setup, state, stage.pairs, samples).numpy()
@@ -456,12 +443,12 @@ def test_shot_noise_dop_floor_rises_only_below_the_median_intensity() -> None:
     i_min = ((1.0 - dop) * i_int)[:, None].expand(5, 3)
     zeros = torch.zeros(5, 3, dtype=torch.float64)
     samples = PairSamples(i_min, zeros, zeros, torch.zeros(5), dop, torch.ones(5, dtype=torch.bool))
-    assert dop_floor(samples, RefineOptions(dop_min=0.04)) == 0.04
-    shot = dop_floor(samples, RefineOptions(dop_min=0.04, dop_min_noise="shot"))
+    assert dop_floor(samples, RefineOptions(pol={"dop_min": 0.04})) == 0.04
+    shot = dop_floor(samples, RefineOptions(pol={"dop_min": 0.04, "dop_min_noise": "shot"}))
     np.testing.assert_allclose(shot.numpy(), [0.04, 0.08, 0.16, 0.04, 0.04], rtol=1e-6)
     i_int_samples = PairSamples(i_int[:, None].expand(5, 3), zeros, zeros, torch.zeros(5), dop, dop > 0)
     np.testing.assert_allclose(
-        dop_floor(i_int_samples, RefineOptions(dop_min=0.04, dop_min_noise="shot", intensity="int")).numpy(),
+        dop_floor(i_int_samples, RefineOptions(pol={"dop_min": 0.04, "dop_min_noise": "shot"}, pho={"intensity": "int"})).numpy(),
         shot.numpy(),
         rtol=1e-6,
     )
@@ -500,7 +487,7 @@ def test_refinement_setup_applies_the_silhouette_margin_to_every_view(plastic) -
             len(scene.vertices),
             scene.cameras,
             obs,
-            opts=RefineOptions(silhouette_margin_px=m),
+            opts=RefineOptions(views={"silhouette_margin_px": m}),
             visibility_fn=vis_fn,
         )
         for m in (0, 2)
@@ -554,7 +541,7 @@ def test_dop_weight_power_weights_e_pol_pairs_by_a_power_of_their_dop(plastic) -
     _, obs, _, _ = plastic
     problems = {}
     for p, smooth in ((1.0, 0.0), (2.0, 0.0), (1.0, 1.5)):
-        opts = RefineOptions(dop_weight_power=p, stokes_smoothing_px=smooth)
+        opts = RefineOptions(pol={"dop_weight_power": p, "stokes_smoothing_px": smooth})
         setup, _, stage = _first_stage(plastic, opts)
         problems[(p, smooth)] = stage.problem
         if smooth > 0:
@@ -569,7 +556,7 @@ def test_dop_weight_power_weights_e_pol_pairs_by_a_power_of_their_dop(plastic) -
 
 
 def test_degree_4_lighting_fits_a_view_dependent_shading_that_sh9_cannot() -> None:
-    """refine.sh_order: frames whose shading has degree-3 and degree-4 content that differs per view
+    """refine.lighting.sh_order: frames whose shading has degree-3 and degree-4 content that differs per view
     (as a glossy residue does) are fitted by sh_order 4 with the geometry held to a small fraction
     of the photometric misfit sh_order 2 leaves; the result reports the pmvir-sh9 part in ``sh`` and
     the rest in ``sh_high``."""
@@ -587,7 +574,7 @@ def test_degree_4_lighting_fits_a_view_dependent_shading_that_sh9_cannot() -> No
     vis = make_visibility_fn(cams)(tv, tf)
     misfit = {}
     for order in (2, 4):
-        opts = RefineOptions(sh_order=order, **NO_MOSAIC)
+        opts = RefineOptions(lighting={"sh_order": order}, **NO_MOSAIC)
         setup = _setup(tf.astype(np.int64), len(tv), cams, obs, opts=opts, visibility_fn=None)
         state = _initial_unknowns(tv, len(cams), sh_order=order, device=setup.device, dtype=setup.dtype)
         assert state.sh.shape == (len(cams), (order + 1) ** 2)
@@ -598,7 +585,7 @@ def test_degree_4_lighting_fits_a_view_dependent_shading_that_sh9_cannot() -> No
         misfit[order] = log.energies[-1]["pho"]
     assert misfit[4] < 0.2 * misfit[2]
     result = refine_surface(
-        tv, tf, cams, obs, vis, options=RefineOptions(sh_order=4, max_iterations=2, **NO_MOSAIC)
+        tv, tf, cams, obs, vis, options=RefineOptions(lighting={"sh_order": 4}, solver={"max_iterations": 2}, **NO_MOSAIC)
     )
     assert result.sh.shape == (len(cams), 9) and result.sh_high.shape == (len(cams), 16)
 
@@ -640,23 +627,23 @@ def test_evidence_dop_floor_is_where_the_aop_stops_agreeing_with_the_surface() -
     an AoP that agrees nowhere turns E_pol off (inf); one that agrees everywhere keeps dop_min."""
     from pmvir.refine.schedule import dop_floor
 
-    opts = RefineOptions(dop_min=0.05)
-    assert opts.dop_min_noise == "evidence"
+    opts = RefineOptions(pol={"dop_min": 0.05})
+    assert opts.pol.dop_min_noise == "evidence"
     floor = dop_floor(_evidence_samples(40000, 0.2), opts)
     # bins of 1000 pairs span 0.012 of DoP here; the straddling bin may still pass
     assert 0.2 - 0.013 <= floor <= 0.2 + 1e-3
     assert dop_floor(_evidence_samples(40000, 0.12, seed=1), opts) == pytest.approx(0.12, abs=0.013)
     assert dop_floor(_evidence_samples(40000, None), opts) == float("inf")
     assert dop_floor(_evidence_samples(40000, 0.0), opts) == 0.05
-    assert dop_floor(_evidence_samples(40000, 0.0), RefineOptions(dop_min=0.1)) == 0.1
-    assert dop_floor(_evidence_samples(40000, None), RefineOptions(dop_min_noise="fixed")) == 0.05
+    assert dop_floor(_evidence_samples(40000, 0.0), RefineOptions(pol={"dop_min": 0.1})) == 0.1
+    assert dop_floor(_evidence_samples(40000, None), RefineOptions(pol={"dop_min_noise": "fixed"})) == 0.05
     # a stricter ratio asks for closer agreement: 3 deg noise still passes at 0.3 of chance
-    strict = RefineOptions(dop_min=0.05, dop_evidence_ratio=0.3)
+    strict = RefineOptions(pol={"dop_min": 0.05, "dop_evidence_ratio": 0.3})
     assert dop_floor(_evidence_samples(40000, 0.2), strict) == pytest.approx(0.2, abs=0.013)
 
 
 def test_pol_evidence_is_the_dop_over_each_pairs_own_noise() -> None:
-    """refine.aop_noise 'closure': a pair's evidence is rho * median(sigma) / sigma; equal noise
+    """refine.pol.aop_noise 'closure': a pair's evidence is rho * median(sigma) / sigma; equal noise
     leaves the DoP as it is, unmeasured noise counts as the median, and sigma is held above a
     quarter of the median."""
     import torch
@@ -687,7 +674,7 @@ def test_evidence_floor_ranks_pairs_by_their_aop_signal_to_noise() -> None:
     unrelated = _evidence_samples(n, None, seed=4)  # same normals and DoPs, random AoP
     aop = torch.where(torch.from_numpy(clean), aligned.aop, unrelated.aop)
     samples = replace(aligned, aop=aop)
-    opts = RefineOptions(dop_min=0.05)
+    opts = RefineOptions(pol={"dop_min": 0.05})
     assert dop_floor(samples, opts) == float("inf")
     noise = torch.from_numpy(np.where(clean, 0.05, 0.2))
     with_noise = replace(samples, aop_noise=noise)
@@ -702,14 +689,14 @@ def test_evidence_floor_ranks_pairs_by_their_aop_signal_to_noise() -> None:
 def test_diffuse_dop_factor_is_refused_where_e_pho_observes_i_int() -> None:
     """I_int keeps the diffuse light's polarized part: the I_min factor with intensity 'int' would
     darken it wrongly, so the options refuse the pair with a message naming both."""
-    assert RefineOptions(diffuse_dop_ior=1.5).diffuse_dop_ior == 1.5
+    assert RefineOptions(pho={"diffuse_dop_ior": 1.5}).pho.diffuse_dop_ior == 1.5
     with pytest.raises(ValidationError, match=r"diffuse_dop_ior.*intensity"):
-        RefineOptions(diffuse_dop_ior=1.5, intensity="int")
-    assert RefineOptions(intensity="int").diffuse_dop_ior == 0.0
+        RefineOptions(pho={"diffuse_dop_ior": 1.5, "intensity": "int"})
+    assert RefineOptions(pho={"intensity": "int"}).pho.diffuse_dop_ior == 0.0
 
 
 def test_shadow_factors_are_each_pairs_at_the_stage_start_and_after_the_lighting_prefit(plastic) -> None:
-    """refine.shadowing='cast': the stage's per-pair factor is shadow_factors' value of the pair's
+    """refine.pho.shadowing='cast': the stage's per-pair factor is shadow_factors' value of the pair's
     vertex under the pair's view's lighting, taken again under the pre-fitted lighting."""
     from pmvir.io.ply import vertex_normals
     from pmvir.refine.mesh_ops import mean_edge_length
@@ -719,10 +706,10 @@ def test_shadow_factors_are_each_pairs_at_the_stage_start_and_after_the_lighting
     scene, obs, _, vis = plastic
     faces = scene.faces.astype(np.int64)
     for shadowing in ("none", "cast"):
-        opts = RefineOptions(shadowing=shadowing, shadow_directions=64, lighting_prefit_iterations=5)
+        opts = RefineOptions(pho={"shadowing": shadowing, "shadow_directions": 64}, lighting={"prefit_iterations": 5})
         setup = _setup(faces, len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None)
         state = _initial_unknowns(
-            scene.vertices, len(scene.cameras), sh_order=opts.sh_order, device=setup.device, dtype=setup.dtype
+            scene.vertices, len(scene.cameras), sh_order=opts.lighting.sh_order, device=setup.device, dtype=setup.dtype
         )
         stage, state = prepare_stage(setup, state, vis, 0)
         fitted_stage, fitted = prefit_lighting(setup, stage, state, progress=Progress.none())
@@ -762,7 +749,7 @@ def test_lighting_coupling_recovers_the_shading_of_normals_a_view_does_not_see(p
         scene.cameras,
         obs,
         vis,
-        options=RefineOptions(lighting_coupling=1.0, **NO_MOSAIC),
+        options=RefineOptions(lighting={"coupling": 1.0}, **NO_MOSAIC),
         visibility_fn=vis_fn,
     )
 

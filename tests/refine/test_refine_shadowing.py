@@ -1,4 +1,4 @@
-"""Cast shadows in E_pho's shading (pmvir.refine.shadowing, refine.shadowing='cast')."""
+"""Cast shadows in E_pho's shading (pmvir.refine.shadowing, refine.pho.shadowing='cast')."""
 
 from __future__ import annotations
 
@@ -79,5 +79,5 @@ def test_bad_shapes_are_refused() -> None:
 
 
 def test_options_default_to_the_papers_unshadowed_shading() -> None:
-    assert RefineOptions().shadowing == "none"
-    assert RefineOptions(shadowing="cast", shadow_bounce=0.3).shadow_bounce == 0.3
+    assert RefineOptions().pho.shadowing == "none"
+    assert RefineOptions(pho={"shadowing": "cast", "shadow_bounce": 0.3}).pho.shadow_bounce == 0.3

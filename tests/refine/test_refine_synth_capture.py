@@ -21,7 +21,7 @@ from pmvir.refine import make_visibility_fn, refine_surface
 from pmvir.synth import synthesize
 
 #: Fewer iterations than the default keep the test short.
-OPTIONS = {"max_iterations": 10}
+OPTIONS = {"solver": {"max_iterations": 10}}
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +46,7 @@ def capture_run(tmp_path_factory: pytest.TempPathFactory):
         return evaluate(Mesh(vertices, geo.faces), gt, n_samples=20_000).accuracy
 
     runs = {}
-    for name, extra in (("full", {}), ("mvir", {"polarimetric": False}), ("all_pairs", {"min_view_cos": -1.0})):
+    for name, extra in (("full", {}), ("mvir", {"pol": {"enabled": False}}), ("all_pairs", {"views": {"min_cos": -1.0}})):
         res = refine_surface(
             geo.vertices,
             geo.faces,

@@ -30,14 +30,8 @@ CHROMIUM_ARGS = [
 #: A run that takes seconds on 2 cores: coarse subdivision, one refinement stage of 4 iterations, a
 #: small textured export.
 TINY_OPTIONS = {
-    "geometry": {"subdivision_max_area_px": 16.0},
-    "refine": {
-        "max_iterations": 4,
-        "tau_pol": [60.0],
-        "tau_gsm": [0.1],
-        "tau_psm": [2.0],
-        "gsm_exponent": [2.2],
-    },
+    "geometry": {"subdivision": {"max_area_px": 16.0}},
+    "refine": {"solver": {"max_iterations": 4}, "stages": {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]}},
     "export": {"face_budget": 3000, "texture_size": 256},
 }
 

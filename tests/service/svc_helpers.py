@@ -31,13 +31,7 @@ LIMITS = {
 #: Options that run the stages this build has.
 DECODE_ONLY = {"stop_after": "decode"}
 #: One refinement stage of one iteration: a full run that takes seconds.
-ONE_REFINE_STAGE = {
-    "max_iterations": 1,
-    "tau_pol": [60.0],
-    "tau_gsm": [0.1],
-    "tau_psm": [2.0],
-    "gsm_exponent": [2.2],
-}
+ONE_REFINE_STAGE = {"solver": {"max_iterations": 1}, "stages": {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]}}
 
 
 def require_redis() -> None:

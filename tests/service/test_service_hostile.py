@@ -88,7 +88,7 @@ def _png(width: int, height: int) -> bytes:
 
 
 def test_json_body_with_a_5000_digit_integer_is_422(api: httpx.Client) -> None:
-    body = '{"options": {"refine": {"max_iterations": ' + HUGE_INT + "}}}"
+    body = '{"options": {"refine": {"solver": {"max_iterations": ' + HUGE_INT + "}}}}"
     err = _error(api.post("/v1/jobs", content=body, headers={"content-type": "application/json"}), 422)
     assert err["errors"][0]["loc"] == ["body"] and "5000 characters" in err["errors"][0]["msg"]
 
@@ -100,7 +100,7 @@ def test_json_body_nested_50000_deep_is_422(api: httpx.Client) -> None:
 
 def test_zip_options_field_with_a_5000_digit_integer_is_422(api: httpx.Client, small_capture: Path) -> None:
     data = _zip_bytes(_capture_zip(small_capture))
-    err = _error(_post_zip(api, data, '{"refine": {"max_iterations": ' + HUGE_INT + "}}"), 422)
+    err = _error(_post_zip(api, data, '{"refine": {"solver": {"max_iterations": ' + HUGE_INT + "}}}"), 422)
     assert err["errors"][0]["loc"] == ["body", "options"] and "5000 characters" in err["errors"][0]["msg"]
 
 
@@ -121,11 +121,11 @@ def test_capture_json_with_a_huge_number_or_deep_nesting_is_422(
 
 
 def test_options_out_of_their_documented_range_are_422(api: httpx.Client) -> None:
-    r = api.post("/v1/jobs", json={"options": {"refine": {"max_iterations": 10**40}}})
-    assert _error(r, 422)["errors"][0]["loc"] == ["body", "options", "refine", "max_iterations"]
-    r = api.post("/v1/jobs", json={"options": {"refine": {"tau_pol": [1e300, 1.0, 1.0]}}})
+    r = api.post("/v1/jobs", json={"options": {"refine": {"solver": {"max_iterations": 10**40}}}})
+    assert _error(r, 422)["errors"][0]["loc"] == ["body", "options", "refine", "solver", "max_iterations"]
+    r = api.post("/v1/jobs", json={"options": {"refine": {"stages": {"tau_pol": [1e300, 1.0, 1.0]}}}})
     err = _error(r, 422)
-    assert err["errors"][0]["loc"] == ["body", "options", "refine", "tau_pol"]
+    assert err["errors"][0]["loc"] == ["body", "options", "refine", "stages", "tau_pol"]
     assert "1e9" in err["errors"][0]["msg"]
 
 

@@ -25,7 +25,7 @@ def geometry_job(stack: ServiceStack, tmp_path_factory: pytest.TempPathFactory) 
     shutil.rmtree(capture / "gt")  # over the shared stack's small file limit, and not needed
     with httpx.Client(base_url=stack.url, headers={"Authorization": f"Bearer {KEY}"}, timeout=60) as c:
         job_id = new_job(
-            c, capture, {"stop_after": "geometry", "geometry": {"subdivision_max_area_px": 16.0}}
+            c, capture, {"stop_after": "geometry", "geometry": {"subdivision": {"max_area_px": 16.0}}}
         )
         assert c.post(f"/v1/jobs/{job_id}/start").status_code == 202
         job = wait_for(c, job_id, finished, timeout=240)
@@ -66,18 +66,19 @@ def test_rerun_after_changed_geometry_options_must_start_at_geometry(
     r = api.post(
         f"/v1/jobs/{geometry_job['id']}/rerun",
         json={
-            "options": {"stop_after": "refine", "geometry": {"subdivision_max_area_px": 32.0}},
+            "options": {"stop_after": "refine", "geometry": {"subdivision": {"max_area_px": 32.0}}},
             "from_stage": "refine",
         },
     )
     assert r.status_code == 409 and "rerun from geometry" in r.json()["message"], r.text
     r = api.post(f"/v1/jobs/{geometry_job['id']}/rerun", json={"options": {"stop_after": "decode"}})
     assert r.status_code == 422 and r.json()["errors"][0]["loc"] == ["body", "from_stage"], r.text
-    r = api.post(f"/v1/jobs/{geometry_job['id']}/rerun", json={"options": {"refine": {"max_iterations": -1}}})
-    assert r.status_code == 422 and r.json()["errors"][0]["loc"][:4] == [
+    r = api.post(f"/v1/jobs/{geometry_job['id']}/rerun", json={"options": {"refine": {"solver": {"max_iterations": -1}}}})
+    assert r.status_code == 422 and r.json()["errors"][0]["loc"][:5] == [
         "body",
         "options",
         "refine",
+        "solver",
         "max_iterations",
     ]
 

@@ -194,7 +194,7 @@ function jobActions(job, after) {
 function renderUpload() {
   const fileInput = h("input", { type: "file", accept: ".zip,application/zip", hidden: true, id: "capture-file" });
   const label = h("input", { type: "text", placeholder: "label (optional)", size: 30, id: "job-label" });
-  const options = h("textarea", { rows: 2, cols: 60, placeholder: '{"refine": {"max_iterations": 20}}  (options, optional)', id: "job-options" });
+  const options = h("textarea", { rows: 2, cols: 60, placeholder: '{"refine": {"solver": {"max_iterations": 20}}}  (options, optional)', id: "job-options" });
   const status = h("div", { id: "upload-status" });
   const drop = h("div", { class: "drop", id: "drop", tabindex: 0 }, "Drop a zipped capture here, or click to choose one");
   drop.addEventListener("click", () => fileInput.click());

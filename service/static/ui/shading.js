@@ -1,5 +1,5 @@
 // pmvir's per-view shading S(N) (pmvir.sh.sh_basis): the spec's pmvir-sh9 terms of illumination.json's
-// "sh", then, where a frame has "sh_high" (refine.sh_order 3 or 4), the degree-3 and degree-4 terms.
+// "sh", then, where a frame has "sh_high" (refine.lighting.sh_order 3 or 4), the degree-3 and degree-4 terms.
 
 // S(N) at a unit normal (x, y, z) in capture world coordinates.
 export function shading(x, y, z, sh, shHigh) {
