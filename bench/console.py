@@ -30,6 +30,7 @@ sys.path[:0] = [
     str(ROOT / "tests" / "service"),
 ]  # before bench/, whose service.py shadows the package
 
+from _results import table, write_results  # noqa: E402  (bench/, the script's folder)
 from console_helpers import (  # noqa: E402  (after the sys.path set-up above)
     CHROMIUM,
     CHROMIUM_ARGS,
@@ -107,7 +108,23 @@ def main(argv: list[str] | None = None) -> int:
                 stats["plot_lines"] = page.locator("#plot path.term-line").count()
                 stats["console_errors"] = errors
                 browser.close()
-    (args.out / "console.json").write_text(json.dumps(stats, indent=1))
+    rows = [["synthesize the capture", round(stats["synth_s"], 1)],
+            ["job: upload to finished", round(stats["job_s"], 1)]]
+    rows += [[f"  stage {k}", round(v, 1)] for k, v in stats["stage_timings"].items() if isinstance(v, int | float)]
+    rows.append(["job page ready in Chromium", round(stats["page_ready_s"], 1)])
+    write_results(
+        "console",
+        title="Web console",
+        path=args.out / "console.json",
+        tables=[table(
+            "A job through the live stack, then its page in headless Chromium"
+            + (" (the browser test's small job)" if args.tiny else " (24 views of 408x340, the demo's options)"),
+            ["step", "seconds"],
+            rows,
+            note=f"{stats['vertices_shown']:,} vertices shown, {len(stats['console_errors'])} console errors",
+        )],
+        data=stats,
+    )
     print(json.dumps(stats, indent=1))
     return 0
 

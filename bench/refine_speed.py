@@ -17,8 +17,6 @@ Run: .venv/bin/python bench/refine_speed.py [--frequency 173] [--views 36] [--ma
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import platform
 import resource
 import sys
@@ -27,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _results import table, write_results
 
 from pmvir.camera import Camera, look_at
 from pmvir.config import RefineOptions
@@ -181,8 +180,6 @@ def main() -> None:
         "device": opts.device,
         "device_name": device_name,
         "peak_gpu_gib": gpu_peak,
-        "cpu_count": os.cpu_count(),
-        "platform": platform.platform(),
         "torch": torch.__version__,
         "options": opts.model_dump(),
         "scene_seconds": t_scene,
@@ -207,8 +204,24 @@ def main() -> None:
         "under_10_min": t_refine < 600.0,
         "under_8_gib": rss_peak < 8.0,
     }
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(out, indent=1))
+    write_results(
+        "refine_speed",
+        title="Refinement speed and memory",
+        path=Path(args.out),
+        peer="the CPU run on the same machine" if cuda else None,
+        tables=[
+            table(
+                f"{len(init_v):,} vertices, {args.views} views of {args.width}x{args.height}, device {opts.device} "
+                f"({device_name}), {torch.get_num_threads()} torch threads",
+                ["step", "seconds", "notes"],
+                [[name, round(sec, 1), note] for name, sec, note in rows],
+                note=f"peak resident memory {rss_peak:.2f} GiB"
+                + (f", peak GPU memory {gpu_peak:.2f} GiB" if gpu_peak is not None else "")
+                + f"; accuracy (diagonals) {acc0:.6f} initial, {acc1:.6f} refined",
+            )
+        ],
+        data=out,
+    )
 
 
 if __name__ == "__main__":
