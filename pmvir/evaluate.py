@@ -9,6 +9,9 @@
 * Albedo RMSE: over estimated vertices and the three channels, between the
   estimated linear albedo times one least-squares scale per channel and the true
   albedo interpolated (barycentric) at the closest true surface point.
+* Normal error: the angle (degrees) between each estimated vertex's area-weighted
+  normal and the true face normal at its closest true surface point; mean and median.
+  Vertices without a face (no normal) are left out.
 * Illumination error: per frame (matched by file name), the RMSE over 10,000
   Fibonacci directions N and the three channels between the estimated shading
   ``S(N) * rgb_scale`` divided by the albedo scale and the true shading, divided
@@ -33,7 +36,7 @@ from pmvir.geometry.align import (
     true_camera_centres,
 )
 from pmvir.io.illumination import Illumination, read_illumination
-from pmvir.io.ply import Mesh, read_mesh
+from pmvir.io.ply import Mesh, read_mesh, vertex_normals
 from pmvir.sh import fibonacci_sphere, sh9_shading
 
 #: Ground-truth surface samples for completeness (spec section 5: at least 1,000,000).
@@ -62,6 +65,9 @@ class EvaluationResult:
         alignment_rmse: camera-centre RMSE after alignment, in GT diagonals (None unless aligned).
         alignment: the applied similarity as a dict (scale, R, t), None unless aligned.
         notes: why a metric is None, which frames did not match, etc.
+        normal_error, normal_error_median: mean / median angle in degrees between the estimated
+            vertices' area-weighted normals and the true face normal at their closest true point
+            (None when no estimated vertex has a face).
         signed_offset, signed_offset_median: mean / median signed distance from the estimated
             vertices to the true surface along the normal of the closest true face (the face's
             winding: outward on a consistently oriented closed mesh), so negative means inside.
@@ -88,12 +94,16 @@ class EvaluationResult:
     notes: tuple[str, ...] = ()
     signed_offset: float | None = None
     signed_offset_median: float | None = None
+    normal_error: float | None = None
+    normal_error_median: float | None = None
 
     def to_dict(self) -> dict:
         """The JSON object ``pmvir evaluate`` prints: flat metrics plus a ``details`` object."""
         out: dict[str, Any] = {
             "accuracy": self.accuracy,
             "completeness": self.completeness,
+            "normal_error": self.normal_error,
+            "normal_error_median": self.normal_error_median,
             "albedo_rmse": self.albedo_rmse,
             "illumination_error": self.illumination_error,
             "accuracy_median": self.accuracy_median,
@@ -316,6 +326,10 @@ def evaluate(
     offsets = est_v - closest
     acc = np.linalg.norm(offsets, axis=1) / diag
     signed = acc * outward_sign(offsets, gt_mesh.vertices, gt_mesh.faces[face_ids])
+    angles = normal_angles(est_v, est_mesh.faces, gt_mesh.vertices, gt_mesh.faces[face_ids])
+    angles = angles[np.isfinite(angles)]
+    if len(angles) < len(est_v):
+        notes.append(f"normal_error: {len(est_v) - len(angles)} estimated vertices without a face left out")
 
     from scipy.spatial import cKDTree
 
@@ -352,7 +366,44 @@ def evaluate(
         notes=tuple(notes),
         signed_offset=float(signed.mean()),
         signed_offset_median=float(np.median(signed)),
+        normal_error=float(angles.mean()) if len(angles) else None,
+        normal_error_median=float(np.median(angles)) if len(angles) else None,
     )
+
+
+def normal_angles(
+    vertices: np.ndarray, faces: np.ndarray, true_vertices: np.ndarray, true_faces: np.ndarray
+) -> np.ndarray:
+    """Angle between each vertex's area-weighted normal and the true face normal it is matched to.
+
+    Args:
+        vertices: (N, 3) estimated vertices (already in the true frame). faces: (F, 3) their faces.
+        true_vertices: (V, 3) the true surface's vertices.
+        true_faces: (N, 3) the true face holding each estimated vertex's closest point.
+
+    Returns:
+        (N,) float64 angles in degrees, in [0, 180]; NaN for a vertex without a face or matched
+        to a degenerate true face.
+
+    Example:
+        A triangle against itself, then against itself flipped:
+
+        >>> v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]); f = np.array([[0, 1, 2]])
+        >>> normal_angles(v, f, v, f[[0, 0, 0]]).round(6).tolist()
+        [0.0, 0.0, 0.0]
+        >>> normal_angles(v, f[:, ::-1], v, f[[0, 0, 0]]).round(6).tolist()
+        [180.0, 180.0, 180.0]
+    """
+    n_est = vertex_normals(vertices, faces)
+    t = np.asarray(true_vertices, dtype=np.float64)
+    tf = np.asarray(true_faces, dtype=np.int64)
+    n_true = np.cross(t[tf[:, 1]] - t[tf[:, 0]], t[tf[:, 2]] - t[tf[:, 0]])
+    len_true = np.linalg.norm(n_true, axis=1)
+    n_true = n_true / np.maximum(len_true, 1e-300)[:, None]
+    cos = np.clip(np.einsum("ij,ij->i", n_est, n_true), -1.0, 1.0)
+    angles = np.degrees(np.arccos(cos))
+    has_normal = np.linalg.norm(n_est, axis=1) > 0.5
+    return np.where(has_normal & (len_true > 0), angles, np.nan)
 
 
 def outward_sign(offsets: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -23,6 +23,7 @@ from pmvir.evaluate import (
     bbox_diagonal,
     evaluate,
     evaluate_paths,
+    normal_angles,
     sample_surface,
     shading_error,
 )
@@ -189,6 +190,62 @@ def test_signed_offset_tells_a_shrunk_surface_from_a_swollen_one():
     radial = 1.0 + 0.05 * np.where(np.arange(len(v)) % 2 == 0, 1.0, -1.0)
     noisy = evaluate(Mesh(v * radial[:, None], icosphere(1.0, 3).faces), gt_mesh, n_samples=SAMPLES)
     assert noisy.accuracy > 0.04 / diag and abs(noisy.signed_offset) < 0.2 * noisy.accuracy
+
+
+# --- normal error --------------------------------------------------------------------------------
+
+
+def grid(n: int, height) -> Mesh:
+    """An n x n vertex grid over [-1, 1]^2 at z = height(x, y), faces counter-clockwise seen from +z."""
+    x, y = np.meshgrid(np.linspace(-1, 1, n), np.linspace(-1, 1, n))
+    v = np.stack([x.ravel(), y.ravel(), height(x, y).ravel()], axis=1)
+    i = np.arange(n * n).reshape(n, n)
+    a, b, c, d = i[:-1, :-1].ravel(), i[:-1, 1:].ravel(), i[1:, 1:].ravel(), i[1:, :-1].ravel()
+    return Mesh(v, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]))
+
+
+def test_normal_error_of_a_sphere_against_itself_is_near_zero():
+    """Each vertex's closest point is the vertex itself, on one of its own faces: the angle is at
+    most the spread of the faces about the vertex normal, which shrinks with the tessellation."""
+    coarse, fine = icosphere(1.0, 3), icosphere(1.0, 5)
+    r_coarse = evaluate(coarse, coarse, n_samples=1000)
+    r_fine = evaluate(fine, fine, n_samples=1000)
+    assert r_fine.normal_error < np.degrees(max_edge_angle(fine)) < 2.5
+    assert r_fine.normal_error_median <= r_fine.normal_error * 1.5
+    assert r_fine.normal_error < 0.3 * r_coarse.normal_error
+    assert "normal_error" not in " ".join(r_fine.notes)
+
+
+def test_normal_error_of_tilted_patches_is_their_known_tilt():
+    """Two flat patches above a flat truth, tilted by 10 and 30 degrees (equal vertex counts):
+    every vertex normal is its patch's normal and every closest face's normal is +z."""
+    truth = grid(5, lambda x, y: 0 * x)
+    truth = Mesh(4 * truth.vertices, truth.faces)
+    a = grid(9, lambda x, y: 0.5 + np.tan(np.radians(10)) * x)
+    b = grid(9, lambda x, y: 1.0 + np.tan(np.radians(30)) * y)
+    both = Mesh(np.concatenate([a.vertices, b.vertices]), np.concatenate([a.faces, b.faces + 81]))
+    np.testing.assert_allclose(normal_angles(a.vertices, a.faces, truth.vertices, truth.faces[[0] * 81]), 10)
+    r = evaluate(both, truth, n_samples=1000)
+    np.testing.assert_allclose(r.normal_error, 20.0, atol=1e-4)
+    assert 10 - 1e-4 <= r.normal_error_median <= 30 + 1e-4
+
+
+def test_normal_error_of_a_flipped_result_is_near_180(gt):
+    """Turning every normal over turns each angle a into 180 - a (the closest faces are the same)."""
+    flipped = Mesh(gt.vertices, gt.faces[:, ::-1])
+    r, r_self = evaluate(flipped, gt, n_samples=1000), evaluate(gt, gt, n_samples=1000)
+    assert r.normal_error > 180 - np.degrees(max_edge_angle(gt))
+    assert r.normal_error == pytest.approx(180 - r_self.normal_error, abs=1e-6)
+    assert r.normal_error_median == pytest.approx(180 - r_self.normal_error_median, abs=1e-6)
+
+
+def test_normal_error_leaves_out_vertices_without_a_face(gt):
+    """A stray vertex has no normal: it counts for accuracy but not for the normal error."""
+    stray = Mesh(np.concatenate([gt.vertices, [[0.0, 0.0, 1.5]]]), gt.faces)
+    r, r_gt = evaluate(stray, gt, n_samples=1000), evaluate(gt, gt, n_samples=1000)
+    assert r.normal_error == pytest.approx(r_gt.normal_error)
+    assert any(n.startswith("normal_error: 1 ") for n in r.notes)
+    assert r.accuracy > r_gt.accuracy
 
 
 def test_sphere_offset_bounds_from_tessellation():
@@ -408,6 +465,8 @@ def test_cli_prints_json_on_stdout_and_table_on_stderr(capture_and_result, tmp_p
         "completeness_p90",
         "signed_offset",
         "signed_offset_median",
+        "normal_error",
+        "normal_error_median",
         "n_vertices",
         "n_gt_samples",
         "aligned",
@@ -418,6 +477,7 @@ def test_cli_prints_json_on_stdout_and_table_on_stderr(capture_and_result, tmp_p
     assert json.loads(out.read_text()) == doc
     assert "accuracy (mean / median / p90)" in captured.err and "{" not in captured.err
     assert "signed offset (mean / median; < 0: inside)" in captured.err
+    assert "normal error, degrees (mean / median)" in captured.err and doc["normal_error"] < 5
 
 
 def test_cli_bare_mesh_in_a_subprocess(capture_and_result):

@@ -18,7 +18,7 @@ from pmvir.evaluate import N_GT_SAMPLES, EvaluationResult, evaluate_paths
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "evaluate",
-        help="accuracy, completeness, albedo and lighting errors against ground truth",
+        help="accuracy, completeness, normal, albedo and lighting errors against ground truth",
         description="Compare a result folder (mesh.ply, illumination.json, poses/) or a bare mesh file "
         "with a synthetic capture's ground truth. Distances are in units of the ground-truth "
         "bounding-box diagonal. Prints one JSON object on stdout and a table on stderr.",
@@ -65,6 +65,10 @@ def format_table(result: EvaluationResult) -> str:
         (
             "completeness (mean / median / p90)",
             f"{_fmt(r.completeness)} / {_fmt(r.completeness_median)} / {_fmt(r.completeness_p90)}",
+        ),
+        (
+            "normal error, degrees (mean / median)",
+            f"{_fmt(r.normal_error, '.3f')} / {_fmt(r.normal_error_median, '.3f')}",
         ),
         (
             "signed offset (mean / median; < 0: inside)",
