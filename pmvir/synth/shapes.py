@@ -1,8 +1,8 @@
 """Built-in procedural shapes and mesh normalization for synthetic captures.
 
 Every built-in shape is a closed, watertight triangle mesh with outward
-(counter-clockwise) faces and 20k-60k faces, fixed (not seeded), so a name
-always means the same surface:
+(counter-clockwise) faces and 20k-60k faces (200k for the fine-relief shapes),
+fixed (not seeded), so a name always means the same surface:
 
 * ``sphere``: a geodesic sphere (tests: normals and azimuths are known exactly).
 * ``blob``: a sphere with a broad deformation and 140 bumps of several sizes.
@@ -18,6 +18,8 @@ always means the same surface:
 * ``spring``: a coil spring, a tube along a helix of three turns, capped at both
   ends (genus 0; a thin part: the tube is a tenth of the diagonal across, and
   each turn hides parts of its neighbours across gaps of 0.7 tube widths).
+* ``rock``, ``panel``, ``cloth``: fine relief down to wavelengths of a few pixels (a
+  fractal rock, a carved round panel, draped cloth; :mod:`pmvir.synth.relief`).
 
 :func:`normalize_mesh` centres a mesh on its bounding-box centre and scales it
 to a bounding-box diagonal of 1 (the unit of the spec's metrics).
@@ -34,7 +36,7 @@ import numpy as np
 from pmvir.errors import ConfigError, MeshError
 from pmvir.io.ply import Mesh, read_mesh, vertex_normals
 
-SHAPES: tuple[str, ...] = ("sphere", "blob", "dented", "knot", "gear", "mug", "spring")
+SHAPES: tuple[str, ...] = ("sphere", "blob", "dented", "knot", "gear", "mug", "spring", "rock", "panel", "cloth")
 UpAxis = Literal["x", "y", "z"]
 
 
@@ -305,6 +307,10 @@ def _builtin(name: str) -> tuple[np.ndarray, np.ndarray]:
         return _mug()
     if name == "spring":
         return _spring()
+    if name in ("rock", "panel", "cloth"):
+        from pmvir.synth.relief import relief_shape  # relief builds on geodesic_sphere above
+
+        return relief_shape(name)
     return _torus_knot()
 
 
