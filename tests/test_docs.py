@@ -102,3 +102,37 @@ def test_options_page_lists_every_option() -> None:
     table = _hooks().options_markdown()
     for info in option_catalog():
         assert f"| `{info.name}` |" in table
+
+
+def _option_names() -> set[str]:
+    """Every dotted option name of the configuration tree, groups included."""
+    from pydantic import BaseModel
+
+    from pmvir.config import PipelineConfig
+
+    names: set[str] = set()
+
+    def walk(model: type[BaseModel], prefix: str) -> None:
+        for key, field in model.model_fields.items():
+            names.add(prefix + key)
+            if isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel):
+                walk(field.annotation, prefix + key + ".")
+
+    walk(PipelineConfig, "")
+    return names
+
+
+#: A dotted option name as the documents write it: `refine.solver.max_iterations`, or in --set.
+OPTION = re.compile(r"(?<![\w./])((?:decode|geometry|refine|export)\.[a-z_][a-z0-9_.]*[a-z0-9_])")
+
+
+@pytest.mark.parametrize(
+    "path",
+    [README, ROOT / "CHANGELOG.md"] + sorted(DOCS.glob("*.md")),
+    ids=lambda p: str(p.relative_to(ROOT)),
+)
+def test_options_named_in_documents_exist(path: Path) -> None:
+    known = _option_names()
+    text = path.read_text(encoding="utf-8")
+    unknown = sorted({m for m in OPTION.findall(text) if m not in known and not m.endswith((".py", ".json"))})
+    assert not unknown, f"{path.relative_to(ROOT)} names options the configuration tree lacks: {unknown}"
