@@ -15,12 +15,16 @@ from pmvir import __version__
 from pmvir.errors import PmvirError
 
 #: Sub-command modules under pmvir.commands, in the order ``--help`` lists them.
-COMMANDS: tuple[str, ...] = ("decode", "evaluate", "reconstruct", "synth", "serve", "worker", "submit", "remote")
+COMMANDS: tuple[str, ...] = (
+    "init", "decode", "evaluate", "reconstruct", "options", "synth", "serve", "worker", "submit", "remote",
+)
 #: The extra each module's commands need (``pip install 'pmvir[<extra>]'``).
 EXTRAS: dict[str, str] = {
+    "init": "full",
     "decode": "full",
     "evaluate": "full",
     "reconstruct": "full",
+    "options": "client",
     "synth": "full",
     "serve": "service",
     "worker": "service",

@@ -20,13 +20,14 @@ from __future__ import annotations
 import platform
 import tempfile
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from pmvir import __version__, stage_cache
-from pmvir.capture import Capture, RawFrame, open_capture
+from pmvir.capture import MANIFEST_NAME, Capture, RawFrame, open_capture
 from pmvir.config import DecodeOptions, PipelineConfig, RefineOptions
 from pmvir.decode import decode_frame, write_decoded, write_previews
 from pmvir.errors import ConfigError, PmvirError
@@ -223,7 +224,7 @@ def refinement_observations(
 
 def run(
     config: PipelineConfig,
-    capture: str | Path,
+    capture: str | Path | Capture,
     out: str | Path,
     *,
     progress: Progress | None = None,
@@ -234,7 +235,8 @@ def run(
 
     Args:
         config: the typed configuration (CLI and HTTP job options alike).
-        capture: a capture folder, its capture.json, or a .zip.
+        capture: a capture folder (with capture.json, or frames whose manifest is inferred),
+            its capture.json, a .zip, or an open Capture (left open).
         out: the result folder (created; files of the same names are replaced).
         progress: reports ``(stage, overall fraction, message)`` (the fraction never
             decreases) and is asked to cancel at every stage, step and iteration boundary.
@@ -265,8 +267,14 @@ def run(
     t_run = time.perf_counter()
     sections: dict[str, object] = {}
     warnings: list[str] = []
-    with open_capture(capture) as cap, tempfile.TemporaryDirectory(prefix=".work-", dir=out) as work:
+    opened = nullcontext(capture) if isinstance(capture, Capture) else open_capture(capture)
+    with opened as cap, tempfile.TemporaryDirectory(prefix=".work-", dir=out) as work:
         counts = {"frames": len(cap.frames)}
+        result.write_json(MANIFEST_NAME, cap.manifest.model_dump(mode="json", exclude_none=True))
+        sections["capture"] = {
+            "manifest": "given" if cap.inferred is None else "inferred",
+            "inferred": list(cap.inferred or ()),
+        }
         with progress.step(Stage.DECODE, weight[Stage.DECODE]) as p:
             if cache is not None and resume.position > Stage.DECODE.position:  # resuming needs a cache
                 views = stage_cache.load_stage(cache, Stage.DECODE, config)

@@ -72,6 +72,9 @@ RESULT_FILES: tuple[ResultFile, ...] = (
     ),
     ResultFile("dense.ply", "geometry", "application/octet-stream", "the fused dense stereo points"),
     ResultFile("report.json", "report", "application/json", "timings, counts, parameters, energies"),
+    ResultFile(
+        "capture.json", "decode", "application/json", "the manifest used (as given, or inferred from the frames)"
+    ),
     ResultFile("decoded/", "decode", "application/zip", "decoded frames and previews (decode-only runs)"),
     ResultFile("previews/", "decode", "application/zip", "per view: I_int, DoP and AoP previews (PNG, small)"),
     ResultFile(

@@ -52,7 +52,8 @@ _CREATE_BODY = {
                     "capture": {
                         "type": "string",
                         "format": "binary",
-                        "description": "A zipped capture (capture.json at the root or in one folder).",
+                        "description": "A zipped capture (capture.json at the root or in one folder), "
+                        "or a zip of bare frames whose capture.json is inferred.",
                     },
                     "options": {
                         "type": "string",

@@ -10,6 +10,13 @@ flagged so, 422) and compression method (stored or deflate, 422).
 Extraction itself is :func:`pmvir.io.capture_zip.extract_capture_zip`, which
 rejects unsafe names, links, encrypted members and zip bombs (ratio) before
 writing, and counts the bytes again while writing (422 naming the member).
+
+A zip of bare frames (no capture.json; the frames at the top, in ``frames/``, or
+in one top folder) is a capture too: the frames are placed in ``frames/`` and the
+manifest inferred from them (:mod:`pmvir.io.inference`, its defaults: IMX250MYR,
+black level from a DNG else 0, SfM intrinsics unless EXIF gives them) is written
+as the job's capture.json, listed with its files; a frame that keeps it from being
+inferred is a 422 naming the file.
 """
 
 from __future__ import annotations
@@ -19,8 +26,16 @@ import uuid
 from pathlib import Path
 from typing import BinaryIO
 
-from pmvir.errors import CaptureError
-from pmvir.io.capture_zip import compression_problem, extract_capture_zip, open_zip, ratio_problem
+from pmvir.errors import CaptureError, ConfigError, ManifestError
+from pmvir.io.capture_zip import (
+    capture_prefix,
+    compression_problem,
+    extract_capture_zip,
+    open_zip,
+    ratio_problem,
+)
+from pmvir.io.inference import infer_manifest
+from pmvir.io.manifest import MANIFEST_NAME, write_capture_manifest
 from service.deps import Services
 from service.errors import ApiError, ErrorItem, too_large
 from service.storage import CHUNK, capture_path_problem, is_frame, sha256_file
@@ -56,24 +71,22 @@ def precheck_zip(svc: Services, zip_path: Path) -> None:
             raise too_large(f"the zip has {len(infos)} members, more than the limit of {s.max_zip_members}")
         members = [i for i in infos if not i.is_dir() and not ignored_member(i.filename)]
         names = {i.filename for i in members}
-        if "capture.json" in names:
-            prefix = ""
-        else:
-            tops = {n.split("/")[0] for n in names}
-            top = next(iter(tops)) if len(tops) == 1 else None
-            if top is None or f"{top}/capture.json" not in names:
-                raise ApiError(
-                    422,
-                    "invalid_zip",
-                    "the zip has no capture.json at its root or in its one top folder",
-                    errors=[ErrorItem(file="capture.json", msg="missing", type="ManifestError")],
-                )
-            prefix = top + "/"
+        try:
+            prefix = capture_prefix(names, "capture")
+        except ManifestError as exc:
+            raise ApiError(
+                422,
+                "invalid_zip",
+                "the zip has no capture.json, and no frames to infer it from, at its root or in its one top folder",
+                errors=[ErrorItem(file="capture.json", msg="missing", type="ManifestError")],
+            ) from exc
+        flat = flat_frames(names, prefix)
         errors = []
         total = 0
         frames = 0
         for info in members:
             rel = info.filename[len(prefix) :]
+            rel = f"frames/{rel}" if flat and "/" not in rel else rel
             problem = capture_path_problem(rel)
             if problem:
                 errors.append(ErrorItem(file=info.filename, msg=f"member {problem}", type="invalid_path"))
@@ -106,6 +119,31 @@ def precheck_zip(svc: Services, zip_path: Path) -> None:
             raise too_large(f"the zip holds {frames} frames, more than the limit of {s.max_frames}")
 
 
+def flat_frames(names: set[str], prefix: str) -> bool:
+    """A zip of bare frames lying directly under ``prefix`` (no capture.json, no frames/ folder):
+    its files are the capture's ``frames/<name>``."""
+    inside = [n[len(prefix) :] for n in names if n.startswith(prefix)]
+    return "capture.json" not in inside and not any(n.startswith("frames/") for n in inside)
+
+
+def _complete_bare_capture(root: Path) -> None:
+    """A capture of bare frames made whole: frames lying at its top moved into ``frames/``, and the
+    capture.json inferred from them written (422 naming the file that keeps it from being inferred)."""
+    if (root / MANIFEST_NAME).exists():
+        return
+    names = {p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file()}
+    if flat_frames(names, ""):
+        (root / "frames").mkdir()
+        for name in names:
+            if "/" not in name:
+                (root / name).rename(root / "frames" / name)
+    try:
+        write_capture_manifest(root, infer_manifest(root).manifest)
+    except (CaptureError, ConfigError) as exc:
+        item = exc if isinstance(exc, CaptureError) else CaptureError(MANIFEST_NAME, str(exc))
+        raise _capture_error(item) from exc
+
+
 def save_upload(src: BinaryIO, dest: Path, limit: int) -> int:
     """Copy a spooled upload to ``dest`` in chunks; 413 past ``limit`` bytes."""
     n = 0
@@ -136,6 +174,7 @@ def import_zip(svc: Services, job_id: str, zip_path: Path) -> list[FileInfo]:
             )
         except CaptureError as exc:
             raise _capture_error(exc) from exc
+        _complete_bare_capture(root)
         recorded = []
         for p in sorted(root.rglob("*")):
             if not p.is_file() or p.is_symlink():
