@@ -35,7 +35,7 @@ from pmvir.config import GeometryOptions
 from pmvir.decode import decode_frame
 from pmvir.errors import ReconstructionError
 from pmvir.evaluate import evaluate
-from pmvir.geometry.align import CameraAlignment, umeyama
+from pmvir.geometry.sfm.align import CameraAlignment, umeyama
 from pmvir.geometry.stage import GeometryResult, geometry_report, run_geometry
 from pmvir.io.ply import Mesh, read_mesh
 from pmvir.synth.generate import synthesize

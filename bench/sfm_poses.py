@@ -1,4 +1,4 @@
-"""Benchmark of the poses step (pmvir.geometry.sfm): known-pose triangulation and SfM.
+"""Benchmark of the poses step (pmvir.geometry.sfm.poses): known-pose triangulation and SfM.
 
 Usage: .venv/bin/python bench/sfm_poses.py [--models bunny dragon armadillo] [--views 36]
        [--size 612x512] [--focal-factor 1.2] [--keep DIR]
@@ -39,8 +39,8 @@ from pmvir.config import SfmOptions
 from pmvir.decode import decode_frame
 from pmvir.errors import ReconstructionError
 from pmvir.evaluate import SurfaceQuery
-from pmvir.geometry.align import umeyama
-from pmvir.geometry.sfm import estimate_poses
+from pmvir.geometry.sfm.align import umeyama
+from pmvir.geometry.sfm.poses import estimate_poses
 from pmvir.io.ply import read_mesh
 from pmvir.synth.generate import synthesize
 

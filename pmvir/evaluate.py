@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from pmvir.errors import ConfigError, MeshError, PmvirError, ShapeError
-from pmvir.geometry.align import (
+from pmvir.geometry.sfm.align import (
     CameraAlignment,
     align_by_cameras,
     estimated_camera_centres,

@@ -33,7 +33,7 @@ from pmvir.decode import decode_frame, write_decoded, write_previews
 from pmvir.errors import ConfigError, PmvirError
 from pmvir.export import write_previews as write_view_previews
 from pmvir.export import write_refined_outputs
-from pmvir.geometry.hull_fit import RimFit
+from pmvir.geometry.silhouette.hull_fit import RimFit
 from pmvir.geometry.stage import GeometryResult, geometry_report, run_geometry, write_geometry
 from pmvir.io.illumination import illumination_from_arrays
 from pmvir.io.ply import Mesh
@@ -149,7 +149,7 @@ def specular_warning(median_dop: float | None, options: RefineOptions) -> str | 
 
 
 MASK_MARGIN_WARNING_PX = 0.5
-"""An estimated mask margin (:class:`pmvir.geometry.hull_fit.RimFit`) at or above this is warned about."""
+"""An estimated mask margin (:class:`pmvir.geometry.silhouette.hull_fit.RimFit`) at or above this is warned about."""
 
 
 def mask_margin_warning(fit: RimFit | None) -> str | None:

@@ -27,7 +27,7 @@ from pmvir.evaluate import (
     sample_surface,
     shading_error,
 )
-from pmvir.geometry.align import Similarity
+from pmvir.geometry.sfm.align import Similarity
 from pmvir.io.colmap_text import ColmapCamera, ColmapImage, qvec_from_rotmat, write_colmap_text_model
 from pmvir.io.illumination import illumination_from_arrays, write_illumination
 from pmvir.io.ply import Mesh, write_mesh_ply

@@ -14,7 +14,7 @@ from pmvir.cli import main
 from pmvir.config import DecodeOptions, PipelineConfig, RefineOptions
 from pmvir.decode import decode_frame
 from pmvir.errors import CanceledError, ConfigError
-from pmvir.geometry.hull_fit import RimFit
+from pmvir.geometry.silhouette.hull_fit import RimFit
 from pmvir.io.frames import write_frame
 from pmvir.pipeline import (
     SPECULAR_MEDIAN_DOP,

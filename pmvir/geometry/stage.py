@@ -6,14 +6,14 @@
    (known-pose triangulation on I_int when the capture has intrinsics and every
    ``cam_from_world``, else incremental SfM, by default on I_min with I_int as the
    fallback: ``sfm.grey``);
-2. ``depth_maps`` and ``fusion``: :func:`pmvir.geometry.mvs_dense.dense_stereo`;
+2. ``depth_maps`` and ``fusion``: :func:`pmvir.geometry.mvs.dense.dense_stereo`;
 3. ``surface``: :func:`pmvir.geometry.surface.initial_surface` (screened
    Poisson, trimmed, simplified, cleaned to one manifold component);
 4. ``visibility``: :func:`pmvir.geometry.visibility.vertex_visibility`;
 5. ``subdivision``: :func:`pmvir.geometry.subdivision.subdivide_until`
    (sqrt(3) steps until every visible triangle is below
    ``subdivision.max_area_px`` pixels^2);
-6. ``silhouettes``: :func:`pmvir.geometry.hull_fit.fit_inside_hull` (vertices
+6. ``silhouettes``: :func:`pmvir.geometry.silhouette.hull_fit.fit_inside_hull` (vertices
    that project outside a mask move inward: ``surface.hull_tolerance_px``).
 
 :func:`write_geometry` writes a result folder's ``initial.ply`` (the subdivided
@@ -45,11 +45,11 @@ from pmvir.geometry.export import (
     write_images,
     write_points_ply,
 )
-from pmvir.geometry.hull_fit import HullFit, fit_inside_hull
-from pmvir.geometry.mvs_dense import DenseResult, dense_stereo
-from pmvir.geometry.sfm import SparseModel, estimate_poses
+from pmvir.geometry.mvs.dense import DenseResult, dense_stereo
+from pmvir.geometry.sfm.poses import SparseModel, estimate_poses
+from pmvir.geometry.silhouette.hull_fit import HullFit, fit_inside_hull
 from pmvir.geometry.subdivision import subdivide_until
-from pmvir.geometry.surface import SurfaceResult, initial_surface
+from pmvir.geometry.surface.initial import SurfaceResult, initial_surface
 from pmvir.geometry.visibility import vertex_visibility
 from pmvir.io.ply import Mesh, vertex_normals
 from pmvir.polarization.stokes import PolarizationImages
@@ -78,7 +78,7 @@ class GeometryResult:
         subdivision_max_area_px: largest projected visible triangle area at the end, pixels^2.
         subdivision_converged: the area threshold was reached (not a round/vertex limit).
         hull_fit: the subdivided vertices pulled inside the masks' visual hull
-            (``surface.hull_tolerance_px``; :func:`pmvir.geometry.hull_fit.fit_inside_hull`), or None (off).
+            (``surface.hull_tolerance_px``; :func:`pmvir.geometry.silhouette.hull_fit.fit_inside_hull`), or None (off).
         timings: seconds per step: poses, depth_maps, fusion, surface, visibility, subdivision, total.
         previews: per frame (H, W, 3) uint8 sRGB I_int with one exposure for all frames (``images/``).
     """

@@ -40,7 +40,8 @@ from pmvir.camera import Camera
 from pmvir.config import GeometryOptions
 from pmvir.errors import ConfigError, MeshError, ShapeError
 from pmvir.geometry.mesh_ops import ReferenceSurface, check_vertices, edge_topology
-from pmvir.geometry.visibility import face_visibility, project_columns, vertex_visibility
+from pmvir.geometry.projection import project_columns
+from pmvir.geometry.visibility import face_visibility, vertex_visibility
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ import numpy as np
 from pmvir.camera import Camera
 from pmvir.errors import ConfigError, ShapeError
 from pmvir.geometry.mesh_ops import check_faces, check_vertices
+from pmvir.geometry.projection import project_columns
 from pmvir.io.ply import vertex_normals
 
 
@@ -104,23 +105,6 @@ def vertex_visibility(
     return vis
 
 
-def project_columns(v_t: np.ndarray, cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pinhole projection of points stored as contiguous columns (fast, no BLAS threads).
-
-    Same model as :meth:`pmvir.camera.Camera.project` (COLMAP pixel convention).
-
-    Args:
-        v_t: (3, N) float64 world points, one coordinate per row.
-        cam: the camera.
-
-    Returns:
-        u, v: (N,) float64 pixel coordinates; depth: (N,) camera-frame z.
-    """
-    R, t, K = cam.R, cam.t, cam.K
-    x, y, z = (R[i, 0] * v_t[0] + R[i, 1] * v_t[1] + R[i, 2] * v_t[2] + t[i] for i in range(3))
-    zs = np.where(np.abs(z) < 1e-12, 1e-12, z)
-    xn, yn = x / zs, y / zs
-    return K[0, 0] * xn + K[0, 1] * yn + K[0, 2], K[1, 1] * yn + K[1, 2], z
 
 
 def _view_candidates(

@@ -43,7 +43,7 @@ import torch
 from pmvir.camera import Camera
 from pmvir.config import RefineOptions
 from pmvir.errors import ConfigError, ReconstructionError
-from pmvir.geometry.hull_fit import HullFit, RimFit, fit_inside_hull, fit_to_rims
+from pmvir.geometry.silhouette.hull_fit import HullFit, RimFit, fit_inside_hull, fit_to_rims
 from pmvir.io.ply import vertex_normals as vertex_normals_np
 from pmvir.progress import Progress
 from pmvir.refine.albedo import AlbedoSolver
@@ -1181,9 +1181,9 @@ def refine_surface(
         progress: one step ``stage s`` per stage, reporting its iterations; polled there for cancellation.
         masks: the V views' object masks (None entries: no mask); with ``hull_tolerance_px`` the
             surface is held inside their visual hull after every offset scan and after the last stage
-            (:func:`pmvir.geometry.hull_fit.fit_inside_hull`), and with ``rim_fit_gain`` the shoulders
+            (:func:`pmvir.geometry.silhouette.hull_fit.fit_inside_hull`), and with ``rim_fit_gain`` the shoulders
             whose rims lie inside them move out after the last stage
-            (:func:`pmvir.geometry.hull_fit.fit_to_rims`). None: neither.
+            (:func:`pmvir.geometry.silhouette.hull_fit.fit_to_rims`). None: neither.
 
     Returns:
         :class:`RefineResult`.

@@ -1,4 +1,4 @@
-"""Umeyama similarity and camera-based alignment (pmvir.geometry.align)."""
+"""Umeyama similarity and camera-based alignment (pmvir.geometry.sfm.align)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from pmvir.camera import look_at
 from pmvir.errors import ManifestError, ReconstructionError
-from pmvir.geometry.align import (
+from pmvir.geometry.sfm.align import (
     Similarity,
     align_by_cameras,
     estimated_camera_centres,

@@ -23,7 +23,7 @@ def test_unknown_keys_are_errors_that_name_the_key():
 
 def test_stereo_window_is_small_on_dense_rigs_and_wider_on_sparse_ones():
     from pmvir.config import MvsOptions
-    from pmvir.geometry.mvs_dense import stereo_window
+    from pmvir.geometry.mvs.dense import stereo_window
 
     auto = MvsOptions()
     assert auto.window is None

@@ -18,8 +18,8 @@ from pmvir.capture import open_capture
 from pmvir.config import GeometryOptions
 from pmvir.errors import CanceledError, ReconstructionError
 from pmvir.evaluate import evaluate
-from pmvir.geometry.hull_fit import hull_depth, mask_distance
 from pmvir.geometry.mesh_ops import edge_topology
+from pmvir.geometry.silhouette.hull_fit import hull_depth, mask_distance
 from pmvir.geometry.stage import geometry_report, run_geometry, write_geometry
 from pmvir.io.colmap_text import camera_from_colmap, read_colmap_text_model
 from pmvir.io.ply import Mesh, read_mesh

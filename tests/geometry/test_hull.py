@@ -1,4 +1,4 @@
-"""The known cameras' visual hull (pmvir.geometry.hull): it holds the object, bounds depths, names bad views."""
+"""The known cameras' visual hull (pmvir.geometry.silhouette.hull): it holds the object, bounds depths, names bad views."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pmvir.errors import ReconstructionError
-from pmvir.geometry.hull import carve_hull
+from pmvir.geometry.silhouette.hull import carve_hull
 from pmvir.io.ply import Mesh
 from pmvir.synth.raycast import MeshScene
 from pmvir.synth.rig import ring_cameras

@@ -1,4 +1,4 @@
-"""Holding a surface inside the masks' visual hull (pmvir.geometry.hull_fit)."""
+"""Holding a surface inside the masks' visual hull (pmvir.geometry.silhouette.hull_fit)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import open3d as o3d
 import pytest
 
 from pmvir.errors import ConfigError
-from pmvir.geometry.hull_fit import RimFit, fit_inside_hull, fit_to_rims, hull_depth, mask_distance
+from pmvir.geometry.silhouette.hull_fit import RimFit, fit_inside_hull, fit_to_rims, hull_depth, mask_distance
 from pmvir.synth.rig import ring_cameras
 
 W, H = 160, 128

@@ -1,4 +1,4 @@
-"""Dense stereo (pmvir.geometry.mvs, mvs_fusion, mvs_dense, mvs_colmap) against ground truth."""
+"""Dense stereo (pmvir.geometry.mvs: sweep, fusion, dense, colmap) against ground truth."""
 
 from __future__ import annotations
 
@@ -15,7 +15,16 @@ from pmvir.capture import open_capture
 from pmvir.config import MvsOptions
 from pmvir.errors import CanceledError, ReconstructionError
 from pmvir.evaluate import SurfaceQuery, sample_surface
-from pmvir.geometry.mvs import (
+from pmvir.geometry.mvs.colmap import (
+    colmap_fusion,
+    read_colmap_array,
+    write_colmap_array,
+    write_depth_maps,
+    write_workspace,
+)
+from pmvir.geometry.mvs.dense import dense_stereo
+from pmvir.geometry.mvs.fusion import backproject
+from pmvir.geometry.mvs.sweep import (
     DepthMap,
     StereoView,
     prepare_view,
@@ -25,15 +34,6 @@ from pmvir.geometry.mvs import (
     sweep_depth,
     view_depth_range,
 )
-from pmvir.geometry.mvs_colmap import (
-    colmap_fusion,
-    read_colmap_array,
-    write_colmap_array,
-    write_depth_maps,
-    write_workspace,
-)
-from pmvir.geometry.mvs_dense import dense_stereo
-from pmvir.geometry.mvs_fusion import backproject
 from pmvir.io.ply import read_mesh
 from pmvir.progress import Progress
 from pmvir.synth.rig import ring_cameras

@@ -1,4 +1,4 @@
-"""Joining SfM models (pmvir.geometry.sfm_join): the similarity between two models' frames from common views."""
+"""Joining SfM models (pmvir.geometry.sfm.join): the similarity between two models' frames from common views."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from pmvir.camera import Camera
-from pmvir.geometry.sfm_join import similarity_from_shared, transform_camera
+from pmvir.geometry.sfm.join import similarity_from_shared, transform_camera
 
 K = np.array([[500.0, 0.0, 160.0], [0.0, 500.0, 120.0], [0.0, 0.0, 1.0]])
 
@@ -90,9 +90,9 @@ def test_the_dragons_two_one_sided_models_are_joined(tmp_path: Path, monkeypatch
     from pmvir.capture import open_capture
     from pmvir.config import SfmOptions
     from pmvir.decode import decode_frame
-    from pmvir.geometry import sfm_colmap
-    from pmvir.geometry.align import umeyama
-    from pmvir.geometry.sfm import estimate_poses
+    from pmvir.geometry.sfm import colmap as sfm_colmap
+    from pmvir.geometry.sfm.align import umeyama
+    from pmvir.geometry.sfm.poses import estimate_poses
     from pmvir.synth.generate import synthesize
 
     capture = synthesize(

@@ -1,4 +1,4 @@
-"""Poses: SfM and known-pose triangulation (pmvir.geometry.sfm) against synthetic ground truth.
+"""Poses: SfM and known-pose triangulation (pmvir.geometry.sfm.poses) against synthetic ground truth.
 
 Captures: the session fixtures of ``conftest.py``: ``blob_capture`` (pmvir synth's textured
 ``blob``, 36 views of 432 x 360, focal length 1.2 x the larger side) with ``blob_views`` (its
@@ -33,8 +33,8 @@ from pmvir.config import SfmOptions
 from pmvir.decode import decode_frame
 from pmvir.errors import ReconstructionError, ShapeError
 from pmvir.evaluate import SurfaceQuery
-from pmvir.geometry.align import umeyama
-from pmvir.geometry.sfm import (
+from pmvir.geometry.sfm.align import umeyama
+from pmvir.geometry.sfm.poses import (
     SparseModel,
     estimate_poses,
     fundamental_matrix,
@@ -294,7 +294,7 @@ def test_mask_erosion_option_shrinks_the_feature_masks(sfm_views: dict, tmp_path
     """sfm.mask_erosion_px reaches the masks COLMAP detects features in (0: the masks as given)."""
     import cv2
 
-    from pmvir.geometry.sfm import _write_inputs
+    from pmvir.geometry.sfm.poses import _write_inputs
 
     images, masks = sfm_views["images"][:2], sfm_views["masks"][:2]
     areas = {}
@@ -311,8 +311,8 @@ def test_match_ratio_option_reaches_colmap_matching(sfm_views: dict, tmp_path: P
     """A stricter ratio test (sfm.match_max_ratio) keeps fewer raw matches between neighbouring views."""
     import pycolmap
 
-    from pmvir.geometry.sfm import _write_inputs
-    from pmvir.geometry.sfm_colmap import _extract_features, _match
+    from pmvir.geometry.sfm.colmap import _extract_features, _match
+    from pmvir.geometry.sfm.poses import _write_inputs
 
     images, masks = sfm_views["images"][:3], sfm_views["masks"][:3]
     counts = {}
@@ -335,8 +335,8 @@ def test_views_are_numbered_in_order_and_known_pose_matches_repeat(sfm_views: di
     matching visits pairs in image-id order and its ratio test is one-sided)."""
     import pycolmap
 
-    from pmvir.geometry.sfm import _write_inputs
-    from pmvir.geometry.sfm_colmap import _extract_features, _match_known_poses
+    from pmvir.geometry.sfm.colmap import _extract_features, _match_known_poses
+    from pmvir.geometry.sfm.poses import _write_inputs
 
     images, masks, cameras = sfm_views["images"][:12], sfm_views["masks"][:12], sfm_views["cameras"][:12]
     opts = SfmOptions(sift_affine_shape=False, sift_upsample=False)

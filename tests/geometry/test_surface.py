@@ -1,4 +1,4 @@
-"""The initial surface (pmvir.geometry.surface, surface_clean): Poisson, trimming, cleaning, splitting."""
+"""The initial surface (pmvir.geometry.surface: initial, clean): Poisson, trimming, cleaning, splitting."""
 
 from __future__ import annotations
 
@@ -10,8 +10,7 @@ from pmvir.camera import Camera, look_at
 from pmvir.config import SurfaceOptions
 from pmvir.errors import ReconstructionError
 from pmvir.geometry.mesh_ops import edge_topology, face_areas, face_normals, is_closed_manifold
-from pmvir.geometry.surface import auto_poisson_depth, initial_surface, off_silhouette, poisson_surface
-from pmvir.geometry.surface_clean import (
+from pmvir.geometry.surface.clean import (
     bisect_faces,
     clean_mesh,
     facing_projected_areas,
@@ -19,6 +18,12 @@ from pmvir.geometry.surface_clean import (
     remove_slivers,
     split_large_faces,
     triangle_min_angles,
+)
+from pmvir.geometry.surface.initial import (
+    auto_poisson_depth,
+    initial_surface,
+    off_silhouette,
+    poisson_surface,
 )
 from pmvir.sh import fibonacci_sphere
 

@@ -15,8 +15,8 @@ import pytest
 from pmvir.capture import open_capture
 from pmvir.cli import main as cli_main
 from pmvir.config import SfmOptions
-from pmvir.geometry.align import umeyama
-from pmvir.geometry.sfm import estimate_poses
+from pmvir.geometry.sfm.align import umeyama
+from pmvir.geometry.sfm.poses import estimate_poses
 from pmvir.synth.rig import TURNTABLE_ELEVATION_DEG
 
 VIEWS = 24

@@ -8,7 +8,8 @@ import pytest
 
 from pmvir.camera import Camera, look_at
 from pmvir.errors import MeshError
-from pmvir.geometry.visibility import face_visibility, project_columns, vertex_visibility
+from pmvir.geometry.projection import project_columns
+from pmvir.geometry.visibility import face_visibility, vertex_visibility
 from pmvir.io.ply import vertex_normals
 
 MIN_COS = 0.05

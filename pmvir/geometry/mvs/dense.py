@@ -1,0 +1,426 @@
+"""Dense reconstruction of the registered views: depth maps, consistency filter, fusion.
+
+:func:`dense_stereo` chooses the backend (``geometry.mvs.backend``):
+
+* ``cpu``: :mod:`pmvir.geometry.mvs.sweep` plane sweep per registered view on a
+  grid scaled by ``mvs_scale``, then :mod:`pmvir.geometry.mvs.fusion`
+  (geometric consistency across the neighbours, point averaging, voxel
+  thinning, PCA normals facing the cameras);
+* ``colmap-cuda``: :mod:`pmvir.geometry.mvs.colmap` (COLMAP PatchMatch with
+  geometric consistency and COLMAP's stereo fusion), on full-resolution images;
+* ``auto``: ``colmap-cuda`` when ``pycolmap.has_cuda``, else ``cpu``.
+
+Both use pmvir's view selection (:func:`~pmvir.geometry.mvs.select_neighbours`)
+and per-view depth ranges (:func:`depth_range`): the known cameras' visual hull
+(:mod:`pmvir.geometry.silhouette.hull`; without masks their common frustum) bounds each
+view's depth search, and sparse points, where a view sees enough of them, only
+tighten it; with few or no sparse points the hull's surface cells choose the
+neighbours, so known poses never need sparse points. Fewer fused points than
+``mvs.min_points`` raise :class:`~pmvir.errors.ReconstructionError` naming the
+views that gave no consistent depth (a textureless object, or views that do
+not overlap), instead of producing an empty mesh.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pmvir.camera import Camera
+from pmvir.config import MvsOptions
+from pmvir.errors import ConfigError, ReconstructionError, ShapeError
+from pmvir.geometry.mvs.fusion import DensePoints, estimate_normals, filter_and_fuse, voxel_thin
+from pmvir.geometry.mvs.sweep import (
+    DepthMap,
+    StereoView,
+    prepare_view,
+    select_neighbours,
+    sweep_depth,
+    view_depth_range,
+)
+from pmvir.geometry.silhouette.hull import Hull, carve_hull
+from pmvir.progress import Progress
+
+#: Sparse points choose stereo neighbours and tighten depth ranges when there are at least this many
+#: (in all, and in a view); otherwise the known cameras' visual hull does both alone.
+_MIN_SUPPORT_POINTS = 20
+#: Automatic ZNCC window sides (pixels of the stereo grid): small against the fronto-parallel bias on
+#: curved and thin parts; wider on sparse rigs, whose depths one other view confirms.
+_WINDOW = 3
+_SPARSE_RIG_WINDOW = 7
+
+
+@dataclass(frozen=True)
+class DenseResult:
+    """What dense stereo produced.
+
+    Attributes:
+        points: the fused oriented points.
+        backend: 'cpu' or 'colmap-cuda'.
+        neighbours: per view the source views used (empty for unregistered views).
+        depth_maps: per view the CPU depth map (None for unregistered views and the COLMAP backend).
+        valid_depths: per view the number of depths before the consistency filter (-1: not computed).
+        consistent_fraction: per view the fraction of its (stereo-grid) mask pixels whose depth
+            passed the consistency filter; for a view without a mask, the fraction of its depths
+            (-1: not computed: unregistered view or COLMAP backend).
+        fused_per_view: per view the number of fused points it contributed (after thinning).
+        timings: seconds per step ('depth_maps', 'fusion').
+    """
+
+    points: DensePoints
+    backend: str
+    neighbours: list[list[int]]
+    depth_maps: list[DepthMap | None]
+    valid_depths: list[int]
+    consistent_fraction: list[float]
+    fused_per_view: list[int]
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def resolve_backend(backend: str) -> str:
+    """'cpu' or 'colmap-cuda' for a ``geometry.mvs.backend`` value.
+
+    Raises:
+        ReconstructionError: 'colmap-cuda' requested but pycolmap has no CUDA.
+    """
+    import pycolmap
+
+    if backend == "auto":
+        return "colmap-cuda" if pycolmap.has_cuda else "cpu"
+    if backend == "colmap-cuda" and not pycolmap.has_cuda:
+        raise ReconstructionError(
+            "geometry.mvs.backend 'colmap-cuda' needs pycolmap built with CUDA (pycolmap.has_cuda is False); "
+            "use 'cpu' or 'auto'"
+        )
+    return backend
+
+
+def dense_stereo(
+    images: Sequence[np.ndarray],
+    masks: Sequence[np.ndarray | None],
+    cameras: Sequence[Camera | None],
+    sparse_points: np.ndarray,
+    *,
+    names: Sequence[str],
+    options: MvsOptions,
+    workdir: str | Path | None = None,
+    progress: Progress | None = None,
+) -> DenseResult:
+    """Dense oriented points of the registered views (module docstring).
+
+    Args:
+        images: per view (H, W, 3) float32 linear I_int.
+        masks: per view a bool (H, W) object mask or None.
+        cameras: per view its camera, None where the view is not registered.
+        sparse_points: (P, 3) world points from SfM / triangulation (possibly none): they choose the
+            neighbours and tighten the hull's depth ranges when there are enough.
+        names: per view a name for messages (the frame stem).
+        options: the ``geometry.mvs`` options.
+        workdir: scratch folder (needed by the COLMAP backend).
+        progress: reports per view and is polled for cancellation between views.
+
+    Returns:
+        :class:`DenseResult`.
+
+    Raises:
+        ReconstructionError: fewer than 2 registered views, masks that share no volume, or fewer
+            than ``options.min_points`` fused points (the message names the views).
+        CanceledError: the progress object was asked to cancel.
+    """
+    progress = progress or Progress.none()
+    n = len(images)
+    if not (len(masks) == len(cameras) == len(names) == n):
+        raise ShapeError(
+            f"images, masks, cameras and names must have one entry per view, got "
+            f"{n}, {len(masks)}, {len(cameras)}, {len(names)}"
+        )
+    pts = np.asarray(sparse_points, np.float64).reshape(-1, 3)
+    registered = [i for i in range(n) if cameras[i] is not None]
+    if len(registered) < 2:
+        raise ReconstructionError(
+            f"dense stereo needs at least 2 registered views, got {len(registered)}"
+            + (f" ({', '.join(names[i] for i in registered)})" if registered else "")
+        )
+    backend = resolve_backend(options.backend)
+    reg_cams = [_camera(cameras, i) for i in registered]
+    reg_masks = [masks[i] for i in registered]
+    hull = carve_hull(reg_cams, reg_masks, names=[names[i] for i in registered])
+    support = pts if len(pts) >= _MIN_SUPPORT_POINTS else hull.surface
+    nb_local = select_neighbours(
+        reg_cams,
+        support,
+        count=options.neighbours,
+        min_angle_deg=options.min_angle_deg,
+        max_angle_deg=options.max_angle_deg,
+        masks=reg_masks,
+    )
+    neighbours: list[list[int]] = [[] for _ in range(n)]
+    for k, i in enumerate(registered):
+        neighbours[i] = [registered[j] for j in nb_local[k]]
+    if len(pts) >= _MIN_SUPPORT_POINTS:
+        diag = float(np.linalg.norm(np.percentile(pts, 99, 0) - np.percentile(pts, 1, 0)))
+    else:
+        diag = hull.diagonal
+    ranges: list[tuple[float, float] | None] = [None] * n
+    for i in registered:
+        ranges[i] = depth_range(_camera(cameras, i), hull, pts, masks[i], margin=options.depth_margin)
+    if backend == "colmap-cuda":
+        return _dense_colmap(
+            images,
+            masks,
+            cameras,
+            pts,
+            names,
+            neighbours,
+            registered,
+            ranges,
+            options,
+            workdir,
+            diag,
+            progress,
+        )
+    return _dense_cpu(images, masks, cameras, names, neighbours, registered, ranges, options, diag, progress)
+
+
+def grid_scale(image: np.ndarray, options: MvsOptions) -> float:
+    """The CPU stereo grid's scale of one view: ``options.scale``, raised so that the longer side keeps
+    ``options.min_grid_px`` pixels (at most 1)."""
+    longer = max(image.shape[:2])
+    return float(min(1.0, max(options.scale, options.min_grid_px / max(longer, 1))))
+
+
+def depth_range(
+    camera: Camera, hull: Hull, points: np.ndarray, mask: np.ndarray | None, *, margin: float
+) -> tuple[float, float] | None:
+    """A view's depth search range: the hull's, tightened by the sparse points it sees when there are enough.
+
+    Args:
+        camera: the view (full resolution).
+        hull: the known cameras' visual hull (or common frustum).
+        points: (P, 3) sparse points (possibly none).
+        mask: the view's object mask or None.
+        margin: widening of the sparse points' range, a fraction of its far depth.
+
+    Returns:
+        (near, far), or None when neither the hull nor the points reach into the view.
+    """
+    outer = hull.depth_range(camera)
+    inner = view_depth_range(camera, points, mask, margin=margin, min_points=_MIN_SUPPORT_POINTS)
+    if outer is None or inner is None:
+        return outer or inner
+    near, far = max(outer[0], inner[0]), min(outer[1], inner[1])
+    return (near, far) if near < far else outer
+
+
+def stereo_window(options: MvsOptions, registered_views: int) -> int:
+    """The CPU stereo's ZNCC window side: ``options.window``, or when None 3 (7 for captures of at most
+    ``options.sparse_rig_views`` registered views: one confirming view then fuses a depth, so noise counts)."""
+    if options.window is not None:
+        return options.window
+    return _SPARSE_RIG_WINDOW if registered_views <= options.sparse_rig_views else _WINDOW
+
+
+def _dense_cpu(
+    images: Sequence[np.ndarray],
+    masks: Sequence[np.ndarray | None],
+    cameras: Sequence[Camera | None],
+    names: Sequence[str],
+    neighbours: list[list[int]],
+    registered: list[int],
+    ranges: list[tuple[float, float] | None],
+    options: MvsOptions,
+    diag: float,
+    progress: Progress,
+) -> DenseResult:
+    n = len(images)
+    t0 = time.perf_counter()
+    views: list[StereoView | None] = [None] * n
+    for i in registered:
+        if neighbours[i] or any(i in neighbours[j] for j in registered):
+            views[i] = prepare_view(
+                images[i], masks[i], _camera(cameras, i), scale=grid_scale(images[i], options), colour=options.colour
+            )
+    depth_maps: list[DepthMap | None] = [None] * n
+    valid = [-1] * n
+    for k, i in enumerate(registered):
+        progress.update(k / len(registered), f"depth map {k + 1}/{len(registered)} (view {names[i]})")
+        ref = views[i]
+        if ref is None or not neighbours[i]:
+            continue
+        rng = ranges[i]
+        if rng is None:
+            continue
+        sources = [v for v in (views[j] for j in neighbours[i]) if v is not None]  # all prepared above
+        depth = depth_maps[i] = sweep_depth(
+            ref,
+            sources,
+            *rng,
+            planes=options.planes,
+            window=stereo_window(options, len(registered)),
+            top_k=options.top_k,
+            min_score=options.min_score,
+        )
+        valid[i] = int(depth.valid.sum())
+    t1 = time.perf_counter()
+    progress.update(1.0, "fusing depth maps")
+    pts_f, views_f, counts_f = filter_and_fuse(
+        depth_maps,
+        neighbours,
+        max_reproj_px=options.consistency_px,
+        max_rel_depth=options.consistency_depth,
+        min_consistent=1 if len(registered) <= options.sparse_rig_views else options.min_consistent,
+    )
+    consistent = np.bincount(views_f, minlength=n)
+    fraction = [-1.0] * n
+    for i, view in enumerate(views):
+        if view is not None:  # of the object's pixels; without a mask, of the depths found
+            base = int(view.mask.sum()) if masks[i] is not None else max(valid[i], 0)
+            fraction[i] = float(consistent[i] / max(base, 1))
+    if options.voxel > 0:
+        keep = voxel_thin(pts_f, options.voxel * diag)
+        pts_f, views_f, counts_f = pts_f[keep], views_f[keep], counts_f[keep]
+    dense = DensePoints(
+        points=pts_f, normals=estimate_normals(pts_f, views_f, cameras), views=views_f, consistent=counts_f
+    )
+    result = DenseResult(
+        points=dense,
+        backend="cpu",
+        neighbours=neighbours,
+        depth_maps=depth_maps,
+        valid_depths=valid,
+        consistent_fraction=fraction,
+        fused_per_view=np.bincount(views_f, minlength=n).tolist(),
+        timings={"depth_maps": t1 - t0, "fusion": time.perf_counter() - t1},
+    )
+    _check_enough(result, names, registered, options)
+    return result
+
+
+def _dense_colmap(
+    images: Sequence[np.ndarray],
+    masks: Sequence[np.ndarray | None],
+    cameras: Sequence[Camera | None],
+    pts: np.ndarray,
+    names: Sequence[str],
+    neighbours: list[list[int]],
+    registered: list[int],
+    ranges: list[tuple[float, float] | None],
+    options: MvsOptions,
+    workdir: str | Path | None,
+    diag: float,
+    progress: Progress,
+) -> DenseResult:
+    from pmvir.geometry.mvs.colmap import colmap_fusion, colmap_patch_match, write_workspace
+
+    if workdir is None:
+        raise ConfigError("the colmap-cuda backend needs a workdir")
+    n = len(images)
+    t0 = time.perf_counter()
+    local = {i: k for k, i in enumerate(registered)}
+    root = write_workspace(
+        Path(workdir) / "colmap-dense",
+        [images[i] for i in registered],
+        [masks[i] for i in registered],
+        [_camera(cameras, i) for i in registered],
+        [names[i] for i in registered],
+        [[local[j] for j in neighbours[i]] for i in registered],
+        pts,
+    )
+    known = [r for r in ranges if r is not None]
+    if not known:
+        raise ReconstructionError("no registered view sees the object's volume: cannot bound the depth range")
+    progress.update(0.0, "COLMAP PatchMatch stereo (CUDA)")
+    colmap_patch_match(root, depth_range=(min(r[0] for r in known), max(r[1] for r in known)))
+    t1 = time.perf_counter()
+    progress.update(1.0, "COLMAP stereo fusion")
+    points, normals = colmap_fusion(
+        root,
+        max_reproj_error=2.0 * options.consistency_px / options.scale,
+        max_depth_error=options.consistency_depth,
+    )
+    views = _nearest_view(points, normals, cameras, registered)
+    if options.voxel > 0:
+        keep = voxel_thin(points, options.voxel * diag)
+        points, normals, views = points[keep], normals[keep], views[keep]
+    dense = DensePoints(
+        points=points, normals=normals, views=views, consistent=np.zeros(len(points), np.int64)
+    )
+    per_view = np.bincount(views, minlength=n).tolist() if len(views) else [0] * n
+    result = DenseResult(
+        points=dense,
+        backend="colmap-cuda",
+        neighbours=neighbours,
+        depth_maps=[None] * n,
+        valid_depths=[-1] * n,
+        consistent_fraction=[-1.0] * n,
+        fused_per_view=per_view,
+        timings={"depth_maps": t1 - t0, "fusion": time.perf_counter() - t1},
+    )
+    _check_enough(result, names, registered, options)
+    return result
+
+
+def _camera(cameras: Sequence[Camera | None], i: int) -> Camera:
+    """The camera of view ``i``, which the caller knows to be registered."""
+    cam = cameras[i]
+    if cam is None:
+        raise ReconstructionError(f"view {i} has no pose but was taken as registered")
+    return cam
+
+
+def _nearest_view(
+    points: np.ndarray, normals: np.ndarray, cameras: Sequence[Camera | None], registered: list[int]
+) -> np.ndarray:
+    """Per point, the registered view whose viewing direction best faces its normal."""
+    if len(points) == 0:
+        return np.zeros(0, np.int64)
+    centres = np.stack([_camera(cameras, i).center for i in registered])
+    best = np.full(len(points), -np.inf)
+    view = np.zeros(len(points), np.int64)
+    for k, c in enumerate(centres):
+        d = c - points
+        cos = (d * normals).sum(1) / np.maximum(np.linalg.norm(d, axis=1), 1e-12)
+        better = cos > best
+        best[better] = cos[better]
+        view[better] = registered[k]
+    return view
+
+
+def _check_enough(
+    result: DenseResult, names: Sequence[str], registered: list[int], options: MvsOptions
+) -> None:
+    """ReconstructionError when too few points were fused, or too few depths passed the consistency filter."""
+    count = len(result.points)
+    fractions = [result.consistent_fraction[i] for i in registered if result.consistent_fraction[i] >= 0]
+    overall = float(np.mean(fractions)) if fractions else None
+    if count >= options.min_points and (overall is None or overall >= options.min_consistent_fraction):
+        return
+    weak = [
+        names[i]
+        for i in registered
+        if result.fused_per_view[i] == 0
+        or 0 <= result.consistent_fraction[i] < options.min_consistent_fraction
+    ]
+    no_nb = [names[i] for i in registered if not result.neighbours[i]]
+    detail = f"; views without a neighbour sharing sparse points: {', '.join(no_nb)}" if no_nb else ""
+    share = (
+        ""
+        if overall is None
+        else (
+            f"; on average {100 * overall:.1f}% of a view's object pixels got a consistent depth "
+            f"(mvs.min_consistent_fraction: {100 * options.min_consistent_fraction:.1f}%)"
+        )
+    )
+    raise ReconstructionError(
+        f"dense stereo fused {count} points from {len(registered)} registered views (mvs.min_points: "
+        f"{options.min_points}){share}; views with (almost) no consistent depth: "
+        f"{', '.join(weak) if weak else 'none'}{detail}. The object may be textureless, or the views may "
+        "not overlap."
+    )
+
+
+__all__ = ["DenseResult", "dense_stereo", "resolve_backend"]

@@ -1,0 +1,25 @@
+"""Camera poses and sparse points (paper section 4.2, first step), with pycolmap.
+
+Read in this order: :mod:`~pmvir.geometry.sfm.poses` (the entry point,
+:func:`estimate_poses`: known-pose triangulation or SfM),
+:mod:`~pmvir.geometry.sfm.colmap` (database, features, matching, mapping, refinement),
+:mod:`~pmvir.geometry.sfm.join` (joining disconnected models),
+:mod:`~pmvir.geometry.sfm.frontier` (poses held to the masks' epipolar tangencies),
+:mod:`~pmvir.geometry.sfm.align` (a reconstruction's similarity to ground truth through its cameras).
+"""
+
+from pmvir.geometry.sfm.align import CameraAlignment, Similarity, align_by_cameras, umeyama
+from pmvir.geometry.sfm.frontier import FrontierReport, frontier_adjust
+from pmvir.geometry.sfm.poses import SparseModel, estimate_poses, write_poses_text
+
+__all__ = [
+    "CameraAlignment",
+    "FrontierReport",
+    "Similarity",
+    "SparseModel",
+    "align_by_cameras",
+    "estimate_poses",
+    "frontier_adjust",
+    "umeyama",
+    "write_poses_text",
+]

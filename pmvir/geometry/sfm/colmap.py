@@ -1,0 +1,635 @@
+"""COLMAP plumbing of :mod:`pmvir.geometry.sfm.poses`: database, features, matching, mapping, refinement.
+
+* Features: SIFT per camera group (one extraction per known K, or per image size when the
+  intrinsics are estimated), masks restricting where features are detected.
+* Matching, SfM: exhaustive up to ``exhaustive_matching_max_views`` views, else sequential in
+  capture order; RANSAC verification (COLMAP).
+* Matching, known poses: epipolar-guided (:func:`_match_known_poses`): every feature's candidates
+  are the other view's features within ``_EPIPOLAR_MAX_ERROR_PX`` of its epipolar line, then
+  Lowe's ratio test and mutual nearest neighbours; no RANSAC, so wide baselines with a handful of
+  true matches still count. Points come from ``pycolmap.triangulate_points`` with the poses fixed.
+* SfM: ``pycolmap.incremental_mapping`` (or ``global_mapping``), then a last robust bundle
+  adjustment (:func:`_refine_sfm`); then, ``rematch_rounds`` times, the known-pose matching with
+  SfM's poses, triangulation and the robust bundle adjustment (:func:`_rematch_and_refine`);
+  where views are missing, the models are re-matched once, completed and joined
+  (:func:`_join_models`), one re-matching round per joining pass.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import shutil
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from pmvir.camera import Camera
+from pmvir.config import SfmOptions
+from pmvir.geometry.sfm.join import (
+    PNP_MIN_INLIERS,
+    register_by_pnp,
+    similarity_from_shared,
+    transform_camera,
+)
+
+Progress = Callable[[float, str], None]
+
+#: Known poses: a candidate match lies within this distance of the known epipolar line, both ways (px).
+_EPIPOLAR_MAX_ERROR_PX = 2.0
+
+#: Known poses: a view pair is used when at least this many matches fit its epipolar geometry.
+_KNOWN_POSE_MIN_MATCHES = 8
+
+#: Known poses: Lowe's ratio test among the candidates in the epipolar band (COLMAP's global test: 0.8).
+_KNOWN_POSE_MAX_RATIO = 0.8
+
+#: Known poses: largest descriptor distance of a match (unit descriptors; COLMAP: 0.7).
+_MAX_DESCRIPTOR_DISTANCE = 0.7
+
+#: SfM, joining models: passes of absolute-pose registration (and joining) before the last matching.
+_JOIN_PASSES = 3
+
+#: SfM's re-matching: a view with fewer observations of long tracks keeps its short ones (drop_short_tracks).
+_MIN_LONG_TRACK_OBSERVATIONS = 40
+
+#: Known poses: view pairs whose optical axes differ by more than this are not matched (degrees).
+_KNOWN_POSE_MAX_AXIS_DEG = 80.0
+
+
+@contextlib.contextmanager
+def quiet_colmap() -> Iterator[None]:
+    """Silence COLMAP's log below FATAL (the library never prints; failures raise ReconstructionError)."""
+    before = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = int(pycolmap.logging.Level.FATAL)
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = before
+
+
+def run_colmap(
+    workdir: Path,
+    image_dir: Path,
+    mask_dir: Path | None,
+    files: list[str],
+    sizes: list[tuple[int, int]],
+    Ks: list[np.ndarray | None],
+    known_cameras: list[Camera] | None,
+    options: SfmOptions,
+    timings: dict[str, float],
+    report: Progress,
+) -> tuple[pycolmap.Reconstruction | None, list[int], list[int]]:
+    """Features, matches, then triangulation (known poses) or incremental SfM.
+
+    Returns:
+        The reconstruction (SfM: the model with most registered views, joined with the others
+        where ``options.join_models``; None when SfM made none), per-view feature counts and
+        per-view numbers of verified partner views.
+    """
+    database = workdir / "database.db"
+    database.unlink(missing_ok=True)
+    sparse_dir = workdir / "sparse"
+    sparse_dir.mkdir(parents=True, exist_ok=True)
+
+    report(0.1, "extracting SIFT features")
+    t0 = time.perf_counter()
+    _extract_features(database, image_dir, mask_dir, files, sizes, Ks, options)
+    timings["features"] = time.perf_counter() - t0
+
+    report(0.4, "matching features")
+    t0 = time.perf_counter()
+    if known_cameras is not None:
+        _match_known_poses(database, files, known_cameras)
+    else:
+        _match(database, len(files), options)
+    timings["matching"] = time.perf_counter() - t0
+    features, partners = _database_stats(database, files)
+
+    t0 = time.perf_counter()
+    if known_cameras is not None:
+        report(0.6, "triangulating with the known poses")
+        rec = pycolmap.triangulate_points(
+            _known_pose_reconstruction(database, files, known_cameras), database, image_dir, sparse_dir,
+            clear_points=True, options=_pipeline_options(options, set(), min_matches=_KNOWN_POSE_MIN_MATCHES),
+            refine_intrinsics=False,
+        )
+        if options.max_reprojection_error > 0:
+            filter_observations(rec, options.max_reprojection_error)
+            rec.update_point_3d_errors()
+        timings["triangulation"] = time.perf_counter() - t0
+        return rec, features, partners
+    report(0.6, f"{options.mapper} SfM")
+    constant = _known_camera_ids(database, files, Ks)
+    if options.mapper == "global":
+        models = pycolmap.global_mapping(database, image_dir, sparse_dir, options=_global_options(options, constant))
+    else:
+        models = pycolmap.incremental_mapping(
+            database, image_dir, sparse_dir, options=_pipeline_options(options, constant)
+        )
+    ranked = sorted(models.values(), key=lambda r: r.num_reg_images(), reverse=True)
+    timings["mapping"] = time.perf_counter() - t0
+    if not ranked:
+        return None, features, partners
+    report(0.9, "refining the poses")
+    t0 = time.perf_counter()
+    joining = options.join_models and ranked[0].num_reg_images() < len(files)
+    if not joining:
+        ranked = ranked[:1]
+    run = _SfmRun(database, image_dir, sparse_dir, files, options, constant)
+    # Joined models keep their two-view points: the absolute poses that join them vote with every
+    # point, and on the dragon (32 of 36 views joined) a last round without them was worse (largest
+    # centre error 1.10 -> 1.17 % of the rig with the intrinsics given, 1.05 -> 1.09 % without).
+    min_track = 2 if joining else options.rematch_min_track
+    # Models to be joined are matched again once per pass: their sides are linked through a few
+    # views, and each round along the bent poses kept the bend and added to it (dragon, 32 views:
+    # largest centre error 1.10 -> 1.34 % of the rig with two rounds, 1.05 -> 1.40 % estimating K).
+    rounds = min(1, options.rematch_rounds) if joining else options.rematch_rounds
+    for k, rec in enumerate(ranked):
+        _refine_sfm(rec, options, constant)
+        if rounds:
+            ranked[k] = _rematch_and_refine(rec, run, rounds, min_track=min_track)
+    best = ranked[0]
+    timings["refinement"] = time.perf_counter() - t0
+    if joining:
+        report(0.95, "joining the models")
+        t0 = time.perf_counter()
+        best = _join_models(ranked, run)
+        timings["joining"] = time.perf_counter() - t0
+    return best, features, partners
+
+
+def _extract_features(
+    database: Path,
+    image_dir: Path,
+    mask_dir: Path | None,
+    files: list[str],
+    sizes: list[tuple[int, int]],
+    Ks: list[np.ndarray | None],
+    options: SfmOptions,
+) -> None:
+    """SIFT into the database, one extraction per camera group (same K, or same size when estimated)."""
+    groups: dict[tuple, list[int]] = {}
+    for i, (K, (h, w)) in enumerate(zip(Ks, sizes, strict=True)):
+        if K is not None:
+            key: tuple = ("known", w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+        elif options.shared_intrinsics:
+            key = ("estimated", w, h)
+        else:
+            key = ("estimated", w, h, i)
+        groups.setdefault(key, []).append(i)
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.max_num_features = options.sift_max_features
+    extraction.sift.peak_threshold = options.sift_peak_threshold
+    extraction.sift.estimate_affine_shape = options.sift_affine_shape
+    extraction.sift.first_octave = -1 if options.sift_upsample else 0
+    # COLMAP numbers images in the order its extraction threads finish them, which varies from run
+    # to run; the matching and the mapper visit views in image-id order, so importing the images
+    # first (one thread, group by group, in the views' order) makes SfM and the known-pose matches
+    # repeatable.
+    pycolmap.Database.open(str(database)).close()  # import_images needs the file
+    for key, members in groups.items():
+        reader = pycolmap.ImageReaderOptions()
+        if mask_dir is not None:
+            reader.mask_path = str(mask_dir)
+        if key[0] == "known":
+            reader.camera_model = "PINHOLE"
+            reader.camera_params = ",".join(repr(float(v)) for v in key[3:])
+        else:
+            reader.camera_model = "SIMPLE_PINHOLE"
+        names = [files[i] for i in members]
+        pycolmap.import_images(
+            database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, image_names=names, options=reader
+        )
+        pycolmap.extract_features(
+            database,
+            image_dir,
+            image_names=names,
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader,
+            extraction_options=extraction,
+        )
+
+
+def _match(database: Path, n: int, options: SfmOptions) -> None:
+    """SIFT matching (exhaustive or sequential, module docstring) with RANSAC verification."""
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = options.seed
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.guided_matching = options.guided_matching
+    matching.sift.max_ratio = options.match_max_ratio
+    if n <= options.exhaustive_matching_max_views:
+        pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verification)
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = options.sequential_matching_overlap
+        pairing.quadratic_overlap = True
+        pycolmap.match_sequential(
+            database, matching_options=matching, pairing_options=pairing, verification_options=verification
+        )
+
+
+def _match_known_poses(database: Path, files: list[str], cameras: Sequence[Camera | None]) -> None:
+    """Epipolar-guided matching with the known poses (replaces COLMAP's matching and RANSAC).
+
+    For every pair of views whose optical axes differ by at most ``_KNOWN_POSE_MAX_AXIS_DEG``,
+    a feature's candidates are the features of the other view within ``_EPIPOLAR_MAX_ERROR_PX``
+    of its epipolar line (both ways); among them the nearest descriptor must pass Lowe's ratio
+    test against the second nearest candidate and be nearest both ways. Restricting the
+    search to the epipolar band keeps matches that a global ratio test loses between views
+    30-70 degrees apart. The matches are written as CALIBRATED two-view geometries.
+    """
+    index = {name: i for i, name in enumerate(files)}
+    db = pycolmap.Database.open(str(database))
+    try:
+        view = {im.image_id: index[im.name] for im in db.read_all_images()}
+        posed: dict[int, Camera] = {k: c for k, i in view.items() if (c := cameras[i]) is not None}
+        ids = sorted(posed)
+        xy = {k: db.read_keypoints(k)[:, :2].astype(np.float64) for k in ids}
+        desc = {}
+        for k in ids:
+            d = db.read_descriptors(k).data.astype(np.float32)
+            desc[k] = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        axes = {k: posed[k].R[2] for k in ids}
+        min_cos = math.cos(math.radians(_KNOWN_POSE_MAX_AXIS_DEG))
+        for a_pos, id1 in enumerate(ids):
+            for id2 in ids[a_pos + 1:]:
+                if float(axes[id1] @ axes[id2]) < min_cos or not len(xy[id1]) or not len(xy[id2]):
+                    continue
+                F = fundamental_matrix(posed[id1], posed[id2])
+                m = _guided_matches(xy[id1], xy[id2], desc[id1], desc[id2], F)
+                if len(m) < _KNOWN_POSE_MIN_MATCHES:
+                    continue
+                db.write_matches(id1, id2, m)
+                geometry = pycolmap.TwoViewGeometry()
+                geometry.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+                geometry.F = F
+                geometry.inlier_matches = m
+                db.write_two_view_geometry(id1, id2, geometry)
+    finally:
+        db.close()
+
+
+def _guided_matches(
+    x1: np.ndarray, x2: np.ndarray, d1: np.ndarray, d2: np.ndarray, F: np.ndarray
+) -> np.ndarray:
+    """Mutual nearest descriptors within the epipolar band, ratio-tested; (M, 2) uint32 indices.
+
+    Args:
+        x1, x2: (N1, 2), (N2, 2) keypoint pixel coordinates.
+        d1, d2: (N1, 128), (N2, 128) float32 unit descriptors.
+        F: (3, 3) fundamental matrix, ``x2^T F x1 = 0``.
+    """
+    if len(x1) < 2 or len(x2) < 2:
+        return np.zeros((0, 2), np.uint32)
+    h1 = np.concatenate([x1, np.ones((len(x1), 1))], axis=1)
+    h2 = np.concatenate([x2, np.ones((len(x2), 1))], axis=1)
+    l2 = h1 @ F.T  # epipolar lines in view 2 of the view-1 features, (N1, 3)
+    l1 = h2 @ F  # epipolar lines in view 1 of the view-2 features, (N2, 3)
+    l2 /= np.maximum(np.hypot(l2[:, :1], l2[:, 1:2]), 1e-12)
+    l1 /= np.maximum(np.hypot(l1[:, :1], l1[:, 1:2]), 1e-12)
+    band = np.abs(l2.astype(np.float32) @ h2.T.astype(np.float32)) < _EPIPOLAR_MAX_ERROR_PX
+    band &= np.abs(h1.astype(np.float32) @ l1.T.astype(np.float32)) < _EPIPOLAR_MAX_ERROR_PX
+    # Unit descriptors: distance^2 = 2 - 2 cos. The ratio test compares the nearest candidate in
+    # the band with the second nearest in the band, or (a lone candidate) with the nearest
+    # other feature anywhere in view 2.
+    full = d1 @ d2.T
+    cos = np.where(band, full, np.float32(-2.0))
+    best2 = np.argmax(cos, axis=1)
+    rows = np.arange(len(cos))
+    top = -np.partition(-cos, 1, axis=1)[:, :2]
+    full[rows, best2] = -2.0
+    second = np.where(top[:, 1] > -1.5, top[:, 1], full.max(axis=1))
+    dist = np.sqrt(np.maximum(2.0 - 2.0 * np.stack([top[:, 0], second], axis=1), 0.0))
+    ok = (top[:, 0] > -1.5) & (dist[:, 0] < _MAX_DESCRIPTOR_DISTANCE)
+    ok &= dist[:, 0] < _KNOWN_POSE_MAX_RATIO * dist[:, 1]
+    ok &= np.argmax(cos, axis=0)[best2] == rows  # mutual nearest
+    return np.stack([rows[ok], best2[ok]], axis=1).astype(np.uint32)
+
+
+def fundamental_matrix(camera1: Camera, camera2: Camera) -> np.ndarray:
+    """F with ``x2^T F x1 = 0`` for pixel coordinates (u, v, 1) of one point in two views, (3, 3)."""
+    R = camera2.R @ camera1.R.T
+    t = camera2.t - R @ camera1.t
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    return np.linalg.inv(camera2.K).T @ tx @ R @ np.linalg.inv(camera1.K)
+
+
+def sampson_error(x1: np.ndarray, x2: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Squared Sampson distances (pixels^2) of (M, 2) pixel correspondences to F, (M,) float64."""
+    h1 = np.concatenate([x1, np.ones((len(x1), 1))], axis=1)
+    h2 = np.concatenate([x2, np.ones((len(x2), 1))], axis=1)
+    Fx1 = h1 @ F.T
+    Ftx2 = h2 @ F
+    num = np.einsum("ij,ij->i", h2, Fx1) ** 2
+    den = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
+    return num / np.maximum(den, 1e-30)
+
+
+def _pipeline_options(
+    options: SfmOptions, constant_cameras: set[int], *, min_matches: int = 15
+) -> pycolmap.IncrementalPipelineOptions:
+    po = pycolmap.IncrementalPipelineOptions()
+    po.min_num_matches = min_matches
+    po.random_seed = options.seed
+    po.min_model_size = options.min_registered_views
+    po.ba_refine_principal_point = False
+    po.ba_refine_extra_params = False
+    po.constant_cameras = constant_cameras
+    po.mapper.init_min_num_inliers = options.init_min_inliers
+    po.mapper.abs_pose_min_num_inliers = options.register_min_inliers
+    return po
+
+
+def _global_options(options: SfmOptions, constant_cameras: set[int]) -> pycolmap.GlobalPipelineOptions:
+    """GLOMAP options: seeded, CPU, given intrinsics held fixed (focal lengths refined only when estimated)."""
+    po = pycolmap.GlobalPipelineOptions()
+    po.random_seed = options.seed
+    po.min_model_size = options.min_registered_views
+    po.mapper.random_seed = options.seed
+    po.mapper.global_positioning.use_gpu = False
+    po.mapper.global_positioning.random_seed = options.seed
+    po.mapper.bundle_adjustment.refine_principal_point = False
+    po.mapper.bundle_adjustment.refine_extra_params = False
+    po.mapper.bundle_adjustment.refine_focal_length = not constant_cameras
+    return po
+
+
+def _known_pose_reconstruction(
+    database: Path,
+    files: list[str],
+    cameras: Sequence[Camera | None],
+    intrinsics: pycolmap.Reconstruction | None = None,
+) -> pycolmap.Reconstruction:
+    """A reconstruction holding the database's cameras and images, those with a given pose registered.
+
+    The cameras (intrinsics) are the database's, or ``intrinsics``'s where it holds them.
+    """
+    index = {name: i for i, name in enumerate(files)}
+    db = pycolmap.Database.open(str(database))
+    try:
+        rec = pycolmap.Reconstruction()
+        for cam in db.read_all_cameras():
+            known = intrinsics is not None and cam.camera_id in intrinsics.cameras
+            rec.add_camera(intrinsics.cameras[cam.camera_id] if known else cam)  # type: ignore[union-attr]
+        for rig in db.read_all_rigs():
+            rec.add_rig(rig)
+        images = {im.image_id: im for im in db.read_all_images()}
+        frames = db.read_all_frames()
+        posed = []
+        for frame in frames:
+            (data_id,) = frame.image_ids  # one camera per rig: one image per frame
+            pose = cameras[index[images[data_id.id].name]]
+            if pose is not None:
+                frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(pose.R), pose.t)
+                posed.append(frame.frame_id)
+            rec.add_frame(frame)
+        for image in images.values():
+            rec.add_image(image)
+        for frame_id in posed:
+            rec.register_frame(frame_id)
+    finally:
+        db.close()
+    return rec
+
+
+def _known_camera_ids(database: Path, files: list[str], Ks: list[np.ndarray | None]) -> set[int]:
+    """Database camera ids of the views whose intrinsics were given (held fixed in SfM)."""
+    index = {name: i for i, name in enumerate(files)}
+    db = pycolmap.Database.open(str(database))
+    try:
+        return {im.camera_id for im in db.read_all_images() if Ks[index[im.name]] is not None}
+    finally:
+        db.close()
+
+
+def filter_observations(rec: pycolmap.Reconstruction, max_error: float) -> int:
+    """Delete observations whose reprojection error exceeds ``max_error`` px (and points left with < 2)."""
+    removed = 0
+    for pid in list(rec.points3D.keys()):
+        point = rec.points3D[pid]
+        bad = []
+        for el in point.track.elements:
+            image = rec.images[el.image_id]
+            uv = image.project_point(point.xyz)
+            if uv is None or np.linalg.norm(uv - image.points2D[el.point2D_idx].xy) > max_error:
+                bad.append((el.image_id, el.point2D_idx))
+        if len(point.track.elements) - len(bad) < 2:
+            rec.delete_point3D(pid)
+            removed += 1
+            continue
+        for image_id, idx in bad:
+            rec.delete_observation(image_id, idx)
+    return removed
+
+
+def _refine_sfm(rec: pycolmap.Reconstruction, options: SfmOptions, constant_cameras: set[int]) -> None:
+    """Final robust bundle adjustment (Cauchy loss, 1 px scale) between two outlier filters.
+
+    Poses, points and the focal lengths of estimated cameras are refined; given intrinsics
+    stay constant. (Uses the bundle adjuster directly: ``pycolmap.bundle_adjustment`` resets
+    COLMAP's log level.)
+    """
+    if options.max_reprojection_error <= 0:
+        return
+    filter_observations(rec, options.max_reprojection_error)
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.refine_principal_point = False
+    ba.refine_extra_params = False
+    ba.print_summary = False
+    ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    ba.ceres.loss_function_scale = 1.0
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in rec.reg_image_ids():
+        config.add_image(image_id)
+    for camera_id in constant_cameras & set(rec.cameras.keys()):
+        config.set_constant_cam_intrinsics(camera_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    pycolmap.create_default_bundle_adjuster(ba, config, rec).solve()
+    filter_observations(rec, options.max_reprojection_error)
+    rec.update_point_3d_errors()
+
+
+def _cameras_of(rec: pycolmap.Reconstruction, files: list[str]) -> list[Camera | None]:
+    """Per view (``files`` order) the registered image's Camera, or None."""
+    index = {name: i for i, name in enumerate(files)}
+    cameras: list[Camera | None] = [None] * len(files)
+    for image in rec.images.values():
+        if image.has_pose:
+            pose = image.cam_from_world()
+            cameras[index[image.name]] = Camera(
+                K=image.camera.calibration_matrix(), R=pose.rotation.matrix(), t=pose.translation,
+                width=image.camera.width, height=image.camera.height,
+            )
+    return cameras
+
+
+@dataclass(frozen=True)
+class _SfmRun:
+    """What the steps after SfM's mapping share: the database, the image and model folders, the
+    views' file names, the options and the cameras whose intrinsics are held."""
+
+    database: Path
+    image_dir: Path
+    sparse_dir: Path
+    files: list[str]
+    options: SfmOptions
+    constant_cameras: set[int]
+
+
+def _rematch_and_refine(
+    rec: pycolmap.Reconstruction, run: _SfmRun, rounds: int, *, min_track: int
+) -> pycolmap.Reconstruction:
+    """SfM's poses as if known: epipolar-guided matching, triangulation, robust bundle adjustment.
+
+    The features of the registered views are matched again along the epipolar lines of the
+    estimated poses (:func:`_match_known_poses`, in a copy of the database), triangulated
+    with the poses held, and refined by :func:`_refine_sfm` with the poses free: the guided
+    matches between views 30-70 degrees apart, which RANSAC verification loses, make longer
+    tracks. Points seen in fewer than ``min_track`` views (``sfm.rematch_min_track``) are dropped
+    before and after the adjustment (:func:`drop_short_tracks`): a two-view match is checked only
+    by the estimated epipolar line, and the poses bend to fit the wrong ones. Repeated ``rounds``
+    times.
+    """
+    guided = run.database.with_name("guided.db")
+    out = run.sparse_dir / "guided"
+    out.mkdir(parents=True, exist_ok=True)
+    for _ in range(rounds):
+        shutil.copyfile(run.database, guided)
+        db = pycolmap.Database.open(str(guided))
+        try:
+            db.clear_matches()
+            db.clear_two_view_geometries()
+        finally:
+            db.close()
+        _match_known_poses(guided, run.files, _cameras_of(rec, run.files))
+        rec = pycolmap.triangulate_points(
+            rec,
+            guided,
+            run.image_dir,
+            out,
+            clear_points=True,
+            options=_pipeline_options(run.options, run.constant_cameras, min_matches=_KNOWN_POSE_MIN_MATCHES),
+            refine_intrinsics=False,
+        )
+        drop_short_tracks(rec, min_track)
+        _refine_sfm(rec, run.options, run.constant_cameras)
+        drop_short_tracks(rec, min_track)
+    return rec
+
+
+def drop_short_tracks(rec: pycolmap.Reconstruction, min_views: int) -> int:
+    """Delete the points observed in fewer than ``min_views`` views; returns how many.
+
+    A view left with fewer than ``_MIN_LONG_TRACK_OBSERVATIONS`` observations of longer tracks
+    keeps its short ones: a pose with a handful of observations is worse than one with some
+    unchecked ones (the dragon's end-on views, registered by absolute pose).
+    """
+    if min_views <= 2:
+        return 0
+    long_obs: dict[int, int] = {}
+    short = []
+    for pid, point in rec.points3D.items():
+        if point.track.length() < min_views:
+            short.append(pid)
+        else:
+            for el in point.track.elements:
+                long_obs[el.image_id] = long_obs.get(el.image_id, 0) + 1
+    weak = {i for i in rec.reg_image_ids() if long_obs.get(i, 0) < _MIN_LONG_TRACK_OBSERVATIONS}
+    removed = 0
+    for pid in short:
+        if not weak.intersection(el.image_id for el in rec.points3D[pid].track.elements):
+            rec.delete_point3D(pid)
+            removed += 1
+    return removed
+
+
+def _join_models(ranked: list[pycolmap.Reconstruction], run: _SfmRun) -> pycolmap.Reconstruction:
+    """The largest model joined with the others and completed by absolute poses (:mod:`.join`).
+
+    First with every absolute pose of ``PNP_MIN_INLIERS`` or more inliers (:func:`_grow_and_join`);
+    when that joins no two models, its poses had no second model to confirm them, and the
+    largest model is completed again with only the poses that reach the mapper's own
+    ``options.register_min_inliers``.
+    """
+    rec, joined = _grow_and_join(ranked, run, min_inliers=PNP_MIN_INLIERS)
+    if joined:
+        return rec
+    return _grow_and_join(ranked[:1], run, min_inliers=run.options.register_min_inliers)[0]
+
+
+def _grow_and_join(
+    ranked: list[pycolmap.Reconstruction], run: _SfmRun, *, min_inliers: int
+) -> tuple[pycolmap.Reconstruction, bool]:
+    """Passes of absolute poses and joining; the first model and whether another joined it.
+
+    Each pass: every model registers the views it missed by PnP (at least ``min_inliers``
+    inliers besides :func:`register_by_pnp`'s own tests); a model whose poses of two or more
+    common views agree on a similarity with the first's moves into its frame and joins it; every
+    model that gained views is matched again along its poses, triangulated and bundle-adjusted
+    (:func:`_rematch_and_refine`), which gives the next pass more points. At most
+    ``_JOIN_PASSES`` passes, fewer when one changes nothing.
+    """
+    files = run.files
+    index = {name: i for i, name in enumerate(files)}
+    models = list(ranked)
+    rounds = 1  # see run_colmap: more rounds along joined poses add to their bend
+    joined_any = False
+    for _ in range(_JOIN_PASSES):
+        db = pycolmap.Database.open(str(run.database))
+        try:
+            view_of_image = {im.image_id: index[im.name] for im in db.read_all_images()}
+            db_cameras = {cam.camera_id: cam for cam in db.read_all_cameras()}
+            posed = []
+            for model in models:
+                cameras = {i: c for i, c in enumerate(_cameras_of(model, files)) if c is not None}
+                found = register_by_pnp(model, db, view_of_image, db_cameras)
+                cameras.update({i: c for i, (c, n) in found.items() if n >= min_inliers})
+                posed.append(cameras)
+        finally:
+            db.close()
+        kept = [0]
+        for k in range(1, len(models)):
+            similarity = similarity_from_shared(posed[0], posed[k])
+            if similarity is None:
+                kept.append(k)
+                continue
+            joined_any = True
+            for i, camera in posed[k].items():
+                posed[0].setdefault(i, transform_camera(camera, *similarity))
+        changed = False
+        for k in kept:
+            if len(posed[k]) > models[k].num_reg_images():
+                changed = True
+                poses = [posed[k].get(i) for i in range(len(files))]
+                known = _known_pose_reconstruction(run.database, files, poses, models[k])
+                models[k] = _rematch_and_refine(known, run, rounds, min_track=2)
+        models = [models[k] for k in kept]
+        if not changed:
+            break
+    return models[0], joined_any
+
+
+def _database_stats(database: Path, files: list[str]) -> tuple[list[int], list[int]]:
+    """Per view: SIFT features, and the number of other views it has verified matches with."""
+    index = {name: i for i, name in enumerate(files)}
+    features, partners = [0] * len(files), [0] * len(files)
+    db = pycolmap.Database.open(str(database))
+    try:
+        by_id = {}
+        for im in db.read_all_images():
+            by_id[im.image_id] = index[im.name]
+            features[index[im.name]] = db.num_keypoints_for_image(im.image_id)
+        pair_ids, counts = db.read_two_view_geometry_num_inliers()
+        for pair_id, count in zip(pair_ids, counts, strict=True):
+            if count > 0:
+                a, b = pycolmap.pair_id_to_image_pair(pair_id)
+                partners[by_id[a]] += 1
+                partners[by_id[b]] += 1
+    finally:
+        db.close()
+    return features, partners

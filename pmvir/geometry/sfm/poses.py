@@ -1,0 +1,612 @@
+"""Camera poses and sparse points (pipeline stage 2, first step), with pycolmap.
+
+:func:`estimate_poses` runs in one of two modes:
+
+* **known poses** (every view's Camera is given, as from a calibrated rig):
+  SIFT features are matched along the known epipolar lines and triangulated
+  with the poses and intrinsics held fixed (``pycolmap.triangulate_points``);
+  the cameras come back as given, bit for bit. Only points seen in 3 or more
+  views are kept (two-view points from chance matches in the epipolar band
+  were mostly wrong: about 60 % in our measurements).
+* **SfM** (otherwise): SIFT features, exhaustive matching (or sequential in
+  capture order above ``exhaustive_matching_max_views`` views), COLMAP's
+  incremental mapping and a last robust bundle adjustment, then
+  ``sfm.rematch_rounds`` times the known-pose matching along the estimated
+  poses, triangulation and the robust bundle adjustment again (longer tracks
+  between views 30-70 degrees apart; its points seen in fewer than
+  ``sfm.rematch_min_track`` views are dropped; models that must be joined
+  get one round per joining pass). Given intrinsics are
+  held fixed (PINHOLE); missing ones are estimated as SIMPLE_PINHOLE (one focal
+  length, principal point at the image centre), shared by the views of one
+  image size unless ``sfm.shared_intrinsics`` is off. The result lives in
+  SfM's own frame (known up to a similarity). Where views are left out
+  (``sfm.join_models``), every model registers its missed views by absolute
+  pose and models agreeing on two or more common views are joined into the
+  one with most views (:mod:`pmvir.geometry.sfm.join`), which is kept.
+
+The COLMAP plumbing (database, matching, mapping, refinement) is in
+:mod:`pmvir.geometry.sfm.colmap`.
+
+SIFT sees an 8-bit grey image per view (:func:`sift_image`): the channel mean,
+exposed so the 99.5th percentile of the foreground is white, sRGB-encoded and
+(``sift_equalize``) contrast-equalized with CLAHE. Masks, eroded by
+``sfm.mask_erosion_px`` (default 4) so that no feature sits on the silhouette
+(a silhouette is no fixed surface point), restrict
+where features are detected. Where masks are
+given, sparse points must also project into every view's mask (grown by
+``_HULL_TOLERANCE_PX``): the visual hull.
+
+Failures are :class:`~pmvir.errors.ReconstructionError` naming the views that
+failed with their feature and match counts: fewer views than
+``min_registered_views`` (or than ``min_registered_fraction`` of them)
+registered, or (SfM only) fewer than ``min_sparse_points`` points seen in 3 or
+more views (a textureless object, or frames that do not overlap). Known poses
+never need sparse points: dense stereo bounds its depths by the known cameras'
+visual hull (:mod:`pmvir.geometry.silhouette.hull`), and the points only tighten it. COLMAP's own log lines
+are silenced below FATAL while it runs.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+
+from pmvir.camera import Camera
+from pmvir.config import SfmOptions
+from pmvir.errors import InputError, ReconstructionError, ShapeError
+from pmvir.geometry.sfm.colmap import Progress, fundamental_matrix, quiet_colmap, run_colmap, sampson_error
+from pmvir.geometry.sfm.frontier import FrontierReport, frontier_adjust, register_from_silhouettes
+from pmvir.io.colmap_text import image_from_camera, pinhole_from_camera, write_colmap_text_model
+from pmvir.polarization.preview import srgb_encode
+
+__all__ = [
+    "Progress", "SparseModel", "estimate_poses", "fundamental_matrix", "sampson_error", "sift_image",
+    "write_poses_text",
+]
+
+#: Sparse points must project into every mask grown by this many pixels (visual hull).
+_HULL_TOLERANCE_PX = 3
+
+#: Failure messages call views with fewer SIFT features than this (median) textureless.
+_FEW_FEATURES = 100
+
+#: Percentile of the foreground grey level mapped to white in the SIFT images.
+_EXPOSURE_PERCENTILE = 99.5
+
+
+@dataclass
+class SparseModel:
+    """Cameras and sparse 3D points of a capture.
+
+    Attributes:
+        cameras: one per view in capture order; None where the view is not registered.
+        points: (P, 3) float64 world points.
+        point_colors: (P, 3) uint8 sRGB colour of each point (mean of its observed pixels), or None.
+        point_views: per point, the int64 indices of the views observing it, or None.
+        mean_reprojection_error: mean over all observations, pixels.
+        registered: per view, whether it has a camera.
+        known_poses: True when the cameras were given (known-pose mode).
+        timings: seconds per step: "images", "features", "matching", then "triangulation"
+            (known poses) or "mapping" and "refinement" (SfM), "frontier" and
+            "silhouette_registration" (SfM with masks), "finish" (those two and the checks), and
+            "total"; with ``fallback_images``, "first_images" or "second_images": the run not kept.
+        names: the views' names, in capture order.
+        num_features: SIFT features per view.
+        point_observations: per point a (k, 3) float64 array of its observations: view index,
+            x, y (pixels, COLMAP convention), or None.
+        fallback: True when SfM on the first images left views out or failed and the
+            ``fallback_images`` of :func:`estimate_poses` gave this model.
+        frontier: the frontier adjustment's report (:class:`.frontier.FrontierReport` as a
+            dict: residuals before and after, whether its poses were kept), or None where it did
+            not run (known poses, no masks, ``sfm.frontier_weight`` 0, too few masked views).
+        silhouette_registered: names of the views SfM left out that were registered from their
+            masks (:func:`.frontier.register_from_silhouettes`, ``sfm.silhouette_register_px``).
+        silhouette_refused: name -> why the silhouette search did not register a view SfM left
+            out (no pose fits its mask well enough, or a distinct pose fits it about as well: an
+            ambiguous, e.g. symmetric, silhouette).
+    """
+
+    cameras: list[Camera | None]
+    points: np.ndarray
+    point_colors: np.ndarray | None
+    point_views: list[np.ndarray] | None
+    mean_reprojection_error: float
+    registered: list[bool]
+    known_poses: bool
+    timings: dict[str, float]
+    names: list[str] = field(default_factory=list)
+    num_features: list[int] = field(default_factory=list)
+    point_observations: list[np.ndarray] | None = None
+    fallback: bool = False
+    frontier: dict[str, float | int | bool] | None = None
+    silhouette_registered: list[str] = field(default_factory=list)
+    silhouette_refused: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def num_registered(self) -> int:
+        return int(sum(self.registered))
+
+
+def sift_image(image: np.ndarray, mask: np.ndarray | None = None, *, equalize: bool = True) -> np.ndarray:
+    """The 8-bit grey image SIFT sees.
+
+    Args:
+        image: (H, W, C) or (H, W) float linear intensities (any positive scale).
+        mask: optional (H, W) bool foreground; the exposure is set on it.
+        equalize: apply CLAHE (clip limit 2, 8 x 8 tiles).
+
+    Returns:
+        (H, W) uint8: the channel mean scaled so its 99.5th percentile (over the mask)
+        is 1, sRGB-encoded, optionally equalized.
+    """
+    grey = image.mean(axis=2) if image.ndim == 3 else image
+    if grey.ndim != 2:
+        raise ShapeError(f"expected an (H, W) or (H, W, C) image, got shape {image.shape}")
+    grey = np.nan_to_num(grey.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    values = grey[mask] if mask is not None and mask.any() else grey.ravel()
+    level = float(np.percentile(values, _EXPOSURE_PERCENTILE)) if values.size else 0.0
+    scale = 1.0 / level if level > 1e-12 else 1.0
+    out: np.ndarray = np.rint(srgb_encode(grey * np.float32(scale)) * 255.0).astype(np.uint8)
+    if equalize:
+        out = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(out)
+    return out
+
+
+def _check_inputs(
+    images: Sequence[np.ndarray],
+    names: Sequence[str],
+    cameras: Sequence[Camera | None] | None,
+    intrinsics: Sequence[np.ndarray | None] | None,
+    masks: Sequence[np.ndarray | None] | None,
+) -> None:
+    n = len(images)
+    if len(names) != n or len(set(names)) != n:
+        raise InputError(f"expected {n} distinct names, got {len(names)} ({len(set(names))} distinct)")
+    for label, seq in (("cameras", cameras), ("intrinsics", intrinsics), ("masks", masks)):
+        if seq is not None and len(seq) != n:
+            raise ShapeError(f"{label} has {len(seq)} entries for {n} images")
+    for i, im in enumerate(images):
+        if im.ndim not in (2, 3) or min(im.shape[:2]) < 16:
+            raise ShapeError(f"view {names[i]}: expected an (H, W, C) image of at least 16 x 16, got {im.shape}")
+        h, w = im.shape[:2]
+        mask = masks[i] if masks is not None else None
+        if mask is not None and mask.shape != (h, w):
+            raise ShapeError(f"view {names[i]}: mask {mask.shape} does not match the image {(h, w)}")
+        cam = cameras[i] if cameras is not None else None
+        if cam is not None and (cam.width, cam.height) != (w, h):
+            raise ShapeError(f"view {names[i]}: camera is {cam.width} x {cam.height}, the image {w} x {h}")
+        k = intrinsics[i] if intrinsics is not None else None
+        for K in (k, None if cam is None else cam.K):
+            if K is not None and (np.shape(K) != (3, 3) or abs(float(np.asarray(K)[0, 1])) > 1e-12):
+                raise InputError(f"view {names[i]}: intrinsics must be a 3 x 3 K without skew")
+
+
+def _write_inputs(
+    workdir: Path, images: Sequence[np.ndarray], masks: Sequence[np.ndarray | None] | None, options: SfmOptions
+) -> tuple[Path, Path | None, list[str]]:
+    """SIFT images (and COLMAP masks: 0 = no features) under ``workdir``; returns dirs and file names."""
+    image_dir, mask_dir = workdir / "images", workdir / "masks"
+    for d in (image_dir, mask_dir, workdir / "sparse"):
+        shutil.rmtree(d, ignore_errors=True)
+    image_dir.mkdir(parents=True)
+    files = [f"{i:05d}.png" for i in range(len(images))]
+    has_masks = masks is not None and any(m is not None for m in masks)
+    if has_masks:
+        mask_dir.mkdir()
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * options.mask_erosion_px + 1,) * 2)
+    for i, (im, name) in enumerate(zip(images, files, strict=True)):
+        mask = None if masks is None else masks[i]
+        cv2.imwrite(str(image_dir / name), sift_image(im, mask, equalize=options.sift_equalize))
+        if has_masks:
+            m = np.full(im.shape[:2], 255, np.uint8) if mask is None else mask.astype(np.uint8) * 255
+            cv2.imwrite(str(mask_dir / f"{name}.png"), cv2.erode(m, kernel))
+    return image_dir, (mask_dir if has_masks else None), files
+
+
+def _view_intrinsics(
+    i: int, cameras: Sequence[Camera | None] | None, intrinsics: Sequence[np.ndarray | None] | None
+) -> np.ndarray | None:
+    if intrinsics is not None and intrinsics[i] is not None:
+        return np.asarray(intrinsics[i], dtype=np.float64)
+    cam = cameras[i] if cameras is not None else None
+    return None if cam is None else cam.K
+
+
+def _sparse_points(
+    rec: pycolmap.Reconstruction, view_of_image: dict[int, int], images: Sequence[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], list[np.ndarray]]:
+    """Points, their colours, the views observing them and the observations ((k, 3): view, x, y).
+
+    A point's colour is the mean linear colour of the pixels holding its observations, with
+    one exposure for all points (99.5th percentile of the brightest channel -> 1), sRGB 8-bit.
+    """
+    ids = sorted(rec.points3D.keys())
+    points = np.zeros((len(ids), 3), dtype=np.float64)
+    linear = np.zeros((len(ids), 3), dtype=np.float64)
+    views: list[np.ndarray] = []
+    observations: list[np.ndarray] = []
+    for k, pid in enumerate(ids):
+        p = rec.points3D[pid]
+        points[k] = p.xyz
+        seen, obs = [], []
+        for el in p.track.elements:
+            i = view_of_image[el.image_id]
+            seen.append(i)
+            im = images[i]
+            x, y = rec.images[el.image_id].points2D[el.point2D_idx].xy
+            obs.append((i, x, y))
+            row = min(max(int(y), 0), im.shape[0] - 1)
+            col = min(max(int(x), 0), im.shape[1] - 1)
+            linear[k] += im[row, col] if im.ndim == 3 else im[row, col, None]
+        linear[k] /= len(seen)
+        views.append(np.unique(seen).astype(np.int64))
+        observations.append(np.asarray(obs, np.float64).reshape(-1, 3))
+    level = float(np.percentile(linear.max(axis=1), _EXPOSURE_PERCENTILE)) if len(ids) else 1.0
+    colors = np.rint(srgb_encode(linear / max(level, 1e-12)) * 255.0).astype(np.uint8)
+    return points, colors, views, observations
+
+
+def _inside_masks(
+    points: np.ndarray, cameras: Sequence[Camera | None], masks: Sequence[np.ndarray | None] | None
+) -> np.ndarray:
+    """Visual-hull test: (P,) bool, True where a point projects into the (dilated) mask of every
+    view with a camera and a mask that sees it in front and inside the image."""
+    keep = np.ones(len(points), dtype=bool)
+    if masks is None or not len(points):
+        return keep
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * _HULL_TOLERANCE_PX + 1,) * 2)
+    for cam, mask in zip(cameras, masks, strict=True):
+        if cam is None or mask is None:
+            continue
+        grown = cv2.dilate(mask.astype(np.uint8), kernel).astype(bool)
+        uv, z = cam.project(points)
+        col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        seen = (z > 0) & (col >= 0) & (col < mask.shape[1]) & (row >= 0) & (row < mask.shape[0])
+        keep[seen] &= grown[row[seen], col[seen]]
+    return keep
+
+
+def _failure_message(
+    what: str, names: Sequence[str], failed: Sequence[int], features: list[int], partners: list[int]
+) -> str:
+    """``what``, the failed views with their feature and partner counts, and a likely cause."""
+    shown = [f"{names[i]} ({features[i]} features, matched with {partners[i]} views)" for i in failed[:12]]
+    more = f" and {len(failed) - 12} more" if len(failed) > 12 else ""
+    hint = ""
+    if failed and float(np.median([features[i] for i in failed])) < _FEW_FEATURES:
+        hint = " The views hold almost no features: a textureless, dark or blurred object?"
+    elif failed:
+        hint = " The views share too few features: do the frames overlap?"
+    return f"{what}; views that failed: {', '.join(shown)}{more}.{hint}"
+
+
+def _silhouette_note(refused: dict[str, str]) -> str:
+    """What the silhouette search said about the views it did not register, for a failure message."""
+    if not refused:
+        return ""
+    reasons = list(refused.values())
+    if reasons[0].startswith("not searched"):
+        return f"; the missing views were not searched for by their masks ({reasons[0][len('not searched: '):]})"
+    ambiguous = sum(why.startswith("ambiguous") for why in reasons)
+    note = f"; their masks did not place {len(refused)} of the missing views"
+    if ambiguous:
+        note += f" ({ambiguous} ambiguous: their silhouettes fit distinct poses alike, a symmetric object?)"
+    return note
+
+
+def estimate_poses(
+    images: Sequence[np.ndarray],
+    names: Sequence[str],
+    *,
+    cameras: Sequence[Camera | None] | None = None,
+    intrinsics: Sequence[np.ndarray | None] | None = None,
+    masks: Sequence[np.ndarray | None] | None = None,
+    options: SfmOptions,
+    workdir: str | Path,
+    progress: Progress | None = None,
+    fallback_images: Sequence[np.ndarray] | None = None,
+) -> SparseModel:
+    """Cameras and sparse points of a set of views (module docstring: the two modes).
+
+    Args:
+        images: per view (H, W, 3) float32 linear intensities (I_int; I_min holds fewer
+            view-dependent specular highlights).
+        names: per view a distinct name (used in messages and :func:`write_poses_text`).
+        cameras: per view the known Camera or None; known-pose mode when every entry is given.
+        intrinsics: per view a known (3, 3) K or None (SfM mode; a given camera's K counts too).
+        masks: per view an (H, W) bool foreground mask or None; features only inside.
+        options: the ``geometry.sfm`` options.
+        workdir: scratch folder (created; its images/, masks/, sparse/, database.db and guided.db are
+            replaced).
+        progress: called as ``progress(fraction, step)`` between steps; it may raise
+            CanceledError to stop.
+        fallback_images: per view a second image of the same kind as ``images`` (e.g. I_int
+            when ``images`` are I_min), or None. In SfM mode, when SfM on ``images`` registers
+            fewer than every view (or fails), it runs again on these (in ``workdir/fallback``)
+            and the model with more registered views is kept (ties: the first); the result's
+            ``fallback`` says which. Only the kept model is held to the masks and completed from
+            them (``sfm.frontier_weight``, ``sfm.silhouette_register_px``). Ignored with known poses.
+
+    Returns:
+        The SparseModel; in known-pose mode its cameras are the given objects.
+
+    Raises:
+        ShapeError: inconsistent lengths or shapes of the arguments.
+        InputError: repeated names, or a skewed K.
+        ReconstructionError: fewer views than ``min_registered_views``; too few registered
+            views; too few 3D points. The message names the views that failed.
+    """
+    report = progress or (lambda fraction, step: None)
+    known = cameras is not None and all(c is not None for c in cameras) and len(cameras) == len(images)
+    if fallback_images is None or known:
+        run = _run_sfm(images, cameras, intrinsics, masks, options, workdir, report, names=names)
+        return _finish(run, names, cameras, masks, options, report)
+    if len(fallback_images) != len(images):
+        raise ShapeError(f"expected {len(images)} fallback images (one per view), got {len(fallback_images)}")
+    t0 = time.perf_counter()
+    n = len(images)
+    first, first_error = _attempt(lambda: _run_sfm(
+        images, cameras, intrinsics, masks, options, workdir, lambda f, s: report(0.5 * f, s), names=names
+    ))
+    if first is not None and first.num_registered == n:
+        try:
+            return _finish(first, names, cameras, masks, options, report)
+        except ReconstructionError as exc:  # e.g. too few sparse points: the second images may give more
+            first, first_error = None, exc
+    t1 = time.perf_counter()
+    second, second_error = _attempt(lambda: _run_sfm(
+        fallback_images, cameras, intrinsics, masks, options, Path(workdir) / "fallback",
+        lambda f, s: report(0.5 + 0.45 * f, f"{s} (second images)"), names=names,
+    ))
+    seconds = {"first_images": t1 - t0, "second_images": time.perf_counter() - t1}
+    # the model with more registered views first (ties: the first images'); only the kept one is finished
+    for run in sorted((r for r in (first, second) if r is not None), key=lambda r: -r.num_registered):
+        try:
+            model = _finish(run, names, cameras, masks, options, report, t0=t0)
+        except ReconstructionError as exc:
+            if run is first:
+                first_error = exc
+            else:
+                second_error = exc
+            continue
+        model.fallback = run is second
+        # the total counts both runs; "first_images" / "second_images" is the time of the run not kept
+        other = "first_images" if model.fallback else "second_images"
+        model.timings[other] = seconds[other]
+        return model
+    raise ReconstructionError(f"{first_error}; on the second images: {second_error}")
+
+
+def _attempt(run: Callable[[], _SfmRun]) -> tuple[_SfmRun | None, ReconstructionError | None]:
+    """``run()``, or its ReconstructionError."""
+    try:
+        return run(), None
+    except ReconstructionError as exc:
+        return None, exc
+
+
+@dataclass
+class _SfmRun:
+    """What COLMAP made of one set of images, before the masks adjust and complete it (:func:`_finish`)."""
+
+    rec: pycolmap.Reconstruction | None
+    images: Sequence[np.ndarray]
+    files: list[str]
+    Ks: list[np.ndarray | None]
+    features: list[int]
+    partners: list[int]
+    known: bool
+    known_cameras: list[Camera]
+    timings: dict[str, float]
+    seconds: float  # wall time of the run
+
+    @property
+    def num_registered(self) -> int:
+        return 0 if self.rec is None else len(self.rec.reg_image_ids())
+
+
+def _run_sfm(
+    images: Sequence[np.ndarray],
+    cameras: Sequence[Camera | None] | None,
+    intrinsics: Sequence[np.ndarray | None] | None,
+    masks: Sequence[np.ndarray | None] | None,
+    options: SfmOptions,
+    workdir: str | Path,
+    report: Progress,
+    *,
+    names: Sequence[str],
+) -> _SfmRun:
+    """COLMAP's features, matches and model (or triangulation with known poses) on one set of images."""
+    t_start = time.perf_counter()
+    n = len(images)
+    _check_inputs(images, names, cameras, intrinsics, masks)
+    if n < options.min_registered_views:
+        raise ReconstructionError(
+            f"too few views: {n} given, poses need at least min_registered_views = {options.min_registered_views}"
+        )
+    known_cameras = [c for c in cameras or () if c is not None]
+    known = cameras is not None and len(known_cameras) == n
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+
+    report(0.0, "writing SIFT images")
+    t0 = time.perf_counter()
+    image_dir, mask_dir, files = _write_inputs(workdir, images, masks, options)
+    timings["images"] = time.perf_counter() - t0
+    Ks = [_view_intrinsics(i, cameras, intrinsics) for i in range(n)]
+    with quiet_colmap():
+        rec, features, partners = run_colmap(
+            workdir, image_dir, mask_dir, files, [im.shape[:2] for im in images], Ks,
+            known_cameras if known else None, options, timings, report,
+        )
+    return _SfmRun(
+        rec, images, files, Ks, features, partners, known, known_cameras, timings, time.perf_counter() - t_start
+    )
+
+
+def _finish(
+    run: _SfmRun,
+    names: Sequence[str],
+    cameras: Sequence[Camera | None] | None,
+    masks: Sequence[np.ndarray | None] | None,
+    options: SfmOptions,
+    report: Progress,
+    *,
+    t0: float | None = None,
+) -> SparseModel:
+    """The kept run's model: held to the masks, its missing views registered from them where they
+    decide a pose (``sfm.frontier_weight``, ``sfm.silhouette_register_px``), checked, as a
+    SparseModel. ``t0``: when the poses step began (default: when the run began)."""
+    t_finish = time.perf_counter()
+    rec, images, files, Ks = run.rec, run.images, run.files, run.Ks
+    features, partners, known, known_cameras = run.features, run.partners, run.known, run.known_cameras
+    n = len(images)
+    timings = dict(run.timings)
+    frontier = None
+    silhouette_views: list[str] = []
+    silhouette_refused: dict[str, str] = {}
+    needed = max(options.min_registered_views, math.ceil(options.min_registered_fraction * n))
+    # too few views, and the masks may not complete the model: it fails whatever the adjustment does
+    hopeless = run.num_registered < needed and (
+        options.silhouette_register_px <= 0 or run.num_registered < options.silhouette_min_registered * n
+    )
+    if hopeless and not known and rec is not None and masks is not None and options.silhouette_register_px > 0:
+        by_file = {f: m for f, m in zip(files, masks, strict=True) if m is not None}
+        silhouette_refused = _register_missing_by_silhouette(rec, by_file, files, Ks, images, options)[1]
+    elif not known and rec is not None and masks is not None and options.frontier_weight > 0:
+        report(0.97, "holding the poses to the masks")
+        t = time.perf_counter()
+        by_file = {f: m for f, m in zip(files, masks, strict=True) if m is not None}
+        frontier = frontier_adjust(
+            rec, by_file, weight=options.frontier_weight, iterations=options.frontier_iterations
+        )
+        timings["frontier"] = time.perf_counter() - t
+        if options.silhouette_register_px > 0:
+            t = time.perf_counter()
+            silhouette_views, silhouette_refused, last = _register_missing_by_silhouette(
+                rec, by_file, files, Ks, images, options
+            )
+            frontier = last or frontier  # the adjustment that gave the final poses
+            timings["silhouette_registration"] = time.perf_counter() - t
+
+    index = {name: i for i, name in enumerate(files)}
+    view_of_image = {} if rec is None else {im.image_id: index[im.name] for im in rec.images.values()}
+    result_cameras: list[Camera | None] = list(known_cameras) if known else [None] * n
+    if not known and rec is not None:
+        for image in rec.images.values():
+            if image.has_pose:
+                i = view_of_image[image.image_id]
+                pose = image.cam_from_world()
+                h, w = images[i].shape[:2]
+                result_cameras[i] = Camera(
+                    K=image.camera.calibration_matrix(), R=pose.rotation.matrix(), t=pose.translation,
+                    width=w, height=h,
+                )
+    registered = [c is not None for c in result_cameras]
+    if sum(registered) < needed:
+        raise ReconstructionError(_failure_message(
+            f"SfM registered {sum(registered)} of {n} views, at least {needed} needed "
+            f"(min_registered_views = {options.min_registered_views}, "
+            f"min_registered_fraction = {options.min_registered_fraction})" + _silhouette_note(silhouette_refused),
+            names, [i for i in range(n) if not registered[i]], features, partners,
+        ))
+    assert rec is not None
+    points, colors, views, observations = _sparse_points(rec, view_of_image, images)
+    keep = _inside_masks(points, result_cameras, masks)
+    if known:  # two-view points from chance matches in the epipolar band: mostly wrong (measured ~60 %)
+        keep &= np.array([len(v) >= 3 for v in views], dtype=bool)
+    points, colors = points[keep], colors[keep]
+    views = [v for v, k in zip(views, keep, strict=True) if k]
+    observations = [o for o, k in zip(observations, keep, strict=True) if k]
+    multi_view = sum(len(v) >= 3 for v in views)
+    if not known and multi_view < options.min_sparse_points:  # known poses: the masks' hull bounds depth
+        weakest = sorted(range(n), key=lambda i: (features[i], partners[i]))
+        raise ReconstructionError(_failure_message(
+            f"only {multi_view} 3D points were triangulated from 3 or more views ({len(points)} in all), at "
+            f"least min_sparse_points = {options.min_sparse_points} needed",
+            names, weakest, features, partners,
+        ))
+    now = time.perf_counter()
+    timings["finish"] = now - t_finish
+    timings["total"] = run.seconds + timings["finish"] if t0 is None else now - t0
+    report(1.0, "poses done")
+    return SparseModel(
+        cameras=result_cameras, points=points, point_colors=colors, point_views=views,
+        point_observations=observations,
+        mean_reprojection_error=float(rec.compute_mean_reprojection_error()), registered=registered,
+        known_poses=known, timings=timings, names=list(names), num_features=features,
+        frontier=None if frontier is None else frontier.as_dict(),
+        silhouette_registered=[names[index[f]] for f in silhouette_views],
+        silhouette_refused={names[index[f]]: why for f, why in silhouette_refused.items()},
+    )
+
+
+def _register_missing_by_silhouette(
+    rec: pycolmap.Reconstruction,
+    masks: dict[str, np.ndarray],
+    files: list[str],
+    Ks: list[np.ndarray | None],
+    images: Sequence[np.ndarray],
+    options: SfmOptions,
+) -> tuple[list[str], dict[str, str], FrontierReport | None]:
+    """The views SfM left out, registered from their masks and adjusted with the rest (two passes:
+    the views registered in the first give the second more pairs). Returns their file names, why
+    the others were not registered (file name -> reason) and the last adjustment's report (None
+    when none was registered)."""
+    registered = {rec.images[i].name for i in rec.reg_image_ids()}
+    if len(registered) < options.silhouette_min_registered * len(files):
+        why = (f"not searched: SfM registered {len(registered)} of {len(files)} views, under "
+               f"sfm.silhouette_min_registered = {options.silhouette_min_registered:g}")
+        return [], {f: why for f in files if f not in registered and f in masks}, None
+    shared = {  # estimated intrinsics: a registered view's of the same size
+        images[files.index(rec.images[i].name)].shape[:2]: rec.cameras[rec.images[i].camera_id].calibration_matrix()
+        for i in rec.reg_image_ids()
+    }
+    done: list[str] = []
+    refused: dict[str, str] = {}
+    last: FrontierReport | None = None
+    for _ in range(2):
+        missing = {}
+        for i, f in enumerate(files):
+            K = Ks[i] if Ks[i] is not None else shared.get(images[i].shape[:2])
+            if f not in registered and f not in done and f in masks and K is not None:
+                missing[f] = K
+        if not missing:
+            break
+        searched = register_from_silhouettes(rec, masks, missing, max_rms_px=options.silhouette_register_px)
+        refused.update({r.name: r.reason for r in searched if not r.registered})
+        found = [r.name for r in searched if r.registered]
+        if not found:
+            break
+        done += found
+        for name in found:
+            refused.pop(name, None)
+        last = frontier_adjust(rec, masks, weight=options.frontier_weight, iterations=options.frontier_iterations)
+    return done, refused, last
+
+
+def write_poses_text(model: SparseModel, directory: str | Path) -> Path:
+    """Write the registered cameras as a COLMAP text model (cameras.txt, images.txt, empty points3D.txt).
+
+    Each registered view gets its own PINHOLE camera (CAMERA_ID = IMAGE_ID = view index + 1)
+    and its ``names`` entry as image name (names must not hold whitespace).
+
+    Returns:
+        The directory.
+    """
+    cams, imgs = [], []
+    for i, cam in enumerate(model.cameras):
+        if cam is not None:
+            cams.append(pinhole_from_camera(i + 1, cam))
+            imgs.append(image_from_camera(i + 1, i + 1, model.names[i], cam))
+    write_colmap_text_model(directory, cams, imgs)
+    return Path(directory)

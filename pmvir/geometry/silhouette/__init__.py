@@ -1,0 +1,12 @@
+"""What the masks say about the object's volume: the visual hull, and surfaces held inside it.
+
+:mod:`~pmvir.geometry.silhouette.hull` (:func:`carve_hull`: the volume that bounds
+dense stereo's depth search), :mod:`~pmvir.geometry.silhouette.hull_fit`
+(:func:`fit_inside_hull` and :func:`fit_to_rims`: a surface's vertices moved
+inside, or out to, the silhouettes; used by the geometric stage and the refinement).
+"""
+
+from pmvir.geometry.silhouette.hull import Hull, carve_hull
+from pmvir.geometry.silhouette.hull_fit import HullFit, RimFit, fit_inside_hull, fit_to_rims
+
+__all__ = ["Hull", "HullFit", "RimFit", "carve_hull", "fit_inside_hull", "fit_to_rims"]
