@@ -60,31 +60,32 @@ def _bar(total: float | None, desc: str, unit: str, quiet: bool, **kw: Any):
     return tqdm(total=total, desc=desc, unit=unit, disable=quiet, file=sys.stderr, dynamic_ncols=True, **kw)
 
 
-def _upload(client: Any, job_id: str, root: Path, files: list[str], quiet: bool) -> None:
-    total = sum((root / f).stat().st_size for f in files)
+def _upload(client: Any, job_id: str, files: dict[str, Path], quiet: bool) -> None:
+    total = sum(local.stat().st_size for local in files.values())
     with _bar(total, "upload", "B", quiet, unit_scale=True, unit_divisor=1024) as bar:
-        for rel in files:
-            client.upload_file(job_id, rel, root / rel, on_bytes=bar.update)
+        for rel, local in files.items():
+            client.upload_file(job_id, rel, local, on_bytes=bar.update)
 
 
-def _files_of(capture: Path) -> tuple[Path, list[str]]:
-    """The capture's root and the files to upload: those capture.json names (all of the layout
-    when the library's capture reader is not installed)."""
+def _files_of(capture: Path) -> dict[str, Path]:
+    """The files to upload, by their path in the capture layout: those capture.json names (all
+    of the layout when the library's capture reader is not installed). A folder of frames without
+    capture.json sends its frames alone (as ``frames/<name>``): the service infers the manifest."""
     try:
         from pmvir.capture import open_capture
     except ModuleNotFoundError:
         from pmvir.client import capture_files
 
         root = capture if capture.is_dir() else capture.parent
-        return root, capture_files(root)
+        return {rel: root / rel for rel in capture_files(root)}
     with open_capture(capture) as cap:
-        files = ["capture.json"]
+        files = [] if cap.inferred else ["capture.json"]
         for f in cap.frames:
             files.append(f.file)
             if f.mask:
                 files.append(f.mask)
         files += [g for g in ("gt/mesh.ply", "gt/illumination.json") if (cap.root / g).is_file()]
-        return cap.root, files
+        return {rel: cap.root / cap.on_disk(rel) for rel in files}
 
 
 def _check_locally(capture: Path) -> None:
@@ -139,8 +140,7 @@ def run(args: argparse.Namespace) -> int:
             job = client.create_job_from_zip(args.capture, options, label=label)
         else:
             job = client.create_job(options, label=label, idempotency_key=uuid.uuid4().hex)
-            root, files = _files_of(args.capture)
-            _upload(client, job["id"], root, files, args.quiet)
+            _upload(client, job["id"], _files_of(args.capture), args.quiet)
         job_id = job["id"]
         print(f"pmvir submit: job {job_id}", file=sys.stderr)
         client.start(job_id)

@@ -1,5 +1,6 @@
-"""A zip of bare frames (no capture.json) through the real stack (Redis, API, Celery worker): the
-manifest is inferred at import, listed with the job's files, and the job runs to a mesh. A zip whose
+"""Bare frames (no capture.json) through the real stack (Redis, API, Celery worker): a zip's
+manifest is inferred at import, listed with the job's files, and the job runs to a mesh; ``pmvir
+submit`` of a folder of frames sends the frames and the service infers the manifest. A zip whose
 frames cannot give a manifest is a 422 naming the file.
 
 The capture is 24 views of 320x256 of an object on a textured table, stripped to its frames, so SfM
@@ -19,10 +20,11 @@ import numpy as np
 import pytest
 
 from pmvir.capture import parse_manifest
+from pmvir.cli import main
 from pmvir.io.frames import write_frame
 from pmvir.io.ply import read_mesh
 from pmvir.synth import synthesize
-from service.testing import ServiceStack
+from service.testing import ServiceStack, write_noise_capture
 
 from svc_helpers import KEY, LIMITS, ONE_REFINE_STAGE, client_for, finished, require_redis, wait_for
 
@@ -30,7 +32,7 @@ MiB = 1024 * 1024
 
 
 @pytest.fixture(scope="module")
-def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[httpx.Client]:
+def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceStack]:
     require_redis()
     env = {
         **LIMITS,
@@ -41,10 +43,15 @@ def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[httpx.Client]:
     st = ServiceStack(tmp_path_factory.mktemp("stack"), api_keys=(KEY,), env=env)
     try:
         st.start()
-        with client_for(st) as c:
-            yield c
+        yield st
     finally:
         st.stop()
+
+
+@pytest.fixture()
+def api(stack: ServiceStack) -> Iterator[httpx.Client]:
+    with client_for(stack) as c:
+        yield c
 
 
 def _zip_of(files: dict[str, bytes]) -> bytes:
@@ -75,6 +82,22 @@ def test_a_zip_of_frames_of_two_sizes_is_refused_naming_the_file(api: httpx.Clie
 def test_a_zip_without_frames_or_manifest_is_refused(api: httpx.Client) -> None:
     r = _post(api, _zip_of({"notes/readme.txt": b"nothing"}), {"stop_after": "decode"})
     assert r.status_code == 422 and r.json()["errors"][0]["file"] == "capture.json", r.text
+
+
+def test_submit_sends_a_folder_of_frames_and_the_service_infers_the_manifest(
+    stack: ServiceStack, tmp_path: Path
+) -> None:
+    capture = write_noise_capture(tmp_path / "cap", frames=3, seed=3)
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for p in sorted((capture / "frames").iterdir()):
+        (bare / p.name).write_bytes(p.read_bytes())
+    out = tmp_path / "result"
+    args = ["submit", str(bare), "--server", stack.url, "--api-key", KEY, "--out", str(out)]
+    assert main([*args, "--stop-after", "decode", "--quiet", "--poll", "0.1"]) == 0
+    used = parse_manifest((out / "capture.json").read_bytes())
+    assert [f.file for f in used.frames] == [f"frames/{p.name}" for p in sorted(bare.iterdir())]
+    assert json.loads((out / "report.json").read_text())["capture"]["manifest"] == "inferred"
 
 
 @pytest.mark.slow
