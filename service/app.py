@@ -23,7 +23,7 @@ from service.errors import install_error_handlers
 from service.models import Health, JobCreate, JobRerun, Ready
 from service.queue import make_celery
 from service.settings import Settings, get_settings
-from service.storage import JobFiles
+from service.storage_s3 import open_storage
 from service.store import JobStore
 
 log = logging.getLogger("pmvir.service")
@@ -53,7 +53,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.services = Services(
         settings=settings,
         store=JobStore.from_url(settings.redis_url, prefix=settings.key_prefix),
-        files=JobFiles(settings.storage),
+        files=open_storage(settings),
         celery=make_celery(settings),
     )
     if not settings.api_keys:

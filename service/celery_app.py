@@ -7,13 +7,32 @@ are in :mod:`service.queue`; the task is thin and calls :mod:`service.runner`.
 
 from __future__ import annotations
 
-from celery import signals
+import sys
 
+from celery import signals
+from celery.exceptions import TimeLimitExceeded
+
+from service import limits
 from service.queue import RUN_JOB, make_celery
 from service.settings import get_settings
 
 settings = get_settings()
 app = make_celery(settings)
+
+
+def _concurrency(argv: list[str]) -> int:
+    """The worker's --concurrency from its command line (``pmvir worker`` passes it; default 1)."""
+    for i, arg in enumerate(argv):
+        if arg.startswith("--concurrency="):
+            return int(arg.split("=", 1)[1])
+        if arg in ("--concurrency", "-c") and i + 1 < len(argv):
+            return int(argv[i + 1])
+    return 1
+
+
+#: Threads of each job; the pools' environment is set before numpy, torch and OpenCV load.
+JOB_THREADS = limits.job_threads(settings.job_threads, _concurrency(sys.argv))
+limits.set_thread_environment(JOB_THREADS)
 
 # The library's pipeline, loaded once in the worker's main process (pool processes inherit it).
 import pmvir.pipeline  # noqa: E402,F401
@@ -25,6 +44,26 @@ def run_job(self, job_id: str) -> None:
     from service.runner import run_job as run
 
     run(job_id, settings=settings, hostname=self.request.hostname or "")
+
+
+@signals.worker_process_init.connect
+def _bound_the_job_process(**_: object) -> None:
+    """Each pool process: its job's threads and memory cap."""
+    limits.apply_threads(JOB_THREADS)
+    limits.apply_memory(settings.job_memory)
+
+
+@signals.task_failure.connect
+def _hard_time_limit(sender=None, task_id=None, exception=None, args=None, **_: object) -> None:
+    """A job whose process Celery killed at the hard time limit fails now (its lease would requeue it)."""
+    if isinstance(exception, TimeLimitExceeded) and args:
+        from service.runner import fail_now
+
+        fail_now(
+            str(args[0]),
+            settings,
+            f"hard time limit exceeded ({settings.job_hard_time_limit} s): the job's process was killed",
+        )
 
 
 @signals.worker_ready.connect

@@ -25,12 +25,13 @@ from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, HTMLResponse, Response
 from pydantic import BaseModel, Field
 
-from pmvir.result import RESULT_ZIP, ResultFolder, result_file
+from pmvir.result import RESULT_ZIP, result_file
 from service.auth import require_owner
 from service.deps import Services, owned_job, reject_unknown_query, services
 from service.errors import ApiError
 from service.ranges import file_response
 from service.routes_jobs import _E, _JOB_ERRORS, JobId
+from service.storage import registered_results
 
 STATIC = Path(__file__).resolve().parent / "static"
 UI = STATIC / "ui"
@@ -87,11 +88,9 @@ def _entry_for(path: str) -> tuple[str, str, str]:
 
 def result_paths(svc: Services, job_id: str) -> list[str]:
     """Every file of the job's published result (registered in RESULT_FILES), and result.zip."""
-    root = svc.files.result_dir(job_id)
-    if not root.is_dir():
-        return []
-    paths = ResultFolder(root).present()
-    if (root / RESULT_ZIP).is_file():
+    present = svc.files.result_files(job_id)
+    paths = registered_results(list(present))
+    if RESULT_ZIP in present:
         paths.append(RESULT_ZIP)
     return paths
 
@@ -106,11 +105,11 @@ def result_paths(svc: Services, job_id: str) -> list[str]:
 )
 def list_results(job_id: JobId, owner: Owner, svc: Svc) -> ResultListing:
     job = owned_job(svc, job_id, owner)
-    root = svc.files.result_dir(job.id)
+    sizes = svc.files.result_files(job.id)
     files = []
     for path in result_paths(svc, job.id):
         media, description, stage = _entry_for(path)
-        size = (root / path).stat().st_size
+        size = sizes[path]
         files.append(
             ResultEntry(path=path, size=size, media_type=media, description=description, stage=stage)
         )
@@ -140,9 +139,10 @@ def get_result_path(
     if path not in result_paths(svc, job.id):  # the listing is the allow-list: no traversal, no stray files
         raise ApiError(404, "not_found", f"the result has no file {path!r} (job {job.status})")
     media, _, _ = _entry_for(path)
-    return file_response(
-        request, svc.files.result_dir(job.id) / path, media_type=media, filename=path.split("/")[-1]
-    )
+    blob = svc.files.result_blob(job.id, path)
+    if blob is None:
+        raise ApiError(404, "not_found", f"the result has no file {path!r} (job {job.status})")
+    return file_response(request, blob, media_type=media, filename=path.split("/")[-1])
 
 
 def _missing_assets(what: str) -> HTMLResponse:

@@ -75,7 +75,8 @@ def job_out(svc: Services, job: Job) -> JobOut:
         p = svc.files.partial_path(job.id, path)
         received = p.stat().st_size if p.exists() else 0
         partial.append(PartialOut(path=path, received=received, total=total))
-    results = [n for n in downloadable_names() if svc.files.result_file(job.id, n) is not None]
+    present = svc.files.result_files(job.id)
+    results = [n for n in downloadable_names() if n in present]
     deliveries = svc.store.deliveries(job.id) if job.callback_url else None
     return JobOut.of(job, files=files, partial=partial, results=results, deliveries=deliveries)
 

@@ -32,6 +32,7 @@ import pmvir
 from pmvir.result import downloadable_names
 from service.settings import Settings
 from service.storage import JobFiles
+from service.storage_s3 import open_storage
 from service.store import Job, JobStore
 
 log = logging.getLogger("pmvir.worker")
@@ -49,7 +50,8 @@ def sign(secret: str, body: bytes, *, timestamp: int) -> str:
 
 def event_body(job: Job, files: JobFiles, *, attempt: int) -> bytes:
     """The JSON event of a job that ended (compact, UTF-8)."""
-    results = [n for n in downloadable_names() if files.result_file(job.id, n) is not None]
+    present = files.result_files(job.id)
+    results = [n for n in downloadable_names() if n in present]
     doc = {
         "type": EVENT,
         "attempt": attempt,
@@ -146,7 +148,7 @@ def worker_info(name: str) -> dict[str, Any]:
 
 def _webhook_loop(settings: Settings, stop: threading.Event) -> None:
     store = JobStore.from_url(settings.redis_url, prefix=settings.key_prefix)
-    files = JobFiles(settings.storage)
+    files = open_storage(settings)
     with httpx.Client(timeout=settings.webhook_timeout, follow_redirects=False) as client:
         while not stop.wait(0.25):
             try:
@@ -159,7 +161,7 @@ def _webhook_loop(settings: Settings, stop: threading.Event) -> None:
 
 def _janitor_loop(settings: Settings, stop: threading.Event, name: str) -> None:
     store = JobStore.from_url(settings.redis_url, prefix=settings.key_prefix)
-    files = JobFiles(settings.storage)
+    files = open_storage(settings)
     info = worker_info(name)
     beat = max(settings.lease_seconds / 2.0, 0.5)
     next_sweep = 0.0

@@ -17,9 +17,8 @@ from urllib.parse import urlsplit
 
 from pydantic import ValidationError
 
-from pmvir import stage_cache
 from pmvir.capture import open_capture, validate_capture
-from pmvir.config import PipelineConfig, merge_options
+from pmvir.config import PipelineConfig, nest_deprecated_geometry_keys
 from pmvir.errors import CaptureError
 from pmvir.stages import Stage
 from service.deps import Services
@@ -238,7 +237,16 @@ def rerun_job(
             f"the source job is {source.status}; a rerun needs a job that was started and finished"
         )
     try:
-        config = PipelineConfig.model_validate(merge_options(source.options, changes))
+        merged = merge_options(_nested(source.options), _nested(changes))
+    except ValueError as exc:  # an old flat key and its new place both given
+        raise ApiError(
+            422,
+            "validation_error",
+            f"the options are invalid: {exc}",
+            errors=[ErrorItem(loc=["body", "options", "geometry"], msg=str(exc), type="value_error")],
+        ) from exc
+    try:
+        config = PipelineConfig.model_validate(merged)
     except ValidationError as exc:
         raise invalid(exc, ("body", "options"), "the merged options are invalid") from exc
     if from_stage.position > Stage(config.stop_after).position:
@@ -248,9 +256,8 @@ def rerun_job(
             f"from_stage {from_stage} is after stop_after {config.stop_after}",
             errors=[ErrorItem(loc=["body", "from_stage"], msg="after stop_after", type="value_error")],
         )
-    cache = svc.files.cache_dir(source.id)
     for stage in (s for s in Stage if s.position < from_stage.position):
-        if not stage_cache.has_stage(cache, stage, config):
+        if not svc.files.cache_has_stage(source.id, stage, config):
             raise conflict(
                 f"the source job has no cached {stage} output made with these options (it did not run "
                 f"{stage}, or options for {stage} or an earlier stage changed); rerun from {stage}"
@@ -270,6 +277,27 @@ def rerun_job(
         _discard(svc, owner, job.id, None)
         raise
     return _get(svc, job.id)
+
+
+def _nested(options: dict[str, Any]) -> dict[str, Any]:
+    """Options with deprecated flat geometry keys moved into their groups, so a merge sees one key each."""
+    geometry = options.get("geometry")
+    return {**options, "geometry": nest_deprecated_geometry_keys(geometry)} if isinstance(geometry, dict) else options
+
+
+def merge_options(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with ``changes`` applied: nested dicts merged key by key, anything else replaced.
+
+    >>> merge_options({"refine": {"pol_k": 0.5, "dop_min": 0.1}}, {"refine": {"pol_k": 0.7}})
+    {'refine': {'pol_k': 0.7, 'dop_min': 0.1}}
+    """
+    out = dict(base)
+    for key, value in changes.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge_options(out[key], value)
+        else:
+            out[key] = value
+    return out
 
 
 def cancel_job(svc: Services, *, job: Job) -> None:
@@ -319,25 +347,25 @@ def capture_problems(svc: Services, job_id: str) -> list[ErrorItem]:
     ranges) only when every header is right, so a frame whose header declares a huge
     image is refused without being decoded.
     """
-    root = svc.files.capture_dir(job_id)
-    problems: list[CaptureError] = validate_capture(root, decode_frames=False)
-    if not problems:
-        problems = validate_capture(root, decode_frames=True)
-    hide = (str(root.resolve()), str(root))  # messages must not reveal the storage layout
-    items = []
-    for p in problems:
-        msg = p.problem
-        for h in hide:
-            msg = msg.replace(h, "the capture")
-        items.append(ErrorItem(file=p.path, msg=msg, type=type(p).__name__))
-    if not problems:
-        with open_capture(root) as cap:
-            if len(cap) > svc.settings.max_frames:
-                items.append(
-                    ErrorItem(
-                        file="capture.json",
-                        msg=f"{len(cap)} frames, more than the limit of {svc.settings.max_frames}",
-                        type="limit",
+    with svc.files.capture_view(job_id) as root:
+        problems: list[CaptureError] = validate_capture(root, decode_frames=False)
+        if not problems:
+            problems = validate_capture(root, decode_frames=True)
+        hide = (str(root.resolve()), str(root))  # messages must not reveal the storage layout
+        items = []
+        for p in problems:
+            msg = p.problem
+            for h in hide:
+                msg = msg.replace(h, "the capture")
+            items.append(ErrorItem(file=p.path, msg=msg, type=type(p).__name__))
+        if not problems:
+            with open_capture(root) as cap:
+                if len(cap) > svc.settings.max_frames:
+                    items.append(
+                        ErrorItem(
+                            file="capture.json",
+                            msg=f"{len(cap)} frames, more than the limit of {svc.settings.max_frames}",
+                            type="limit",
+                        )
                     )
-                )
     return items

@@ -10,19 +10,16 @@ whole file, so a resumed download never splices two versions.
 
 from __future__ import annotations
 
-import os
 import re
-from collections.abc import AsyncIterator
-from pathlib import Path
+from collections.abc import Iterator
 
-import anyio
 from fastapi import Request
 from fastapi.responses import JSONResponse, StreamingResponse
 
 from service.errors import ErrorBody
+from service.storage import Blob
 
 _RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
-_CHUNK = 1 << 20
 
 
 def parse_range(header: str | None, size: int) -> tuple[int, int] | str | None:
@@ -53,23 +50,9 @@ def parse_range(header: str | None, size: int) -> tuple[int, int] | str | None:
     return first, min(last, size - 1)
 
 
-async def _stream(path: Path, first: int, last: int) -> AsyncIterator[bytes]:
-    remaining = last - first + 1
-    async with await anyio.open_file(path, "rb") as f:
-        await f.seek(first)
-        while remaining > 0:
-            chunk = await f.read(min(_CHUNK, remaining))
-            if not chunk:
-                break
-            remaining -= len(chunk)
-            yield chunk
-
-
-def file_response(request: Request, path: Path, *, media_type: str, filename: str):
-    """A 200/206/416 answer for ``path``, honouring Range and If-Range."""
-    st = os.stat(path)
-    size = st.st_size
-    etag = f'"{size:x}-{st.st_mtime_ns:x}"'
+def file_response(request: Request, blob: Blob, *, media_type: str, filename: str):
+    """A 200/206/416 answer for a stored file, honouring Range and If-Range (streamed from its storage)."""
+    size, etag = blob.size, blob.etag
     headers = {
         "Accept-Ranges": "bytes",
         "ETag": etag,
@@ -88,10 +71,14 @@ def file_response(request: Request, path: Path, *, media_type: str, filename: st
         )
     if wanted is None:
         headers["Content-Length"] = str(size)
-        return StreamingResponse(_stream(path, 0, size - 1), media_type=media_type, headers=headers)
+        return StreamingResponse(_whole(blob), media_type=media_type, headers=headers)
     first, last = wanted
     headers["Content-Range"] = f"bytes {first}-{last}/{size}"
     headers["Content-Length"] = str(last - first + 1)
     return StreamingResponse(
-        _stream(path, first, last), status_code=206, media_type=media_type, headers=headers
+        blob.read(first, last), status_code=206, media_type=media_type, headers=headers
     )
+
+
+def _whole(blob: Blob) -> Iterator[bytes]:
+    return blob.read(0, blob.size - 1) if blob.size else iter(())

@@ -117,8 +117,8 @@ def get_result(
     ] = None,
 ):
     job = owned_job(svc, job_id, owner)
-    path = svc.files.result_file(job.id, name)
-    if path is None:
+    blob = svc.files.result_blob(job.id, name)
+    if blob is None:
         raise ApiError(404, "not_found", f"{name} is not available (job {job.status})")
     media = "application/zip" if name == RESULT_ZIP else result_file(name).media_type
-    return file_response(request, path, media_type=media, filename=str(name))
+    return file_response(request, blob, media_type=media, filename=str(name))

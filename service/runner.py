@@ -33,9 +33,11 @@ from celery.exceptions import SoftTimeLimitExceeded
 
 from pmvir.config import PipelineConfig
 from pmvir.errors import CanceledError, PmvirError
+from service import limits
 from service.queue import RUN_JOB
 from service.settings import Settings
 from service.storage import JobFiles
+from service.storage_s3 import open_storage
 from service.store import Claim, Job, JobStatus, JobStore
 
 log = logging.getLogger("pmvir.worker")
@@ -149,7 +151,7 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
     from pmvir.progress import Progress
 
     store = store or JobStore.from_url(settings.redis_url, prefix=settings.key_prefix)
-    files = JobFiles(settings.storage)
+    files = open_storage(settings)
     run_id = uuid.uuid4().hex
     what, n = store.claim(
         job_id, run_id, lease_seconds=settings.lease_seconds, max_deliveries=settings.max_deliveries
@@ -181,13 +183,14 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
         with _Run(store, job, run_id, settings) as run:
             try:
                 config = PipelineConfig.model_validate(job.options)
+                capture, cache = files.checkout(job_id)
                 out.mkdir(parents=True, exist_ok=False)
                 outcome = pipeline.run(
                     config,
-                    files.capture_dir(job_id),
+                    capture,
                     out,
                     progress=Progress(run.progress, should_cancel=run.should_cancel),
-                    cache=files.cache_dir(job_id),
+                    cache=cache,
                     resume_from=job.resume_from,
                 )
                 for warning in outcome.warnings:
@@ -195,6 +198,7 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
                 if run.should_cancel():  # canceled after the last boundary: honour it
                     raise CanceledError("canceled after the last stage")
                 files.publish_result(job_id, out)
+                files.push_cache(job_id, cache)
             except CanceledError:
                 return end(run, JobStatus.CANCELED)
             except SoftTimeLimitExceeded:
@@ -202,11 +206,15 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
             except PmvirError as exc:
                 return end(run, JobStatus.FAILED, f"{type(exc).__name__}: {exc}")
             except Exception as exc:
+                if limits.out_of_memory(exc):
+                    cap = f"PMVIR_JOB_MEMORY={settings.job_memory} bytes" if settings.job_memory else "the host's"
+                    return end(run, JobStatus.FAILED, f"out of memory ({cap}): {type(exc).__name__}: {exc}")
                 log.exception("job %s: unexpected error", job_id)
                 return end(run, JobStatus.FAILED, f"internal error: {type(exc).__name__}: {exc}")
             return end(run, JobStatus.SUCCEEDED)
     finally:
         files.remove_tree(out)
+        files.release(job_id)
         if store.get(job_id) is None:  # deleted while running: leave nothing behind
             files.delete(job_id)
 
@@ -231,6 +239,19 @@ def _end_canceled(store: JobStore, files: JobFiles, job: Job, run_id: str, timin
     if current.run_id != run_id or not current.cancel_requested:
         return "superseded"
     return _end(store, job, run_id, JobStatus.CANCELED, timings, None)
+
+
+def fail_now(job_id: str, settings: Settings, error: str) -> bool:
+    """Fail a running job whose process is gone for good (hard time limit), so it is not requeued."""
+    store = JobStore.from_url(settings.redis_url, prefix=settings.key_prefix)
+    job = store.get(job_id)
+    if job is None or job.status is not JobStatus.RUNNING:
+        return False
+    if store.finish(job, job.run_id, JobStatus.FAILED, error=error):
+        store.log(job_id, f"failed: {error}")
+        log.error("job %s: %s", job_id, error)
+        return True
+    return False
 
 
 # ----------------------------------------------------------------------------- reaper

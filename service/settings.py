@@ -33,6 +33,24 @@ class Settings(BaseSettings):
         default=Path("pmvir-storage"),
         description="Storage root on disk; each job lives in <storage>/jobs/<job id>/.",
     )
+    storage_url: str = Field(
+        default="",
+        description="s3://bucket/prefix: jobs live in an S3-compatible bucket shared by every host "
+        "(empty: the local folder PMVIR_STORAGE).",
+    )
+    s3_endpoint_url: str = Field(
+        default="", description="Endpoint of the S3-compatible store (MinIO, Ceph RGW); empty: AWS."
+    )
+    scratch: Path | None = Field(
+        default=None,
+        description="This process's local working folder with a bucket (uploads, a run's inputs and "
+        "outputs); default: PMVIR_STORAGE.",
+    )
+    cache_key: str = Field(
+        default="",
+        description="Secret the workers sign and verify the stage cache with (HMAC-SHA256); with a "
+        "bucket and no key no stage cache is kept.",
+    )
     api_keys: Annotated[tuple[str, ...], NoDecode] = Field(
         default=(),
         description="Comma-separated API keys (Authorization: Bearer <key>). Empty: every request is 401.",
@@ -94,6 +112,17 @@ class Settings(BaseSettings):
     )
     idempotency_ttl: int = Field(
         default=24 * 3600, gt=0, description="Seconds an Idempotency-Key is remembered."
+    )
+    job_threads: int = Field(
+        default=0,
+        ge=0,
+        description="Threads of one job (torch, OpenMP, BLAS, OpenCV, pycolmap); 0: the cores this "
+        "worker may use divided by its concurrency.",
+    )
+    job_memory: int = Field(
+        default=0,
+        ge=0,
+        description="Bytes of address space one job may use (RLIMIT_AS of its process); 0: no limit.",
     )
     max_log_lines: int = Field(default=10_000, gt=0, description="Most log lines kept per job.")
 

@@ -24,10 +24,17 @@ import shutil
 import time
 import uuid
 import zipfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
+from pmvir import stage_cache
+from pmvir.config import PipelineConfig
 from pmvir.io.frames import FRAME_SUFFIXES
 from pmvir.result import RESULT_FILES, RESULT_ZIP, downloadable_names
+from pmvir.stages import Stage
+from service import cache_sign
 
 _NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.+-]{0,127}$")
 _LAYOUT = {
@@ -82,11 +89,52 @@ def is_frame(path: str) -> bool:
     return path.startswith("frames/")
 
 
-class JobFiles:
-    """The storage root: folders per job, atomic writes, deletion by rename."""
+@dataclass(frozen=True)
+class Blob:
+    """A stored file to be sent: its size, an ETag, and a reader of an inclusive byte range."""
 
-    def __init__(self, root: str | Path):
+    size: int
+    etag: str
+    read: Callable[[int, int], Iterator[bytes]]
+
+
+def _read_local(path: Path) -> Callable[[int, int], Iterator[bytes]]:
+    def read(first: int, last: int) -> Iterator[bytes]:
+        remaining = last - first + 1
+        with open(path, "rb") as f:
+            f.seek(first)
+            while remaining > 0 and (chunk := f.read(min(CHUNK, remaining))):
+                remaining -= len(chunk)
+                yield chunk
+
+    return read
+
+
+def registered_results(paths: list[str]) -> list[str]:
+    """The paths of a result listing that belong to a registered result entry, sorted."""
+    out = []
+    for f in RESULT_FILES:
+        if f.is_folder:
+            out += [p for p in paths if p.startswith(f.name)]
+        elif f.name in paths:
+            out.append(f.name)
+    return sorted(out)
+
+
+class JobFiles:
+    """The storage root: folders per job, atomic writes, deletion by rename.
+
+    The local backend: the root is shared by the API and every worker (one host, or one
+    POSIX volume). :class:`service.storage_s3.S3JobFiles` keeps the same interface with a
+    bucket as the shared medium and the root as this process's scratch folder.
+    """
+
+    #: Where the jobs are kept, for logs and /v1/info ("local" or "s3").
+    backend = "local"
+
+    def __init__(self, root: str | Path, *, cache_key: bytes = b""):
         self.root = Path(root)
+        self.cache_key = cache_key
 
     def job_dir(self, job_id: str) -> Path:
         return self.root / "jobs" / job_id
@@ -143,6 +191,51 @@ class JobFiles:
         p = self.result_dir(job_id) / name
         return p if p.is_file() else None
 
+    def result_files(self, job_id: str) -> dict[str, int]:
+        """Every file of the job's published result: relative path -> size (empty without a result)."""
+        root = self.result_dir(job_id)
+        if not root.is_dir():
+            return {}
+        return {
+            p.relative_to(root).as_posix(): p.stat().st_size
+            for p in root.rglob("*")
+            if p.is_file() and not p.is_symlink()
+        }
+
+    def result_blob(self, job_id: str, path: str) -> Blob | None:
+        """A result file by its relative path (one of :meth:`result_files`), or None."""
+        p = self.result_dir(job_id).joinpath(*path.split("/"))
+        try:
+            st = p.stat()
+        except OSError:
+            return None
+        return Blob(size=st.st_size, etag=f'"{st.st_size:x}-{st.st_mtime_ns:x}"', read=_read_local(p))
+
+    def cache_has_stage(self, job_id: str, stage: Stage, config: PipelineConfig) -> bool:
+        """Whether the job's stage cache holds ``stage``'s output made with these options."""
+        return stage_cache.has_stage(self.cache_dir(job_id), stage, config)
+
+    @contextmanager
+    def capture_view(self, job_id: str) -> Iterator[Path]:
+        """A local folder holding the job's capture, for reading (validation)."""
+        yield self.capture_dir(job_id)
+
+    def checkout(self, job_id: str) -> tuple[Path, Path]:
+        """A worker's local (capture, cache) folders of the job; a cache file whose signature
+        is wrong is removed first (with a cache key set), so it is recomputed, never unpickled."""
+        cache = self.cache_dir(job_id)
+        if self.cache_key:
+            cache_sign.verify_folder(cache, self.cache_key)
+        return self.capture_dir(job_id), cache
+
+    def push_cache(self, job_id: str, cache: Path) -> None:
+        """Sign the stage cache a run wrote (with a cache key set); it is in place already."""
+        if self.cache_key:
+            cache_sign.sign_folder(cache, self.cache_key)
+
+    def release(self, job_id: str) -> None:
+        """A worker is done with the job's local copies (none to remove here: they are the storage)."""
+
     def remove_tree(self, path: Path) -> None:
         """Remove a folder: renamed into trash/ first, so it disappears from its place at once."""
         if not path.exists():
@@ -198,22 +291,26 @@ class JobFiles:
         except OSError:
             return False
 
-    def publish_result(self, job_id: str, run_dir: Path) -> Path:
+    def publish_result(self, job_id: str, run_dir: Path) -> None:
         """Zip a finished run's folder into result.zip inside it (and each result folder into
         ``<folder>.zip``, to be served singly), then rename it to result/.
 
         Running twice is harmless: an earlier result folder is moved away first.
         """
-        for entry in RESULT_FILES:
-            folder = run_dir / entry.name.rstrip("/")
-            if entry.is_folder and entry.single and folder.is_dir():
-                write_folder_zip(folder, run_dir / entry.download_name)
-        write_result_zip(run_dir)
+        zip_run(run_dir)
         final = self.result_dir(job_id)
         if final.exists():
             self.remove_tree(final)
         os.replace(run_dir, final)
-        return final
+
+
+def zip_run(run_dir: Path) -> None:
+    """Write a run's result.zip and the ``<folder>.zip`` of each result folder served singly."""
+    for entry in RESULT_FILES:
+        folder = run_dir / entry.name.rstrip("/")
+        if entry.is_folder and entry.single and folder.is_dir():
+            write_folder_zip(folder, run_dir / entry.download_name)
+    write_result_zip(run_dir)
 
 
 def write_result_zip(folder: Path) -> Path:

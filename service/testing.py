@@ -29,6 +29,7 @@ import sys
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -192,6 +193,8 @@ class ServiceStack:
             **(env or {}),
         }
         self.redis: Proc | None = None
+        self.s3: Proc | None = None
+        self.s3_url = ""
         self.api: Proc | None = None
         self.workers: list[Proc] = []
         self._n = 0
@@ -254,6 +257,37 @@ class ServiceStack:
         self._redis_started = True
         return self.redis
 
+    def start_s3(self, bucket: str = "pmvir-test") -> Proc:
+        """moto's standalone S3 server on a loopback port, with ``bucket``; the API and the workers
+        started afterwards keep their jobs in ``s3://<bucket>/jobs-root`` (call before :meth:`start`)."""
+        port = free_port()
+        self.s3_url = f"http://127.0.0.1:{port}"
+        creds = {"AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing", "AWS_DEFAULT_REGION": "us-east-1"}
+        argv = [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)]
+        self.s3 = Proc("s3", argv, log=self.log_dir / "s3.log", env={**os.environ, **creds})
+        client = self.s3_client()
+        _wait(lambda: client.list_buckets() is not None, 30, "moto_server", self.s3)
+        client.create_bucket(Bucket=bucket)
+        self.env.update(
+            creds,
+            PMVIR_STORAGE_URL=f"s3://{bucket}/jobs-root",
+            PMVIR_S3_ENDPOINT_URL=self.s3_url,
+            PMVIR_SCRATCH=str(self.storage / "scratch"),
+        )
+        return self.s3
+
+    def s3_client(self) -> Any:
+        """A boto3 S3 client of the stack's S3 server."""
+        import boto3
+
+        return boto3.client(
+            "s3",
+            endpoint_url=self.s3_url,
+            aws_access_key_id="testing",
+            aws_secret_access_key="testing",
+            region_name="us-east-1",
+        )
+
     def start_api(self) -> Proc:
         def move() -> None:
             self.api_port = free_port()
@@ -283,8 +317,13 @@ class ServiceStack:
         self._api_started = True
         return self.api
 
-    def start_worker(self, *, pool: str = "prefork", wait: bool = True) -> Proc:
-        """A Celery worker (one job at a time); waits until it consumes from the queue."""
+    def start_worker(
+        self, *, pool: str = "prefork", wait: bool = True, env: Mapping[str, str] | None = None
+    ) -> Proc:
+        """A Celery worker (one job at a time); waits until it consumes from the queue.
+
+        ``env`` overrides settings of this worker alone (a host of its own: PMVIR_STORAGE, PMVIR_SCRATCH).
+        """
         self._n += 1
         log = self.log_dir / f"worker{self._n}.log"
         argv = [
@@ -298,7 +337,7 @@ class ServiceStack:
             f"w{self._n}@%h",
             "--loglevel=INFO",
         ]
-        w = Proc(f"worker{self._n}", argv, log=log, env=self.env)
+        w = Proc(f"worker{self._n}", argv, log=log, env={**self.env, **(env or {})})
         self.workers.append(w)
         if wait:
             _wait(lambda: " ready." in w.tail(20000), 60, "celery worker", w)
@@ -328,14 +367,14 @@ class ServiceStack:
         for w in self.workers:
             w.stop()
         self.workers = []
-        for p in (self.api, self.redis):
+        for p in (self.api, self.redis, self.s3):
             if p is not None:
                 p.stop()
-        self.api = self.redis = None
+        self.api = self.redis = self.s3 = None
 
     def logs(self) -> str:
         parts = []
-        for p in [*self.workers, self.api, self.redis]:
+        for p in [*self.workers, self.api, self.redis, self.s3]:
             if p is not None:
                 parts.append(f"--- {p.name} ({p.log.name}) ---\n{p.tail()}")
         return "\n".join(parts)

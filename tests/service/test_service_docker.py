@@ -14,7 +14,8 @@ DOCKER = Path(__file__).resolve().parents[2] / "docker"
 def test_compose_runs_api_worker_and_redis_sharing_the_storage_volume() -> None:
     doc = yaml.safe_load((DOCKER / "compose.yaml").read_text())
     services = doc["services"]
-    assert set(services) == {"api", "worker", "redis"}
+    assert set(services) == {"api", "worker", "redis", "minio", "minio-bucket"}
+    assert services["minio"]["profiles"] == ["s3"] and services["minio-bucket"]["profiles"] == ["s3"]
     api, worker = services["api"], services["worker"]
     assert api["command"][:2] == ["pmvir", "serve"] and worker["command"][:2] == ["pmvir", "worker"]
     assert "storage:/data" in api["volumes"] and "storage:/data" in worker["volumes"]
@@ -23,9 +24,10 @@ def test_compose_runs_api_worker_and_redis_sharing_the_storage_volume() -> None:
         assert env["PMVIR_STORAGE"] == "/data"
         assert env["PMVIR_REDIS_URL"].startswith("redis://redis:")
         assert "PMVIR_API_KEYS" in env
+        assert {"PMVIR_STORAGE_URL", "PMVIR_S3_ENDPOINT_URL", "AWS_ACCESS_KEY_ID"} <= set(env)
         assert svc["depends_on"]["redis"]["condition"] == "service_healthy"
     assert api["build"]["dockerfile"] == "docker/Dockerfile"
-    assert set(doc["volumes"]) == {"storage", "redis-data"}
+    assert set(doc["volumes"]) == {"storage", "redis-data", "minio-data"}
 
 
 def test_dockerfile_installs_the_service_and_runs_unprivileged() -> None:
