@@ -56,7 +56,7 @@ demo: setup
 
 # ruff (rules and complexity limit in pyproject.toml) and mypy on the library and the service.
 lint: setup
-	$(PY) -m ruff check pmvir service tests bench docs conftest.py
+	$(PY) -m ruff check pmvir service tests bench docs tools conftest.py
 	$(PY) -m mypy
 
 # The documentation site, offline, with every warning an error (a broken link, a docstring the API
@@ -68,14 +68,14 @@ test: setup lint docs
 	$(PY) -m pytest -q
 
 # The declared lower bounds are true: a fresh venv with every dependency at its floor release
-# series (ci/requirements.py floors), then the fast tests. .ci/run runs it after `make test`
+# series (tools/requirements.py floors), then the fast tests. .ci/run runs it after `make test`
 # (about 3 minutes). torch's floor needs the CPU wheel index (PyPI's torch 2.4 is the CUDA build):
 #   make test-floors TORCH_INDEX=https://download.pytorch.org/whl/cpu
 # Without TORCH_INDEX, torch stays at TORCH_VERSION (the CPU build this machine installs).
 test-floors: system-packages
 	rm -rf $(FLOORS_VENV) && $(PYTHON) -m venv $(FLOORS_VENV)
 	$(FLOORS_VENV)/bin/python -m pip install -q --upgrade pip packaging
-	$(FLOORS_VENV)/bin/python ci/requirements.py floors full service dev \
+	$(FLOORS_VENV)/bin/python tools/requirements.py floors full service dev \
 	  $(if $(TORCH_INDEX),,| sed 's/^torch==.*/torch==$(TORCH_VERSION)/') > $(FLOORS_VENV)/floors.txt
 	$(FLOORS_VENV)/bin/python -m pip install -q $(TORCH_PIP) -r $(FLOORS_VENV)/floors.txt
 	$(FLOORS_VENV)/bin/python -m pip install -q --no-deps -e .
@@ -83,7 +83,7 @@ test-floors: system-packages
 
 # docker/requirements.lock from the tested venv (make setup first).
 lock: setup
-	{ sed -n '1,3p' docker/requirements.lock; $(PY) ci/requirements.py lock full service; } > docker/requirements.lock.new
+	{ sed -n '1,3p' docker/requirements.lock; $(PY) tools/requirements.py lock full service; } > docker/requirements.lock.new
 	mv docker/requirements.lock.new docker/requirements.lock
 
 bench: setup

@@ -1,7 +1,7 @@
 """Requirement lists made from pyproject.toml: the declared floors, and the Docker image's lock file.
 
-    python ci/requirements.py floors full service dev   > floors.txt   (name==floor per declared dependency)
-    python ci/requirements.py lock full service         > docker/requirements.lock
+    python tools/requirements.py floors full service dev   > floors.txt   (name==floor per declared dependency)
+    python tools/requirements.py lock full service         > docker/requirements.lock
 
 ``floors`` turns every ``name>=x`` of the base dependencies and the named extras
 into ``name==x.*`` (the floor's release series: ``opencv-python-headless>=4.9``
