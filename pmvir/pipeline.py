@@ -45,6 +45,15 @@ from pmvir.refine.sampling import Observation
 from pmvir.refine.schedule import StageLog
 from pmvir.result import ResultFolder
 from pmvir.stages import STAGES, Stage
+from pmvir.working import (
+    BinnedCapture,
+    bin_images,
+    bin_noise,
+    resolution_report,
+    unbin_mask,
+    working_capture,
+    working_factor,
+)
 
 #: Above this median DoP inside the masks (the median over views of each view's median) the object is
 #: specular-dominated and report.json warns: measured on path-traced 36-view captures, per-view medians
@@ -85,13 +94,16 @@ def stages_for(config: PipelineConfig) -> list[Stage]:
     return list(STAGES[: Stage(config.stop_after).position + 1])
 
 
-def decode_views(cap: Capture, config: PipelineConfig, progress: Progress | None = None) -> list[DecodedView]:
-    """Decode every frame of an open capture (stage 1)."""
+def decode_views(
+    cap: Capture, config: PipelineConfig, progress: Progress | None = None, *, factor: int = 1
+) -> list[DecodedView]:
+    """Decode every frame of an open capture (stage 1), one at a time, each binned by ``factor``
+    (:mod:`pmvir.working`) right away so that only the working-resolution images are held."""
     progress = progress or Progress.none()
     views = []
     n = len(cap.frames)
     for i, frame in enumerate(cap.frames):
-        images = _decode_frame(cap, i, config.decode)
+        images = bin_images(_decode_frame(cap, i, config.decode), factor)
         views.append(DecodedView(index=i, name=frame.name, file=frame.file, images=images))
         progress.update((i + 1) / n, f"decoded {frame.file}")
     return views
@@ -202,19 +214,25 @@ def refinement_observations(
     stage's noise floor, saturation and mask), one at a time, so only the observations stay
     in memory. With ``refine.pol.aop_noise`` 'closure' (and E_pol on) each observation carries its
     frame's polarization noise (:func:`pmvir.polarization.noise.closure_noise` over its valid
-    pixels), measured from the raw mosaic read once more.
+    pixels), measured from the raw mosaic read once more. A :class:`~pmvir.working.BinnedCapture`
+    gives observations binned as its decoded ``views`` are (the noise measured at full
+    resolution inside the binned valid pixels, then binned).
     """
     progress = progress or Progress.none()
+    factor = cap.factor if isinstance(cap, BinnedCapture) else 1
+    cap = cap.full if isinstance(cap, BinnedCapture) else cap
     redecode = redecodes_for_refinement(decode, refine)
     options = decode.model_copy(update={"demosaic": refine.demosaic}) if redecode else decode
     noise = refine.pol.enabled and refine.pol.aop_noise == "closure"
     observations = []
     for k, i in enumerate(indices):
         raw = cap.read_raw(i) if redecode or noise else None
-        images = _decode_frame(cap, i, options, raw) if redecode else views[i].images
+        images = bin_images(_decode_frame(cap, i, options, raw), factor) if redecode else views[i].images
         obs = observation_from_decoded(vars(images), intensity=refine.pho.intensity)
         if raw is not None and noise:
-            sigma = closure_noise(raw.mosaic, cap.layout, valid=images.valid, sigma_px=refine.pol.aop_noise_px)
+            valid = unbin_mask(images.valid, factor, raw.mosaic.shape)
+            sigma = closure_noise(raw.mosaic, cap.layout, valid=valid, sigma_px=refine.pol.aop_noise_px)
+            sigma = bin_noise(sigma, factor)
             obs = replace(obs, aop_noise=sigma)
         observations.append(obs)
         if redecode:
@@ -275,6 +293,9 @@ def run(
             "manifest": "given" if cap.inferred is None else "inferred",
             "inferred": list(cap.inferred or ()),
         }
+        factor = 1 if config.stop_after == Stage.DECODE else working_factor(cap, config.decode.max_working_size_px)
+        work_cap = working_capture(cap, factor)
+        sections["resolution"] = resolution_report(cap, factor)
         with progress.step(Stage.DECODE, weight[Stage.DECODE]) as p:
             if cache is not None and resume.position > Stage.DECODE.position:  # resuming needs a cache
                 views = stage_cache.load_stage(cache, Stage.DECODE, config)
@@ -286,14 +307,14 @@ def run(
                     result.write_folder("decoded", lambda d: _write_decoded_views(d, views, q))
             else:
                 with p.step("read", 0.9) as q:
-                    views = decode_views(cap, config, q)
+                    views = decode_views(cap, config, q, factor=factor)
             if cache is not None and resume.position == Stage.DECODE.position:
                 stage_cache.save_stage(cache, Stage.DECODE, config, views)
             with p.step("previews", 0.1) as q:
                 write_view_previews(
                     result, [(v.name, v.images) for v in views], max_size=config.export.preview_max_size, progress=q
                 )
-        median_dop = median_dop_in_masks(cap, views)
+        median_dop = median_dop_in_masks(work_cap, views)
         sections["decode"] = {"median_dop_in_masks": median_dop}
         if (warning := specular_warning(median_dop, config.refine)) is not None:
             warnings.append(warning)
@@ -304,7 +325,7 @@ def run(
                     p.update(1.0, "cameras and initial surface loaded from the cache")
                 else:
                     geometry = run_geometry(
-                        cap,
+                        work_cap,
                         [v.images for v in views],
                         options=config.geometry,
                         workdir=Path(work) / "geometry",
@@ -317,7 +338,7 @@ def run(
         if Stage.REFINE in stages:
             with progress.step(Stage.REFINE, weight[Stage.REFINE]) as p:
                 refine_options = refinement_options(config.refine, median_dop)
-                refined, registered = _refine_stage(cap, views, geometry, config, refine_options, p, share=0.85)
+                refined, registered = _refine_stage(work_cap, views, geometry, config, refine_options, p, share=0.85)
                 mesh = _write_refined(result, geometry, refined, [views[i].file for i in registered])
                 sections["refine"] = {**refine_report(refined), "offset_scan": refine_options.offset_scan.mode}
                 if (warning := mask_margin_warning(refined.rim_fit)) is not None:
