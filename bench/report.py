@@ -50,6 +50,7 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/refine_speed.py",
         "the CPU run on the same machine (for --device cuda)",
     ),
+    "fullsize": ("Full-size captures: memory and time per stage", f"{PY} bench/fullsize.py", None),
     "mitsuba_render": ("Path tracing (Mitsuba 3)", f"{PY} bench/mitsuba_render.py", None),
     "evaluate": ("Evaluation", f"{PY} bench/bench_evaluate.py", None),
     "service": ("Service uploads", f"{PY} bench/service.py", None),

@@ -22,9 +22,7 @@ model on 2 cores, so poses well under a minute.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -33,6 +31,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from _results import table, write_results
 
 from pmvir.capture import open_capture
 from pmvir.config import SfmOptions
@@ -116,6 +116,27 @@ def _run(capture: Path, mode: str, workdir: Path, options: SfmOptions) -> dict:
     return row
 
 
+def sfm_table(results: list[dict], args: argparse.Namespace) -> dict:
+    """The runs as one table of the benchmarks page (known poses: distance of the points to the surface)."""
+    rows = []
+    for r in results:
+        if "error" in r:
+            rows.append([r["model"], r["mode"], None, None, None, None, None, f"failed: {r['error'][:120]}"])
+            continue
+        quality = (
+            f"points to surface: median {r['points_median_dist']:.4f}" if r["mode"] == "known" else
+            f"centre error max {r['centre_err_max_pct_scene']:.2f}% of the scene; focal {r['focal_err_pct']:+.2f}%"
+        )
+        rows.append([r["model"], r["mode"], f"{r['registered']}/{r['views']}", r["points"],
+                     round(r["reprojection_px"], 2), round(r["timings"]["total"], 1), round(r["cpu_s"], 1), quality])
+    return table(
+        f"{args.views} views of {args.size}, plastic, built-in renderer",
+        ["model", "mode", "registered", "points", "reprojection px", "seconds", "CPU s", "quality"],
+        rows,
+        note="known: the capture's poses; sfm-K: intrinsics given; sfm: neither",
+    )
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--models", nargs="+", default=list(MODELS))
@@ -177,13 +198,14 @@ def main() -> int:
                     f"(cpu {row['cpu_s']:.1f}s; {steps})",
                     flush=True,
                 )
-    out = Path(__file__).resolve().parent / "results" / f"sfm_poses{'-' + args.tag if args.tag else ''}.json"
-    out.parent.mkdir(exist_ok=True)
-    out.write_text(json.dumps({
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load_avg": os.getloadavg()},
-        "views": args.views, "size": args.size, "focal_factor": args.focal_factor,
-        "options": options.model_dump(mode="json"), "results": results,
-    }, indent=1))
+    name = f"sfm_poses{'-' + args.tag if args.tag else ''}"
+    out = write_results(
+        name,
+        title="Poses (structure from motion)",
+        tables=[sfm_table(results, args)],
+        data={"views": args.views, "size": args.size, "focal_factor": args.focal_factor,
+              "options": options.model_dump(mode="json"), "results": results},
+    )
     print(f"wrote {out}")
     return 0
 
