@@ -1,26 +1,68 @@
-"""Pipeline options on the command line, shared by ``pmvir reconstruct`` and ``pmvir submit``.
+"""Pipeline options on the command line: ``pmvir options``, and the flags ``pmvir reconstruct`` and
+``pmvir submit`` share.
 
 Options come from the one typed tree (:mod:`pmvir.config`): a JSON file with
-``--config``, any field with ``--set section.field=value``, and named flags for
+``--config``, any field with ``--set section.group.field=value``, and named flags for
 the common switches (``--stop-after``, the refinement ablations). Later flags
 win over earlier ones, and every value is validated by the tree, so a bad
-option is a one-line ConfigError naming the field.
+option is a one-line ConfigError naming the field (and the nearest valid one).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
-import sys
-import warnings
+import textwrap
 from pathlib import Path
 from typing import Any
 
 from pydantic import ValidationError
 
-from pmvir.config import PipelineConfig
+from pmvir.config import OptionInfo, PipelineConfig, nearest_option, option_catalog
 from pmvir.errors import ConfigError
 from pmvir.stages import Stage
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "options",
+        help="list the options with their defaults",
+        description="The options of the configuration tree (set with --set KEY=VALUE or --config FILE): "
+        "name, type, default, range, unit and what it does. Lists the basic options; --all lists every one.",
+    )
+    p.add_argument("--all", action="store_true", help="also list the advanced options")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print every option as a JSON list (name, type, default, unit, range, description, level)",
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.json:
+        options = option_catalog()
+        print(json.dumps([dataclasses.asdict(o) for o in options], indent=1))
+        return 0
+    for o in option_catalog(include_advanced=args.all):
+        print(format_option(o))
+    if not args.all:
+        print("\n(basic options only; pmvir options --all lists every option)")
+    return 0
+
+
+def format_option(o: OptionInfo) -> str:
+    """Two lines: ``name  type = default  range unit``, then the description, indented."""
+    facts = [f"{o.type} = {json.dumps(o.default)}"]
+    if o.range:
+        facts.append(o.range)
+    if o.unit:
+        facts.append(f"({o.unit})")
+    if o.level == "advanced":
+        facts.append("[advanced]")
+    description = textwrap.fill(o.description, width=100, initial_indent="    ", subsequent_indent="    ")
+    return f"{o.name}  {'  '.join(facts)}\n{description}"
 
 
 def add_option_arguments(p: argparse.ArgumentParser) -> None:
@@ -63,16 +105,18 @@ def build_config(args: argparse.Namespace) -> PipelineConfig:
         if value is not None:
             _set_path(tree, list(path), value)
     try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", DeprecationWarning)
-            config = PipelineConfig.model_validate(tree)
-        for w in caught:  # shown on the terminal: the default filters hide DeprecationWarnings
-            print(f"pmvir: warning: {w.message}", file=sys.stderr)
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-        return config
+        return PipelineConfig.model_validate(tree)
     except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
+        problems = "; ".join(_problem(e) for e in exc.errors())
         raise ConfigError(f"invalid options: {problems}") from exc
+
+
+def _problem(error: Any) -> str:
+    """One validation error as ``key: message``, naming the nearest valid key for an unknown one."""
+    key = ".".join(str(p) for p in error["loc"])
+    if error["type"] == "extra_forbidden" and (near := nearest_option(key)):
+        return f"{key}: unknown option (nearest valid key: {near})"
+    return f"{key}: {error['msg']}"
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 from pydantic import Field
 
-from pmvir.config.base import OPTION_MAGNITUDE_LIMIT, DemosaicMethod, _Options, merge_options
+from pmvir.config.base import OPTION_MAGNITUDE_LIMIT, DemosaicMethod, _Options, basic, merge_options
+from pmvir.config.catalog import OptionInfo, nearest_option, option_catalog
 from pmvir.config.decode import DecodeOptions
 from pmvir.config.export import ExportOptions
 from pmvir.config.geometry import (
@@ -42,6 +43,7 @@ __all__ = [
     "LightingOptions",
     "MvsOptions",
     "OffsetScanOptions",
+    "OptionInfo",
     "PhoOptions",
     "PipelineConfig",
     "PolOptions",
@@ -55,6 +57,8 @@ __all__ = [
     "ViewOptions",
     "VisibilityOptions",
     "merge_options",
+    "nearest_option",
+    "option_catalog",
 ]
 
 
@@ -65,4 +69,8 @@ class PipelineConfig(_Options):
     geometry: GeometryOptions = Field(default_factory=GeometryOptions)
     refine: RefineOptions = Field(default_factory=RefineOptions)
     export: ExportOptions = Field(default_factory=ExportOptions)
-    stop_after: Stage = Field(default=Stage.REFINE, description="Last stage to run.")
+    stop_after: Stage = Field(
+        default=Stage.REFINE,
+        description="Last stage to run.",
+        json_schema_extra=basic(),
+    )

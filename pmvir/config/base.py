@@ -6,6 +6,7 @@ import math
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, field_validator
+from pydantic.json_schema import JsonDict
 
 #: No numeric option accepts a magnitude above this (fields state narrower ranges of their own).
 OPTION_MAGNITUDE_LIMIT = 1e9
@@ -24,6 +25,20 @@ class _Options(BaseModel):
             if is_number and (not math.isfinite(x) or abs(x) > OPTION_MAGNITUDE_LIMIT):
                 raise ValueError(f"{x!r} is out of range; no option accepts a magnitude above 1e9")
         return value
+
+
+#: The option levels: "basic" options are the few a user sets; "advanced" ones tune a step.
+Level = Literal["basic", "advanced"]
+
+
+def basic(unit: str | None = None) -> JsonDict:
+    """A field's ``json_schema_extra``: an option a user sets (at most 15 of these), with its unit."""
+    return {"level": "basic"} if unit is None else {"level": "basic", "unit": unit}
+
+
+def advanced(unit: str | None = None) -> JsonDict:
+    """A field's ``json_schema_extra``: an option that tunes a step, with its unit."""
+    return {"level": "advanced"} if unit is None else {"level": "advanced", "unit": unit}
 
 
 #: The demosaicing methods (:mod:`pmvir.polarization.demosaic`), for decode.demosaic and refine.demosaic.

@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from pmvir.config.base import _Options
+from pmvir.config.base import _Options, advanced, basic
 from pmvir.config.sfm import SfmOptions
 
 
@@ -15,119 +15,111 @@ class MvsOptions(_Options):
 
     backend: Literal["auto", "cpu", "colmap-cuda"] = Field(
         default="auto",
-        description="Dense stereo: 'cpu' (pmvir's plane sweep), 'colmap-cuda' (COLMAP PatchMatch and "
-        "stereo fusion through pycolmap, needs pycolmap built with CUDA), 'auto' (colmap-cuda when "
+        description="Dense stereo: 'cpu' (pmvir's plane sweep), 'colmap-cuda' (COLMAP PatchMatch and stereo "
+        "fusion through pycolmap, needs pycolmap built with CUDA), 'auto' (colmap-cuda when "
         "pycolmap.has_cuda, else cpu).",
+        json_schema_extra=basic(),
     )
     scale: float = Field(
-        default=0.5,
-        gt=0.0,
-        le=1.0,
-        description="CPU stereo works on images resampled by this factor (0.5: half width and height, "
-        "a quarter of the pixels; chosen for the time budget on two cores), but never on a grid whose "
-        "longer side is below min_grid_px.",
+        default=0.5, gt=0.0, le=1.0,
+        description="CPU stereo works on images resampled by this factor (0.5: a quarter of the pixels), "
+        "never on a grid whose longer side is below min_grid_px, (0, 1].",
+        json_schema_extra=advanced(),
     )
     min_grid_px: int = Field(
-        default=160,
-        ge=16,
-        description="CPU stereo grid: the scale is raised (up to 1) so that the longer image side keeps at "
-        "least this many pixels (160: measured on 12-view 320x256 captures, full resolution gave 4x the pixels but a "
-        "third of them consistent across views).",
+        default=160, ge=16,
+        description="CPU stereo: the scale is raised (up to 1) so the longer image side keeps at least this "
+        "many pixels.",
+        json_schema_extra=advanced("px"),
     )
     colour: bool = Field(
         default=True,
         description="CPU stereo matches the three colour channels (ZNCC with covariances and variances "
         "summed over colours); False: their mean (faster, loses hue-only texture).",
+        json_schema_extra=advanced(),
     )
     neighbours: int = Field(
-        default=5, ge=1, le=20, description="Source views matched against each reference view."
+        default=5, ge=1, le=20,
+        description="Source views matched against each reference view.",
+        json_schema_extra=advanced(),
     )
     top_k: int = Field(
-        default=2,
-        ge=1,
-        le=20,
-        description="Per pixel, the mean of this many best neighbour costs is the aggregated cost "
-        "(robust to occlusion and highlights in the other neighbours).",
+        default=2, ge=1, le=20,
+        description="Per pixel, the aggregated cost is the mean of this many best neighbour costs (robust to "
+        "occlusion and highlights).",
+        json_schema_extra=advanced(),
     )
     planes: int = Field(
-        default=96, ge=8, le=1024, description="Fronto-parallel depth planes, evenly spaced in inverse depth."
+        default=96, ge=8, le=1024,
+        description="Fronto-parallel depth planes, evenly spaced in inverse depth.",
+        json_schema_extra=advanced(),
     )
     window: int | None = Field(
-        default=None,
-        ge=3,
-        le=31,
-        description="ZNCC window side in pixels of the stereo grid (odd). None: 3, or 7 for captures of at "
-        "most sparse_rig_views registered views. A fronto-parallel window on a curved surface matches it at "
-        "about the window's mean depth, behind a convex surface, so a small window keeps thin parts thick "
-        "(measured on the built-in shapes, 36 views of 612x512, 7 -> 3: completeness of the knot's tube "
-        "0.0031 -> 0.0020, the blob's 0.0012 -> 0.0010, mug and gear 0.0024 / 0.0021 -> 0.0014); with a few "
-        "views a depth needs only one confirming view and the wider window's lower noise wins (8 views of "
-        "320x256: accuracy 0.0063 with 7, 0.018 with 3).",
+        default=None, ge=3, le=31,
+        description="ZNCC window side (px of the stereo grid, odd, 3..31). None: 3, or 7 for captures of at "
+        "most sparse_rig_views registered views.",
+        json_schema_extra=advanced("px"),
     )
     min_score: float = Field(
-        default=0.3,
-        ge=-1.0,
-        lt=1.0,
-        description="Smallest aggregated ZNCC for a depth to be kept before the consistency filter.",
+        default=0.3, ge=-1.0, lt=1.0,
+        description="Smallest aggregated ZNCC for a depth to be kept before the consistency filter, [-1, 1).",
+        json_schema_extra=advanced(),
     )
     min_angle_deg: float = Field(
-        default=5.0, ge=0.0, lt=90.0, description="Smallest triangulation angle of a neighbour view, degrees."
+        default=5.0, ge=0.0, lt=90.0,
+        description="Smallest triangulation angle of a neighbour view, degrees.",
+        json_schema_extra=advanced("deg"),
     )
     max_angle_deg: float = Field(
-        default=60.0,
-        gt=0.0,
-        le=180.0,
+        default=60.0, gt=0.0, le=180.0,
         description="Largest triangulation angle of a neighbour view, degrees.",
+        json_schema_extra=advanced("deg"),
     )
     depth_margin: float = Field(
-        default=0.1,
-        ge=0.0,
-        le=2.0,
-        description="A view's depth range (1st to 99th percentile of its sparse points' depths) is "
-        "widened on both sides by this fraction of its far depth.",
+        default=0.1, ge=0.0, le=2.0,
+        description="A view's depth range (1st to 99th percentile of its sparse points' depths) is widened "
+        "on both sides by this fraction of its far depth.",
+        json_schema_extra=advanced(),
     )
     consistency_px: float = Field(
-        default=1.0,
-        gt=0.0,
+        default=1.0, gt=0.0,
         description="Geometric consistency: largest forward-backward reprojection error, pixels of the "
         "stereo grid.",
+        json_schema_extra=advanced("px"),
     )
     consistency_depth: float = Field(
-        default=0.01, gt=0.0, lt=1.0, description="Geometric consistency: largest relative depth difference."
+        default=0.01, gt=0.0, lt=1.0,
+        description="Geometric consistency: largest relative depth difference.",
+        json_schema_extra=advanced(),
     )
     min_consistent: int = Field(
-        default=2,
-        ge=1,
-        le=20,
+        default=2, ge=1, le=20,
         description="A depth is fused when at least this many other views agree with it.",
+        json_schema_extra=advanced(),
     )
     sparse_rig_views: int = Field(
-        default=12,
-        ge=0,
+        default=12, ge=0,
         description="Captures with at most this many registered views fuse a depth that one other view "
-        "confirms (min_consistent is lowered to 1): their views are 45-90 degrees apart and seldom three "
-        "agree (measured on 12-view 320x256 blobs: completeness 0.048 -> 0.017, accuracy 0.0022 -> 0.0029).",
+        "confirms (min_consistent lowered to 1).",
+        json_schema_extra=advanced(),
     )
     voxel: float = Field(
-        default=0.002,
-        ge=0.0,
-        description="Fused points are thinned to one per cube of this side, a fraction of the sparse "
-        "points' bounding-box diagonal (0: no thinning).",
+        default=0.002, ge=0.0,
+        description="Fused points are thinned to one per cube of this side, a fraction of the sparse points' "
+        "bounding-box diagonal (0: no thinning).",
+        json_schema_extra=advanced("bbox diagonal"),
     )
     min_points: int = Field(
-        default=1000,
-        ge=100,
+        default=1000, ge=100,
         description="Fewer fused points than this is a ReconstructionError (textureless or non-overlapping "
         "views), not an empty mesh.",
+        json_schema_extra=advanced(),
     )
     min_consistent_fraction: float = Field(
-        default=0.05,
-        ge=0.0,
-        lt=1.0,
-        description="CPU stereo: when on average less than this fraction of a registered view's object "
-        "(mask) pixels (without a mask: of its depths) gets a depth that passes the consistency filter, the "
-        "views are textureless or do not overlap: a ReconstructionError (measured: textured synthetic "
-        "captures 0.15-0.75, a textureless sphere and frames with unrelated textures at most 0.02).",
+        default=0.05, ge=0.0, lt=1.0,
+        description="CPU stereo: below this mean fraction of a view's object pixels with a consistent depth, "
+        "the views are textureless or do not overlap (ReconstructionError).",
+        json_schema_extra=advanced(),
     )
 
     @model_validator(mode="after")
@@ -145,68 +137,56 @@ class SurfaceOptions(_Options):
     """The initial surface (:mod:`pmvir.geometry.surface.initial`): screened Poisson, trimming, cleaning."""
 
     poisson_depth: int | None = Field(
-        default=None,
-        ge=5,
-        le=12,
-        description="Screened Poisson octree depth (grid at most 2^depth per side); None: automatic, the "
-        "depth whose finest cell is closest to poisson_voxel_px full-resolution pixels at the median "
-        "viewing distance, clamped to 6..10.",
+        default=None, ge=5, le=12,
+        description="Screened Poisson octree depth, 5..12. None: the depth whose finest cell is closest to "
+        "poisson_voxel_px at the median viewing distance, clamped to 6..10.",
+        json_schema_extra=advanced(),
     )
     poisson_voxel_px: float = Field(
-        default=3.0,
-        gt=0.0,
-        description="Automatic Poisson depth: target finest-cell size in full-resolution pixels (3: measured "
-        "more accurate than 1.5 on the benchmark models, the coarser grid averaging the stereo noise, and "
-        "3x faster).",
+        default=3.0, gt=0.0,
+        description="Automatic Poisson depth: target finest-cell size, in full-resolution pixels.",
+        json_schema_extra=advanced("px"),
     )
     trim_density_quantile: float = Field(
-        default=0.0,
-        ge=0.0,
-        lt=1.0,
-        description="Poisson vertices whose octree sample density is below this quantile are removed "
-        "(0: off; the distance and silhouette trimming remove unobserved parts without cutting holes "
-        "into well observed ones).",
+        default=0.0, ge=0.0, lt=1.0,
+        description="Poisson vertices whose octree sample density is below this quantile are removed (0: "
+        "off; the distance and silhouette trimming remove unobserved parts without cutting holes into well "
+        "observed ones).",
+        json_schema_extra=advanced(),
     )
     trim_distance: float = Field(
-        default=0.02,
-        gt=0.0,
-        description="Poisson vertices farther than this fraction of the dense points' bounding-box "
-        "diagonal from every dense point are removed (unobserved guesses). 0.02 (0.01 before): the "
-        "crevices where the knot's tube passes close to itself hold few fused points, and 0.01 cut holes "
-        "there (measured on the built-in shapes, 36 views of 612x512: knot completeness 0.00202 -> "
-        "0.00187, mug 0.00141 -> 0.00136, blob and gear unchanged, accuracy unchanged on all four).",
+        default=0.02, gt=0.0,
+        description="Poisson vertices farther than this (fraction of the dense points' bounding-box "
+        "diagonal) from every dense point are removed.",
+        json_schema_extra=advanced("bbox diagonal"),
     )
     min_component_points: int = Field(
-        default=200,
-        ge=1,
-        description="A connected component of the surface besides the largest is kept when at least this "
-        "many fused points lie nearest to it (a thin handle or a second lobe cut off by trimming is real "
-        "surface; a few stray points are not). report.json lists every component, kept or not, and why.",
+        default=200, ge=1,
+        description="A surface component besides the largest is kept when at least this many fused points "
+        "lie nearest to it; report.json lists every component.",
+        json_schema_extra=advanced(),
     )
     target_faces: int = Field(
-        default=150_000, ge=100, description="The trimmed surface is simplified to at most this many faces."
+        default=150_000, ge=100,
+        description="The trimmed surface is simplified to at most this many faces.",
+        json_schema_extra=advanced(),
     )
     min_angle_deg: float = Field(
-        default=2.0,
-        ge=0.0,
-        lt=30.0,
+        default=2.0, ge=0.0, lt=30.0,
         description="Triangles with a smaller interior angle (degrees) are slivers and are collapsed.",
+        json_schema_extra=advanced("deg"),
     )
     split_factor: float = Field(
-        default=1.75,
-        ge=1.0,
-        description="Before visibility and subdivision, faces projecting larger than this times "
-        "subdivision.max_area_px (in a view they face) are bisected, so that the uniform sqrt(3) "
-        "subdivision needs one step fewer (1.75: one step then brings the largest below the threshold).",
+        default=1.75, ge=1.0,
+        description="Faces projecting larger than this times subdivision.max_area_px are bisected before "
+        "visibility and subdivision (one sqrt(3) step fewer), >= 1.",
+        json_schema_extra=advanced(),
     )
     hull_tolerance_px: float | None = Field(
-        default=0.5,
-        ge=0.0,
-        description="After subdivision, vertices that project more than this many pixels outside some view's "
-        "mask move inward along their normals until they do (at most 3 px; pmvir.geometry.silhouette.hull_fit): every "
-        "point of the object lies inside the masks' visual hull, and the Poisson surface rounds thin parts "
-        "out past their silhouettes. None: off. Path-traced dragon at 308x256, initial surface: accuracy "
-        "0.307e-2 -> 0.280e-2, completeness 0.850e-2 -> 0.758e-2 (README).",
+        default=0.5, ge=0.0,
+        description="After subdivision, vertices projecting more than this (px) outside a view's mask move "
+        "inward along their normals (at most 3 px). None: off.",
+        json_schema_extra=advanced("px"),
     )
 
 
@@ -214,19 +194,16 @@ class VisibilityOptions(_Options):
     """Per-vertex visibility (:mod:`pmvir.geometry.visibility`)."""
 
     min_cos: float = Field(
-        default=0.05,
-        ge=-1.0,
-        lt=1.0,
-        description="A vertex is back-facing (not visible) in a view when the cosine between its "
-        "area-weighted normal and the direction to the camera centre is at most this (0.05: about 87 "
-        "degrees; grazing vertices land on mixed silhouette pixels).",
+        default=0.05, ge=-1.0, lt=1.0,
+        description="A vertex is back-facing in a view when the cosine between its normal and the direction "
+        "to the camera is at most this, [-1, 1).",
+        json_schema_extra=advanced(),
     )
     rel_tol: float = Field(
-        default=1e-4,
-        gt=0.0,
-        lt=0.5,
-        description="Relative tolerance of the ray-cast occlusion test: a triangle occludes a vertex "
-        "only if it crosses the camera-to-vertex segment before (1 - tol) of its length.",
+        default=1e-4, gt=0.0, lt=0.5,
+        description="Ray-cast occlusion: a triangle occludes a vertex only if it crosses the "
+        "camera-to-vertex segment before (1 - tol) of its length, (0, 0.5).",
+        json_schema_extra=advanced(),
     )
 
 
@@ -234,27 +211,26 @@ class SubdivisionOptions(_Options):
     """sqrt(3) subdivision of the initial surface (:mod:`pmvir.geometry.subdivision`)."""
 
     max_area_px: float = Field(
-        default=2.0,
-        gt=0.0,
-        description="sqrt(3) subdivision is repeated until every triangle's projected area, in each "
-        "view that sees it, is below this many pixels^2. A step divides areas by 3, so the largest ends "
-        "in [2/3, 2) px^2; with about two triangles per vertex that is at most about 4 px^2 (a vertex "
-        "every 2 pixels) in the view that sees the surface largest: near the image resolution the "
-        "refinement samples, at a quarter of the vertices (and cost) of a 0.5 px^2 threshold.",
+        default=2.0, gt=0.0,
+        description="sqrt(3) subdivision is repeated until every triangle's projected area, in each view "
+        "that sees it, is below this (px^2).",
+        json_schema_extra=basic("px^2"),
     )
     max_rounds: int = Field(
-        default=6, ge=0, le=12, description="Most sqrt(3) steps (each triples the face count)."
+        default=6, ge=0, le=12,
+        description="Most sqrt(3) steps (each triples the face count).",
+        json_schema_extra=advanced(),
     )
     max_vertices: int = Field(
-        default=2_000_000,
-        ge=3,
-        description="Subdivision stops before a step that would make the mesh exceed this many vertices.",
+        default=2_000_000, ge=3,
+        description="Subdivision stops before a step that would exceed this many vertices.",
+        json_schema_extra=advanced(),
     )
     min_visible_corners: Literal[1, 2, 3] = Field(
         default=3,
-        description="A face counts as visible in a view when at least this many of its corners are; "
-        "a vertex added by subdivision is visible in the views in which the input face it lies on is "
-        "(3: all corners, conservative: no new vertex gets a view in which part of its face may be hidden).",
+        description="A face is visible in a view when at least this many of its corners are (1..3); new "
+        "vertices inherit their input face's views.",
+        json_schema_extra=advanced(),
     )
 
 
