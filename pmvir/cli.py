@@ -25,7 +25,6 @@ EXTRAS: dict[str, str] = {
     "evaluate": "full",
     "reconstruct": "full",
     "options": "client",
-    "options": "client",
     "synth": "full",
     "serve": "service",
     "worker": "service",
