@@ -18,7 +18,7 @@ stay exact).
   the rendered normal's azimuth and the observed AoP (the refinement's term,
   :func:`pmvir.refine.energy.polarimetric_cost`), from 0 (black) to
   ``epol_scale`` (white, the 99th percentile over every view) on the inferno
-  colour map; pixels whose DoP is below ``dop_min`` count 0.
+  colour map; pixels whose DoP is below ``pol.dop_min`` count 0.
 * ``residuals/summary.json``: per view the RMS and mean residual and the mean
   E_pol over the pixels compared.
 """
@@ -121,13 +121,13 @@ def sequential(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 
 def pixel_epol(model_aop: np.ndarray, aop: np.ndarray, dop: np.ndarray, options: RefineOptions) -> np.ndarray:
-    """E_pol per pixel: ``rho * cost(eta)`` (rho = 1 without ``dop_weight``); 0 where DoP < ``dop_min``.
+    """E_pol per pixel: ``rho * cost(eta)`` (rho = 1 without ``pol.dop_weight``); 0 where DoP < ``pol.dop_min``.
 
     Args:
         model_aop: (H, W) the rendered normal's azimuth modulo pi (E_pol's eta only depends on it modulo
             pi/2), radians.
         aop, dop: (H, W) observed AoP (radians in [0, pi)) and DoP.
-        options: the refinement's options (``pol_k``, ``dop_weight``, ``dop_min``).
+        options: the refinement's options (``pol.k``, ``pol.dop_weight``, ``pol.dop_min``).
 
     Returns:
         (H, W) float32 in [0, 1].

@@ -2,12 +2,12 @@
 
     E = E_pho + tau1 * E_pol + tau2 * E_gsm + tau3 * E_psm [+ tau_light * E_light]
 
-E_light (not the paper's, ``RefineOptions.lighting_coupling``) ties the views' lighting together.
+E_light (not the paper's, ``RefineOptions.lighting.coupling``) ties the views' lighting together.
 
 All functions are pure, vectorized over every (vertex, view) pair / face /
 edge, and differentiable with autograd. Intensities and albedos are in the
 capture's normalized units times ``units`` (the configured default is 32,
-``RefineOptions.intensity_units``: the paper's weights assume an intensity scale
+``RefineOptions.pho.intensity_units``: the paper's weights assume an intensity scale
 its text does not fix, and 32 measured best; see :class:`pmvir.config.RefineOptions`).
 """
 
@@ -167,8 +167,8 @@ def diffuse_view_factor(
     Args:
         normal_cam: (P, 3) unit vertex normals in each pair's camera frame.
         ray_cam: (P, 3) unit directions from the camera centre to the vertex (camera frame).
-        fresnel_ior: > 0: times :func:`fresnel_transmittance` of this index (``diffuse_fresnel_ior``).
-        dop_ior: > 0: times :func:`diffuse_min_fraction` of this index (``diffuse_dop_ior``; only
+        fresnel_ior: > 0: times :func:`fresnel_transmittance` of this index (``pho.diffuse_fresnel_ior``).
+        dop_ior: > 0: times :func:`diffuse_min_fraction` of this index (``pho.diffuse_dop_ior``; only
             meaningful when E_pho observes I_min).
 
     Returns:
@@ -371,7 +371,7 @@ class StageProblem:
         light_factor: (P,) each pair's rendered colour is multiplied by it, fixed for the stage
             (the unblocked share of its irradiance, :mod:`pmvir.refine.shadowing`); None: 1.
         light_scale: > 0: E_light is evaluated with this scale (:func:`lighting_coupling_term`);
-            0: it is not (``lighting_coupling`` 0).
+            0: it is not (``lighting.coupling`` 0).
         k, t, units: term parameters.
     """
 

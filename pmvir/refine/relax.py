@@ -1,6 +1,6 @@
 """Tangential relaxation: even out a refined mesh's vertices without changing its surface.
 
-The refinement moves vertices freely in 3D (``vertex_motion='free'``). Motion along the
+The refinement moves vertices freely in 3D (``solver.vertex_motion='free'``). Motion along the
 surface leaves the surface where it is, so the energy barely resists it, yet per-vertex
 albedo and image sampling give it a pull: vertices crowd and leave long edges behind.
 The surface is then still right, but sampled unevenly, and the spec's completeness

@@ -9,20 +9,20 @@ per-view SH coefficients L_basis (9) and RGB scales L_scale (3).
   determined up to scale, and E_psm would shrink K along that direction. We fix
   L0 = 1 in every view and L_scale of view 0 at [1, 1, 1]; everything else is free.
   (The metrics remove a per-channel scale anyway.)
-* Vertex motion (``vertex_motion``): ``"free"`` (default) X = X0 + h D, three
+* Vertex motion (``solver.vertex_motion``): ``"free"`` (default) X = X0 + h D, three
   unknowns per vertex; ``"normal"`` X = X0 + h d n0 along the unit normal at the
   start of the stage. h is the mean edge length, so unknowns are O(1). On the
   synthetic bumpy-sphere tests free motion reached about 0.8x the accuracy error of
   normal-only motion in the same number of iterations: a vertex on a slope of a
   missing bump must also move sideways to reach the true surface point it samples.
-* Albedo (``albedo_solve``): ``"projected"`` (default) sets K at every evaluation to
+* Albedo (``solver.albedo_solve``): ``"projected"`` (default) sets K at every evaluation to
   its exact minimizer given X and L (:mod:`pmvir.refine.albedo`) and L-BFGS runs on
   X and L only; ``"joint"`` makes K L-BFGS unknowns too. Same cost, same minimizers;
   the projected form converged several times faster in our tests.
 * Preconditioning: L-BFGS's initial inverse Hessian is a graph smoother on the
   vertex-motion block (:class:`pmvir.refine.mesh_ops.GraphSmoother`); SH and scale
   unknowns of view c are scaled by 1/sqrt(sum of the pair weights 1/|V(i)| of the view).
-* Relaxation (``relax_iterations``): after the last stage the vertices are spread evenly
+* Relaxation (``surface.relax_iterations``): after the last stage the vertices are spread evenly
   over the refined surface (:mod:`pmvir.refine.relax`) and the albedo solved there again.
 * Stages: :func:`prepare_stage` fixes a stage's data at the current geometry (visibility,
   pairs, E_psm weights, E_pol's DoP mask and DoP weights, n0 and h), :func:`solve_stage`
@@ -95,7 +95,7 @@ class StageLog:
         pol_pairs: the pairs E_pol used (0 without E_pol).
         dop_floor: E_pol's DoP floor (see :func:`dop_floor`; the median of per-pair floors; 0 when
             every pair is kept; None when no pair was evidence and E_pol was off). With measured
-            noise (``aop_noise`` 'closure') an 'evidence' floor is on :func:`pol_evidence`'s scale,
+            noise (``pol.aop_noise`` 'closure') an 'evidence' floor is on :func:`pol_evidence`'s scale,
             the DoP at the stage's median noise.
         energies: per iteration (0 = the stage's start), the unweighted terms
             ``pho``, ``pol`` (only with E_pol), ``gsm``, ``psm`` and the weighted ``total``.
@@ -131,10 +131,10 @@ class RefineResult:
         normals: (N, 3) float32 area-weighted unit vertex normals of the result.
         albedo: (N, 3) float32 linear RGB albedo K.
         sh: (V, 9) float32 pmvir-sh9 coefficients per view (L0 = 1, the gauge). With
-            ``sh_order`` > 2 they are the pmvir-sh9 part (the least-squares projection over the
+            ``lighting.sh_order`` > 2 they are the pmvir-sh9 part (the least-squares projection over the
             sphere) of the fitted shading.
         sh_high: (V, T - 9) float32 degree-3 and degree-4 coefficients of :func:`pmvir.sh.sh_basis`
-            (T = 16 or 25); (V, 0) with ``sh_order`` 2.
+            (T = 16 or 25); (V, 0) with ``lighting.sh_order`` 2.
         rgb_scale: (V, 3) float32 RGB scale per view (view 0 = its initial [1, 1, 1]).
         visibility: (N, V) bool visibility used by the last stage.
         stages: one :class:`StageLog` per stage.
@@ -145,13 +145,13 @@ class RefineResult:
         intensity_factor: what E_pho and E_psm multiplied intensities and albedos by
             (:func:`intensity_units`).
         offset_scans: the photo-consistent offsets scanned (and applied where the scan found one), in
-            order: before stage 1, and with ``offset_scan`` "stages" also before every later stage and
+            order: before stage 1, and with ``offset_scan.mode`` "stages" also before every later stage and
             after the last (:func:`pmvir.refine.offset.photo_consistent_offset`).
-        hull_fits: the surface held inside the masks' visual hull (``hull_tolerance_px`` with masks),
+        hull_fits: the surface held inside the masks' visual hull (``surface.hull_tolerance_px`` with masks),
             in order: after every applied offset scan but the last, and after the last stage and scan.
-        rim_fit: the shoulders moved out to the masks' rims after the last hull fit (``rim_fit_gain`` > 0
+        rim_fit: the shoulders moved out to the masks' rims after the last hull fit (``surface.rim_fit_gain`` > 0
             with masks), else None.
-        lighting_fit: the final lighting fit's log (``lighting_coupling`` > 0; its time is
+        lighting_fit: the final lighting fit's log (``lighting.coupling`` > 0; its time is
             ``timings["lighting"]``), else None.
     """
 
@@ -381,7 +381,7 @@ class StageWeights:
 
     Attributes:
         tau_pol: tau1 (0 without E_pol); tau_gsm: tau2; tau_psm: tau3; t: E_gsm's exponent;
-        tau_light: E_light's weight (0 in the stages; ``lighting_coupling`` in the final lighting fit).
+        tau_light: E_light's weight (0 in the stages; ``lighting.coupling`` in the final lighting fit).
     """
 
     tau_pol: float
@@ -506,7 +506,7 @@ def _pho_signal(samples: PairSamples, problem: StageProblem) -> float:
 
 def _stage_dop_floor(samples: PairSamples, opts: RefineOptions) -> torch.Tensor | float | None:
     """E_pol's DoP floor for a stage (:func:`dop_floor`), None where every pair is kept (no
-    polarization, or ``dop_min`` 0 with a fixed floor)."""
+    polarization, or ``pol.dop_min`` 0 with a fixed floor)."""
     if not opts.pol.enabled or samples.dop is None:
         return None
     floor = dop_floor(samples, opts)
@@ -535,12 +535,12 @@ def prefit_lighting(
     setup: _Setup, stage: _Stage, state: _Unknowns, *, progress: Progress
 ) -> tuple[_Stage, _Unknowns]:
     """Before the first stage: fit the lighting (and the projected albedo) to the initial surface
-    with the geometry held (``lighting_prefit_iterations``), so that the first stage starts from
-    lighting that explains the images; with ``pho_robust`` the first stage's Cauchy weights are then
+    with the geometry held (``lighting.prefit_iterations``), so that the first stage starts from
+    lighting that explains the images; with ``pho.robust`` the first stage's Cauchy weights are then
     taken from the residuals of that fit (otherwise it would have none: it starts from uniform
     lighting), and specular residue loses its pull from the first stage on.
 
-    With ``shadowing`` the first stage's shadow factors are taken again under the fitted lighting.
+    With ``pho.shadowing`` the first stage's shadow factors are taken again under the fitted lighting.
 
     Returns:
         the first stage (with its robust weights) and the unknowns after the fit.
@@ -577,7 +577,7 @@ def final_lighting_fit(
     setup: _Setup, state: _Unknowns, visibility: np.ndarray, *, progress: Progress
 ) -> tuple[_Unknowns, StageLog]:
     """After the last stage: the lighting and albedo fitted again with the geometry held and E_light
-    added (``lighting_coupling``, ``lighting_final_iterations``), starting from the stage's result.
+    added (``lighting.coupling``, ``lighting.final_iterations``), starting from the stage's result.
 
     The last stage's weights, pairs and robust weights are taken again at the final surface; E_light's
     scale is E_pho's value with nothing rendered over the squared norm of the views' mean lighting
@@ -602,7 +602,7 @@ def _shadow_factor(
     setup: _Setup, state: _Unknowns, pairs: PairSet, normals_np: np.ndarray | None
 ) -> torch.Tensor | None:
     """(P,) each pair's unblocked share of its irradiance at the current geometry and lighting
-    (:func:`pmvir.refine.shadowing.shadow_factors`), None without ``shadowing``."""
+    (:func:`pmvir.refine.shadowing.shadow_factors`), None without ``pho.shadowing``."""
     opts = setup.opts
     if opts.pho.shadowing == "none":
         return None
@@ -678,7 +678,7 @@ def pol_evidence(samples: PairSamples) -> torch.Tensor | None:
     :func:`pmvir.polarization.noise.closure_noise`): ``rho * m / sigma`` with m the median sigma
     over the stage's pairs, i.e. the AoP's signal-to-noise ratio rho / sigma scaled to read as a
     DoP at the median noise. Unmeasured (NaN) noise counts as m; sigma is held above m / 4, so no
-    pair outweighs others by noise alone more than 16-fold at ``dop_weight_power`` 2. Without noise
+    pair outweighs others by noise alone more than 16-fold at ``pol.dop_weight_power`` 2. Without noise
     maps: the DoP itself. None without polarization.
     """
     if samples.dop is None or samples.aop_noise is None:
@@ -696,16 +696,16 @@ def _above_floor(
     dop: torch.Tensor, evidence: torch.Tensor, floor: torch.Tensor | float, opts: RefineOptions
 ) -> torch.Tensor:
     """E_pol's pair mask: the 'evidence' floor applies to :func:`pol_evidence` (and the DoP stays at
-    or above ``dop_min``); the 'fixed' and 'shot' floors to the DoP."""
+    or above ``pol.dop_min``); the 'fixed' and 'shot' floors to the DoP."""
     if opts.pol.dop_min_noise == "evidence":
         return (evidence >= floor) & (dop >= opts.pol.dop_min)
     return dop >= floor
 
 
 def dop_floor(samples: PairSamples, opts: RefineOptions) -> torch.Tensor | float:
-    """E_pol's DoP floor per pair (``dop_min``, ``dop_min_noise``).
+    """E_pol's DoP floor per pair (``pol.dop_min``, ``pol.dop_min_noise``).
 
-    'shot': ``dop_min * sqrt(max(1, m / I))`` with I the pair's colour-mean I_int (recovered from
+    'shot': ``pol.dop_min * sqrt(max(1, m / I))`` with I the pair's colour-mean I_int (recovered from
     I_min = (1 - rho) I_int when E_pho uses I_min) and m its median over the stage's pairs: the
     standard deviation of a DoP measured under shot noise grows as 1 / sqrt(I).
 
@@ -732,17 +732,17 @@ CHANCE_ETA = math.pi / 8.0
 def evidence_dop_floor(samples: PairSamples, opts: RefineOptions) -> float:
     """The DoP from which the observed AoP is evidence about the current surface ('evidence').
 
-    The pairs at or above ``dop_min`` (with a defined AoP and azimuth) are sorted by their
+    The pairs at or above ``pol.dop_min`` (with a defined AoP and azimuth) are sorted by their
     evidence (:func:`pol_evidence`: the DoP, over its noise where the views measure it), most
-    polarized first, and cut into bins of ``max(dop_evidence_bin, 2% of them)`` pairs (a short
+    polarized first, and cut into bins of ``max(pol.dop_evidence_bin, 2% of them)`` pairs (a short
     remainder joins the last bin). Walking down, a bin is evidence while its mean azimuth distance
-    eta to the samples' normals is at most ``dop_evidence_ratio * pi / 8``: an AoP unrelated to
+    eta to the samples' normals is at most ``pol.dop_evidence_ratio * pi / 8``: an AoP unrelated to
     the surface (noise, false polarization at albedo edges) has mean pi/8. The floor is the
     lowest evidence of the last such bin; the walk stops at the first bin that is not (when none is
-    not, the floor is ``dop_min``).
+    not, the floor is ``pol.dop_min``).
 
     Returns:
-        the floor (at least ``dop_min``), or ``inf`` when the most polarized bin is no evidence
+        the floor (at least ``pol.dop_min``), or ``inf`` when the most polarized bin is no evidence
         (E_pol then has no pairs this stage).
     """
     evidence = pol_evidence(samples)
@@ -781,9 +781,9 @@ def _robust_pho_weights(
     light_factor: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """(P,) Cauchy weights 1 / (1 + (r / s)^2) of each pair's E_pho residual r (RGB norm) at the
-    current unknowns, s = ``pho_robust_scale`` times the median residual (``pho_robust``).
+    current unknowns, s = ``pho.robust_scale`` times the median residual (``pho.robust``).
 
-    ``pho_robust='specular'`` weights only the pairs observed brighter than rendered (colour mean):
+    ``pho.robust='specular'`` weights only the pairs observed brighter than rendered (colour mean):
     specular residue only adds light, while a misplaced surface errs both ways, so pairs darker
     than their rendering keep full weight and keep pulling the surface into place.
     """
@@ -943,7 +943,7 @@ def solve_stage(
 def _relaxed(
     setup: _Setup, problem: StageProblem, solver: AlbedoSolver | None, state: _Unknowns
 ) -> _Unknowns:
-    """``state`` with its vertices spread evenly over the last stage's surface (``relax_iterations``,
+    """``state`` with its vertices spread evenly over the last stage's surface (``surface.relax_iterations``,
     :func:`pmvir.refine.relax.relax_tangentially`); the albedo is solved again at the new positions
     (projected) or interpolated there (joint)."""
     verts = state.vertices.cpu().numpy().astype(np.float64)
@@ -960,9 +960,9 @@ def _relaxed(
 
 
 def intensity_units(observations: Sequence[Observation], opts: RefineOptions) -> float:
-    """The factor on intensities and albedos in E_pho and E_psm (``intensity_scale``, ``intensity_units``).
+    """The factor on intensities and albedos in E_pho and E_psm (``pho.intensity_scale``, ``pho.intensity_units``).
 
-    With ``intensity_scale='median'`` it is ``intensity_units / m``, m the median colour-mean observed
+    With ``pho.intensity_scale='median'`` it is ``pho.intensity_units / m``, m the median colour-mean observed
     intensity over every view's valid pixels, so that E_pho's weight against E_pol and E_gsm does not
     change with the exposure or the lighting's brightness.
 
@@ -1076,9 +1076,9 @@ def _initial_unknowns(
     )
 
 
-#: Share of the refinement's progress taken by the offset scans outside the stages, per ``offset_scan``.
+#: Share of the refinement's progress taken by the offset scans outside the stages, per ``offset_scan.mode``.
 _SCAN_WEIGHT = {"off": 0.0, "start": 0.01, "stages": 0.02}
-#: Share of the refinement's progress taken by the final lighting fit (``lighting_coupling`` > 0).
+#: Share of the refinement's progress taken by the final lighting fit (``lighting.coupling`` > 0).
 _LIGHTING_WEIGHT = 0.03
 
 
@@ -1088,7 +1088,7 @@ def _offset_scan(
     """Move the whole surface along its normals to the most photo-consistent offset (:mod:`pmvir.refine.offset`).
 
     A uniform offset along the normals leaves the normals, so the albedo and lighting stay valid.
-    The first scan covers +-1.5 pixels; the later ones (``offset_scan`` "stages"), which found at most
+    The first scan covers +-1.5 pixels; the later ones (``offset_scan.mode`` "stages"), which found at most
     0.25 pixels on the captures measured (README), +-0.75 pixels at half the cost.
     """
     progress.update(0.0, "photo-consistent offset along the normals")
@@ -1112,7 +1112,7 @@ def _offset_scan(
 def _inside_hull(
     setup: _Setup, state: _Unknowns, masks: Sequence[np.ndarray | None] | None, fits: list[HullFit]
 ) -> _Unknowns:
-    """``state`` with the vertices outside the masks' visual hull moved inside (``hull_tolerance_px``);
+    """``state`` with the vertices outside the masks' visual hull moved inside (``surface.hull_tolerance_px``);
     the fit is appended to ``fits``. Unchanged without masks or with the option off."""
     tolerance = setup.opts.surface.hull_tolerance_px
     if masks is None or tolerance is None:
@@ -1127,7 +1127,7 @@ def _inside_hull(
 
 
 def rim_fit_margin(opts: RefineOptions) -> float | None:
-    """The masks' margin the rim fit discounts: ``rim_fit_mask_margin_px`` where set; else estimated from the
+    """The masks' margin the rim fit discounts: ``surface.rim_fit_mask_margin_px`` where set; else estimated from the
     rims (None) where the offset scans run, and 0 where they are off. The estimate takes a surface that lies
     inside all round for a margin of the masks, and the scans are what moves such a surface; without them
     (a specular-dominated capture, whose stereo surface lies inside at the depth of its reflections) the
@@ -1140,7 +1140,7 @@ def rim_fit_margin(opts: RefineOptions) -> float | None:
 def _to_rims(
     setup: _Setup, state: _Unknowns, masks: Sequence[np.ndarray | None]
 ) -> tuple[_Unknowns, RimFit]:
-    """``state`` with the shoulders whose rims lie inside the masks moved outward (``rim_fit_gain``)."""
+    """``state`` with the shoulders whose rims lie inside the masks moved outward (``surface.rim_fit_gain``)."""
     v = state.vertices.detach().cpu().numpy().astype(np.float64)
     fit = fit_to_rims(
         v,
@@ -1179,9 +1179,9 @@ def refine_surface(
         visibility_fn: recomputes visibility from (vertices, faces) between stages (e.g.
             :func:`make_visibility_fn`); without it the initial visibility is kept.
         progress: one step ``stage s`` per stage, reporting its iterations; polled there for cancellation.
-        masks: the V views' object masks (None entries: no mask); with ``hull_tolerance_px`` the
+        masks: the V views' object masks (None entries: no mask); with ``surface.hull_tolerance_px`` the
             surface is held inside their visual hull after every offset scan and after the last stage
-            (:func:`pmvir.geometry.silhouette.hull_fit.fit_inside_hull`), and with ``rim_fit_gain`` the shoulders
+            (:func:`pmvir.geometry.silhouette.hull_fit.fit_inside_hull`), and with ``surface.rim_fit_gain`` the shoulders
             whose rims lie inside them move out after the last stage
             (:func:`pmvir.geometry.silhouette.hull_fit.fit_to_rims`). None: neither.
 

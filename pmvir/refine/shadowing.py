@@ -5,7 +5,7 @@ hemisphere above it, as on a convex surface. In a concavity (between a dragon's
 coils, inside a bore, under an arm) part of that hemisphere is the surface itself,
 so the point is darker than ``S(N)`` says, and E_pho, which can only darken a pair by
 turning its normal away from the light or darkening the albedo (which E_psm holds
-smooth), bends the surface there. With ``shadowing='cast'`` every (vertex, view)
+smooth), bends the surface there. With ``pho.shadowing='cast'`` every (vertex, view)
 pair's rendered colour is multiplied by the share of its Lambertian irradiance that
 arrives unblocked::
 
@@ -14,7 +14,7 @@ arrives unblocked::
 over K Fibonacci directions w_k, where V_k says whether a ray from the vertex
 along w_k leaves the current mesh (Open3D ray casting), ``L`` is the radiance whose
 Lambertian shading is the view's pmvir-sh9 lighting (:func:`pmvir.sh.radiance_from_shading`,
-clamped at zero) and ``b`` (``shadow_bounce``) the share of the blocked light that
+clamped at zero) and ``b`` (``pho.shadow_bounce``) the share of the blocked light that
 the blocking surface sends back (0: none; inter-reflection is not otherwise modelled).
 The factor is data fixed at each stage's start, like the pairs and the DoP weights: the
 lighting it uses is the stage's starting lighting (after the first stage's lighting
