@@ -35,23 +35,38 @@ def mitsuba_runs():
     vis = vis_fn(scene.vertices, scene.faces)
     obs = [observation_from_decoded(fr) for fr in scene.frames]
     runs = {"initial": accuracy(scene.vertices, scene.true_vertices, scene.true_faces)}
-    for name, extra in (("full", {}), ("mvir", {"pol": {"enabled": False}}), ("least_squares", {"pho": {"robust": "none"}})):
+    for name, extra in (
+        ("full", {}),
+        ("mvir", {"pol": {"enabled": False}}),
+        ("least_squares", {"pho": {"robust": "none"}}),
+    ):
         res = refine_surface(
             scene.vertices,
             scene.faces,
             scene.cameras,
             obs,
             vis,
-            options=RefineOptions(solver={"max_iterations": ITERATIONS}, views={"silhouette_margin_px": 0}, **extra),
+            options=RefineOptions(
+                solver={"max_iterations": ITERATIONS}, views={"silhouette_margin_px": 0}, **extra
+            ),
             visibility_fn=vis_fn,
         )
         runs[name] = accuracy(res.vertices, scene.true_vertices, scene.true_faces)
     # with the masks: the hull fits alone, then with the rim fit too (its default gain)
     for name, gain in (("full_masks", 0.0), ("full_rims", 0.5)):
         res = refine_surface(
-            scene.vertices, scene.faces, scene.cameras, obs, vis,
-            options=RefineOptions(solver={"max_iterations": ITERATIONS}, views={"silhouette_margin_px": 0}, surface={"rim_fit_gain": gain}),
-            visibility_fn=vis_fn, masks=[fr["mask"] for fr in scene.frames],
+            scene.vertices,
+            scene.faces,
+            scene.cameras,
+            obs,
+            vis,
+            options=RefineOptions(
+                solver={"max_iterations": ITERATIONS},
+                views={"silhouette_margin_px": 0},
+                surface={"rim_fit_gain": gain},
+            ),
+            visibility_fn=vis_fn,
+            masks=[fr["mask"] for fr in scene.frames],
         )
         runs[name] = accuracy(res.vertices, scene.true_vertices, scene.true_faces)
         runs["hull_fits" if gain == 0.0 else "rim_fit"] = res.hull_fits if gain == 0.0 else res.rim_fit
@@ -79,7 +94,7 @@ def test_robust_photometric_loss_beats_least_squares_there(mitsuba_runs) -> None
 
 
 def test_masks_hold_the_refined_surface_inside_the_hull(mitsuba_runs) -> None:
-    """With the masks (``hull_tolerance_px``) the refinement ends inside the visual hull and closer to the
+    """With the masks (``surface.hull_tolerance_px``) the refinement ends inside the visual hull and closer to the
     truth: 0.00314 -> 0.00288 when measured (the initial surface's bumps reach past the silhouettes)."""
     last = mitsuba_runs["hull_fits"][-1]
     assert mitsuba_runs["hull_fits"][0].outside_before > 0
@@ -88,7 +103,7 @@ def test_masks_hold_the_refined_surface_inside_the_hull(mitsuba_runs) -> None:
 
 
 def test_shoulders_inside_the_rims_move_out_to_them(mitsuba_runs) -> None:
-    """``rim_fit_gain`` 0.5 (the default) after the hull fit: the shoulders the masks show inside the surface move out, and
+    """``surface.rim_fit_gain`` 0.5 (the default) after the hull fit: the shoulders the masks show inside the surface move out, and
     the result is closer to the truth (0.00289 -> 0.00259 when measured)."""
     fit = mitsuba_runs["rim_fit"]
     assert fit is not None and fit.inside > 0 and fit.mean_move_px > 0.0, fit

@@ -134,7 +134,12 @@ def test_the_refinement_scans_where_it_is_told_and_keeps_the_scans(sphere_views,
 
     tv, tf, cams, obs = sphere_views
     start = tv * (1.0 - 0.6 * _gsd(cams, tv))  # shrunk by 0.6 px
-    opts = RefineOptions(device="cpu", solver={"max_iterations": 1}, pol={"enabled": False}, offset_scan={"mode": mode, "min_cos": 0.7})
+    opts = RefineOptions(
+        device="cpu",
+        solver={"max_iterations": 1},
+        pol={"enabled": False},
+        offset_scan={"mode": mode, "min_cos": 0.7},
+    )
     res = refine_surface(start, tf, cams, obs, vertex_visibility(start, tf, cams), options=opts)
     assert len(res.offset_scans) == {"off": 0, "start": 1, "stages": 4}[mode]
     assert all(scan.applied for scan in res.offset_scans)

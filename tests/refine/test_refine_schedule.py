@@ -185,10 +185,19 @@ def test_ablations_run_and_lower_the_cost(plastic) -> None:
     from the paper's start (uniform lighting: no lighting pre-fit)."""
     scene, _, _, vis = plastic
     obs_int = [observation_from_decoded(fr, intensity="int") for fr in scene.frames]
-    one_stage = {"stages": {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]}, "solver": {"max_iterations": 15}, "lighting": {"prefit_iterations": 0}}
+    one_stage = {
+        "stages": {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]},
+        "solver": {"max_iterations": 15},
+        "lighting": {"prefit_iterations": 0},
+    }
     for opts, obs in [
         (RefineOptions(pho={"intensity": "int"}, pol={"dop_weight": False}, **one_stage), obs_int),
-        (RefineOptions(solver={"vertex_motion": "normal", "albedo_solve": "joint"}, pol={"dop_min": 0.0}, **one_stage), plastic[1]),
+        (
+            RefineOptions(
+                solver={"vertex_motion": "normal", "albedo_solve": "joint"}, pol={"dop_min": 0.0}, **one_stage
+            ),
+            plastic[1],
+        ),
     ]:
         res = refine_surface(scene.vertices, scene.faces, scene.cameras, obs, vis, options=opts)
         e = res.stages[0].energies
@@ -303,7 +312,9 @@ def test_unavailable_cuda_is_a_config_error(plastic, monkeypatch) -> None:
 
 def test_stage_lists_must_have_equal_lengths() -> None:
     with pytest.raises(ValidationError, match="one entry per stage"):
-        RefineOptions(stages={"tau_pol": [60.0, 120.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]})
+        RefineOptions(
+            stages={"tau_pol": [60.0, 120.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]}
+        )
 
 
 def test_gsm_exponent_below_one_is_rejected() -> None:
@@ -325,7 +336,10 @@ def test_the_rim_fit_estimates_the_masks_margin_only_where_the_offset_scans_run(
     assert rim_fit_margin(RefineOptions()) is None
     assert rim_fit_margin(RefineOptions(offset_scan={"mode": "off"})) == 0.0
     for scan in ("off", RefineOptions().offset_scan.mode):
-        assert rim_fit_margin(RefineOptions(offset_scan={"mode": scan}, surface={"rim_fit_mask_margin_px": 1.5})) == 1.5
+        assert (
+            rim_fit_margin(RefineOptions(offset_scan={"mode": scan}, surface={"rim_fit_mask_margin_px": 1.5}))
+            == 1.5
+        )
     for bad in (-0.5, 4.0):
         with pytest.raises(ValidationError, match="rim_fit_mask_margin_px"):
             RefineOptions(surface={"rim_fit_mask_margin_px": bad})
@@ -336,7 +350,10 @@ def test_median_intensity_scale_makes_the_result_independent_of_the_exposure(pla
     surface; with 'absolute' E_pho's weight against E_pol and E_gsm changes, and so does the result."""
     scene, obs, _, vis = plastic
     brighter = [Observation(o.intensity * 4.0, o.aop, o.dop, o.valid) for o in obs]
-    short = {"solver": {"max_iterations": 8}, "stages": {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]}}
+    short = {
+        "solver": {"max_iterations": 8},
+        "stages": {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]},
+    }
 
     def run(observations, scale: str) -> np.ndarray:
         opts = RefineOptions(dtype="float64", pho={"intensity_scale": scale}, **short)
@@ -362,7 +379,10 @@ def test_median_intensity_units_follow_the_observations() -> None:
     assert intensity_units(
         obs, RefineOptions(pho={"intensity_units": 4.0, "intensity_scale": "median"})
     ) == pytest.approx(4.0 / 0.4)
-    assert intensity_units(obs, RefineOptions(pho={"intensity_units": 4.0, "intensity_scale": "absolute"})) == 4.0
+    assert (
+        intensity_units(obs, RefineOptions(pho={"intensity_units": 4.0, "intensity_scale": "absolute"}))
+        == 4.0
+    )
     dark = [Observation(np.zeros((2, 3, 3), np.float32), np.zeros((2, 3)), np.zeros((2, 3)), valid)]
     with pytest.raises(ReconstructionError, match="no view has a valid pixel"):
         intensity_units(dark, RefineOptions(pho={"intensity_scale": "median"}))
@@ -378,7 +398,11 @@ def test_lighting_prefit_holds_the_geometry_and_fits_the_lighting(plastic) -> No
         scene.faces.astype(np.int64), len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None
     )
     state = _initial_unknowns(
-        scene.vertices, len(scene.cameras), sh_order=opts.lighting.sh_order, device=setup.device, dtype=setup.dtype
+        scene.vertices,
+        len(scene.cameras),
+        sh_order=opts.lighting.sh_order,
+        device=setup.device,
+        dtype=setup.dtype,
     )
     stage, state = prepare_stage(setup, state, vis, 0)
     assert stage.problem.pho_weight is None  # stage 1 alone has no residuals to weight by
@@ -399,7 +423,11 @@ def _first_stage(plastic, opts: RefineOptions):
         scene.faces.astype(np.int64), len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None
     )
     state = _initial_unknowns(
-        scene.vertices, len(scene.cameras), sh_order=opts.lighting.sh_order, device=setup.device, dtype=setup.dtype
+        scene.vertices,
+        len(scene.cameras),
+        sh_order=opts.lighting.sh_order,
+        device=setup.device,
+        dtype=setup.dtype,
     )
     stage, state = prepare_stage(setup, state, vis, 0)
     return setup, state, stage
@@ -448,7 +476,10 @@ def test_shot_noise_dop_floor_rises_only_below_the_median_intensity() -> None:
     np.testing.assert_allclose(shot.numpy(), [0.04, 0.08, 0.16, 0.04, 0.04], rtol=1e-6)
     i_int_samples = PairSamples(i_int[:, None].expand(5, 3), zeros, zeros, torch.zeros(5), dop, dop > 0)
     np.testing.assert_allclose(
-        dop_floor(i_int_samples, RefineOptions(pol={"dop_min": 0.04, "dop_min_noise": "shot"}, pho={"intensity": "int"})).numpy(),
+        dop_floor(
+            i_int_samples,
+            RefineOptions(pol={"dop_min": 0.04, "dop_min_noise": "shot"}, pho={"intensity": "int"}),
+        ).numpy(),
         shot.numpy(),
         rtol=1e-6,
     )
@@ -585,7 +616,12 @@ def test_degree_4_lighting_fits_a_view_dependent_shading_that_sh9_cannot() -> No
         misfit[order] = log.energies[-1]["pho"]
     assert misfit[4] < 0.2 * misfit[2]
     result = refine_surface(
-        tv, tf, cams, obs, vis, options=RefineOptions(lighting={"sh_order": 4}, solver={"max_iterations": 2}, **NO_MOSAIC)
+        tv,
+        tf,
+        cams,
+        obs,
+        vis,
+        options=RefineOptions(lighting={"sh_order": 4}, solver={"max_iterations": 2}, **NO_MOSAIC),
     )
     assert result.sh.shape == (len(cams), 9) and result.sh_high.shape == (len(cams), 16)
 
@@ -706,10 +742,16 @@ def test_shadow_factors_are_each_pairs_at_the_stage_start_and_after_the_lighting
     scene, obs, _, vis = plastic
     faces = scene.faces.astype(np.int64)
     for shadowing in ("none", "cast"):
-        opts = RefineOptions(pho={"shadowing": shadowing, "shadow_directions": 64}, lighting={"prefit_iterations": 5})
+        opts = RefineOptions(
+            pho={"shadowing": shadowing, "shadow_directions": 64}, lighting={"prefit_iterations": 5}
+        )
         setup = _setup(faces, len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None)
         state = _initial_unknowns(
-            scene.vertices, len(scene.cameras), sh_order=opts.lighting.sh_order, device=setup.device, dtype=setup.dtype
+            scene.vertices,
+            len(scene.cameras),
+            sh_order=opts.lighting.sh_order,
+            device=setup.device,
+            dtype=setup.dtype,
         )
         stage, state = prepare_stage(setup, state, vis, 0)
         fitted_stage, fitted = prefit_lighting(setup, stage, state, progress=Progress.none())

@@ -46,7 +46,11 @@ def capture_run(tmp_path_factory: pytest.TempPathFactory):
         return evaluate(Mesh(vertices, geo.faces), gt, n_samples=20_000).accuracy
 
     runs = {}
-    for name, extra in (("full", {}), ("mvir", {"pol": {"enabled": False}}), ("all_pairs", {"views": {"min_cos": -1.0}})):
+    for name, extra in (
+        ("full", {}),
+        ("mvir", {"pol": {"enabled": False}}),
+        ("all_pairs", {"views": {"min_cos": -1.0}}),
+    ):
         res = refine_surface(
             geo.vertices,
             geo.faces,

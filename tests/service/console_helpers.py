@@ -31,7 +31,10 @@ CHROMIUM_ARGS = [
 #: small textured export.
 TINY_OPTIONS = {
     "geometry": {"subdivision": {"max_area_px": 16.0}},
-    "refine": {"solver": {"max_iterations": 4}, "stages": {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]}},
+    "refine": {
+        "solver": {"max_iterations": 4},
+        "stages": {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]},
+    },
     "export": {"face_budget": 3000, "texture_size": 256},
 }
 

@@ -73,7 +73,10 @@ def test_rerun_after_changed_geometry_options_must_start_at_geometry(
     assert r.status_code == 409 and "rerun from geometry" in r.json()["message"], r.text
     r = api.post(f"/v1/jobs/{geometry_job['id']}/rerun", json={"options": {"stop_after": "decode"}})
     assert r.status_code == 422 and r.json()["errors"][0]["loc"] == ["body", "from_stage"], r.text
-    r = api.post(f"/v1/jobs/{geometry_job['id']}/rerun", json={"options": {"refine": {"solver": {"max_iterations": -1}}}})
+    r = api.post(
+        f"/v1/jobs/{geometry_job['id']}/rerun",
+        json={"options": {"refine": {"solver": {"max_iterations": -1}}}},
+    )
     assert r.status_code == 422 and r.json()["errors"][0]["loc"][:5] == [
         "body",
         "options",
