@@ -1,7 +1,8 @@
 """MkDocs hooks: pages whose content comes from the code, built fresh on every `mkdocs build`.
 
 - ``options.md``: the ``<!-- options-table -->`` marker becomes the reference of every option,
-  from :func:`pmvir.config.option_catalog` (name, type, default, unit, range, level, description).
+  from :func:`pmvir.config.option_catalog` (name, type, default, unit, range, level, description):
+  the basic options first, then every option, one table per group of the tree.
 - ``layout.md``: the ``<!-- module-table -->`` marker becomes the modules of ``pmvir/`` with the
   first line of each module's docstring, read with :mod:`ast` (nothing is imported).
 - ``service.md``: the ``<!-- settings-table -->`` marker becomes the service's environment
@@ -34,28 +35,34 @@ def _code(value: Any) -> str:
     return cell if cell == "-" else f"`{cell}`"
 
 
+def _option_row(info: Any) -> str:
+    """One option as a table row: name, default with its type, and what it does with its range."""
+    facts = [f"`{_cell(info.type)}`"]
+    if info.unit:
+        facts.append(_cell(info.unit))
+    if info.range:
+        facts.append(f"range {_cell(info.range)}")
+    level = " **basic**" if info.level == "basic" else ""
+    return (
+        f"| `{_cell(info.name)}`{level} | {_code(info.default)} "
+        f"| {_cell(info.description)} <br>*{', '.join(facts)}* |"
+    )
+
+
 def options_markdown() -> str:
-    """One table per top-level section of the configuration tree, basic options first."""
+    """The basic options first, then one table per group of the configuration tree."""
     from pmvir.config import option_catalog
 
-    sections: dict[str, list[Any]] = {}
-    for info in option_catalog():
-        sections.setdefault(info.name.split(".")[0], []).append(info)
-    out: list[str] = []
-    for section, infos in sections.items():
-        infos.sort(key=lambda i: (i.level != "basic", i.name))
-        out += [
-            f"## `{section}`",
-            "",
-            "| option | type | default | unit | range | level | description |",
-            "|---|---|---|---|---|---|---|",
-        ]
-        for i in infos:
-            level = "**basic**" if i.level == "basic" else "advanced"
-            out.append(
-                f"| `{_cell(i.name)}` | {_code(i.type)} | {_code(i.default)} | {_cell(i.unit)} "
-                f"| {_cell(i.range)} | {level} | {_cell(i.description)} |"
-            )
+    catalog = option_catalog()
+    header = ["| option | default | what it does |", "|---|---|---|"]
+    out = ["## Basic options", "", *header, *(_option_row(i) for i in catalog if i.level == "basic"), ""]
+    groups: dict[str, list[Any]] = {}
+    for info in catalog:
+        groups.setdefault(info.name.rsplit(".", 1)[0] if "." in info.name else "(top level)", []).append(info)
+    out += ["## Every option", ""]
+    for group, infos in groups.items():
+        out += [f"### `{group}`" if group != "(top level)" else "### Top level", "", *header]
+        out += [_option_row(i) for i in infos]
         out.append("")
     return "\n".join(out)
 

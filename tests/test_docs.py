@@ -23,6 +23,11 @@ HISTORY = re.compile(r"session [0-9]|\bnov(ember)? [0-9]{1,2}\b", re.IGNORECASE)
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
 
 
+def _readme_section(title: str) -> str:
+    """The README's text under ``## title``, up to the next section."""
+    return README.read_text(encoding="utf-8").split(f"\n## {title}", 1)[1].split("\n## ", 1)[0]
+
+
 def _text_files() -> list[Path]:
     return [README, ROOT / "CHANGELOG.md", ROOT / "mkdocs.yml"] + sorted(
         p for p in DOCS.rglob("*") if p.suffix in {".md", ".py", ".yml", ".yaml"}
@@ -70,8 +75,7 @@ def test_every_page_is_in_the_navigation() -> None:
 
 
 def test_readme_headline_numbers_come_from_the_benchmarks_page() -> None:
-    text = README.read_text(encoding="utf-8")
-    section = text.split("\n## Results", 1)[1].split("\n## ", 1)[0]
+    section = _readme_section("Results")
     rows = [line for line in section.splitlines() if line.startswith("| [")]
     assert rows, "the README's results table has rows linked to the benchmarks page"
     page = (DOCS / "benchmarks.md").read_text(encoding="utf-8")
@@ -101,7 +105,9 @@ def test_options_page_lists_every_option() -> None:
 
     table = _hooks().options_markdown()
     for info in option_catalog():
-        assert f"| `{info.name}` |" in table
+        assert f"| `{info.name}`" in table, info.name
+    basic = [i for i in option_catalog() if i.level == "basic"]
+    assert table.count("**basic**") == 2 * len(basic), "basic options listed first and in their group"
 
 
 def _option_names() -> set[str]:
@@ -136,3 +142,17 @@ def test_options_named_in_documents_exist(path: Path) -> None:
     text = path.read_text(encoding="utf-8")
     unknown = sorted({m for m in OPTION.findall(text) if m not in known and not m.endswith((".py", ".json"))})
     assert not unknown, f"{path.relative_to(ROOT)} names options the configuration tree lacks: {unknown}"
+
+
+def test_readme_options_are_basic_with_their_defaults() -> None:
+    import json
+
+    from pmvir.config import option_catalog
+
+    basic = {o.name: o for o in option_catalog(include_advanced=False)}
+    section = _readme_section("Options worth knowing")
+    rows = re.findall(r"^\| `([a-z_.]+)` \| `([^`]*)` \|", section, re.MULTILINE)
+    assert 5 <= len(rows) <= 12, "the README names about ten options"
+    for name, default in rows:
+        assert name in basic, f"README option {name} is not a basic option (pmvir options)"
+        assert default == json.dumps(basic[name].default).strip('"'), f"README default of {name}: {default}"
