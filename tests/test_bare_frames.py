@@ -2,24 +2,26 @@
 ``pmvir reconstruct`` (subprocesses, as a user runs them).
 
 The reconstruction test strips a 24-view 320x256 synthetic capture of an object on a textured table
-to its frames (no manifest, no poses, no masks), so the manifest is inferred and SfM estimates the
-poses and the focal length.
+to its frames (no manifest, no poses, no masks) and writes an EXIF focal length 10% too long into
+them, so the manifest is inferred with estimated intrinsics and SfM estimates the poses and refines
+the focal length from the EXIF one.
 """
 
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from pmvir.capture import parse_manifest
 from pmvir.io.colmap_text import read_colmap_text_model
-from pmvir.io.frames import write_frame
+from pmvir.io.frames import read_frame, write_frame
+from pmvir.io.inference import PIXEL_PITCH_MM
 from pmvir.synth import synthesize
 
 #: Black level of pmvir synth's sensor model (its capture.json says so; the bare frames do not).
@@ -41,11 +43,13 @@ def synthetic(tmp_path_factory: pytest.TempPathFactory) -> Path:
     )
 
 
-def bare_copy(capture: Path, dest: Path) -> Path:
-    """The capture's frames alone, directly in ``dest``."""
+def bare_copy(capture: Path, dest: Path, *, focal_mm: float) -> Path:
+    """The capture's frames alone, directly in ``dest``, each with the EXIF FocalLength ``focal_mm``."""
     dest.mkdir(parents=True)
+    exif = Image.Exif()
+    exif[37386] = focal_mm  # FocalLength
     for p in sorted((capture / "frames").iterdir()):
-        shutil.copy(p, dest / p.name)
+        Image.fromarray(read_frame(p)).save(dest / p.name, exif=exif)
     return dest
 
 
@@ -97,7 +101,10 @@ def test_reconstruct_options_for_inference_refuse_a_capture_with_a_manifest(tmp_
 
 @pytest.mark.slow
 def test_a_bare_folder_of_frames_reconstructs_with_sfm(synthetic: Path, tmp_path: Path) -> None:
-    bare = bare_copy(synthetic, tmp_path / "frames-only")
+    truth = parse_manifest((synthetic / "capture.json").read_bytes())
+    assert truth.intrinsics is not None
+    exif_fx = 1.1 * truth.intrinsics.fx
+    bare = bare_copy(synthetic, tmp_path / "frames-only", focal_mm=exif_fx * PIXEL_PITCH_MM["IMX250MYR"])
     out = tmp_path / "out"
     run = pmvir(
         "reconstruct", bare, "--out", out, "--black-level", SYNTH_BLACK, "--stop-after", "geometry", "--quiet"
@@ -105,15 +112,16 @@ def test_a_bare_folder_of_frames_reconstructs_with_sfm(synthetic: Path, tmp_path
     assert run.returncode == 0, run.stderr
     assert "no capture.json; inferred:" in run.stderr
     used = parse_manifest((out / "capture.json").read_bytes())
-    truth = parse_manifest((synthetic / "capture.json").read_bytes())
     assert [f.file for f in used.frames] == [f.file for f in truth.frames]
-    assert used.sensor == truth.sensor and used.intrinsics is None
+    assert used.sensor == truth.sensor
+    assert used.intrinsics is not None and used.intrinsics.estimated
+    assert used.intrinsics.fx == pytest.approx(exif_fx, rel=1e-6)
     report = json.loads((out / "report.json").read_text())
     assert report["capture"]["manifest"] == "inferred"
     poses = report["geometry"]["poses"]
     assert poses["mode"] == "sfm" and poses["registered_views"] >= 22, poses
-    assert truth.intrinsics is not None
     cameras, _ = read_colmap_text_model(out / "poses")
     focal = np.array([c.params[0] for c in cameras.values()])
-    assert np.all(np.abs(focal / truth.intrinsics.fx - 1.0) < 0.05), (focal, truth.intrinsics.fx)
+    # refined from the EXIF focal length (10% off) to within 3% of the truth
+    assert np.all(np.abs(focal / truth.intrinsics.fx - 1.0) < 0.03), (focal, truth.intrinsics.fx)
     assert (out / "initial.ply").is_file()

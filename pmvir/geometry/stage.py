@@ -145,7 +145,15 @@ def run_geometry(
 
     with progress.step("poses", _STEP_WEIGHTS["poses"]) as p:
         known = capture.has_all_poses
-        intrinsics = [None if f.intrinsics is None else _k_matrix(f.intrinsics) for f in capture.frames]
+        # estimated intrinsics (from EXIF, "estimated": true) are SfM's starting focal length, not held fixed
+        intrinsics = [
+            None if f.intrinsics is None or (f.intrinsics.estimated and not known) else _k_matrix(f.intrinsics)
+            for f in capture.frames
+        ]
+        priors = [
+            0.5 * (f.intrinsics.fx + f.intrinsics.fy) if f.intrinsics is not None and f.intrinsics.estimated else None
+            for f in capture.frames
+        ]
         sift, fallback = sift_inputs(views, options.sfm.grey, known=known)
         sparse = estimate_poses(
             sift,
@@ -157,6 +165,7 @@ def run_geometry(
             workdir=workdir / "sfm",
             progress=p.update,
             fallback_images=fallback,
+            focal_priors=priors if any(f is not None for f in priors) else None,
         )
     cameras = list(sparse.cameras)
     reg = [i for i in range(n) if cameras[i] is not None]

@@ -83,8 +83,13 @@ def run_colmap(
     options: SfmOptions,
     timings: dict[str, float],
     report: Progress,
+    *,
+    focal_priors: Sequence[float | None] | None = None,
 ) -> tuple[pycolmap.Reconstruction | None, list[int], list[int]]:
     """Features, matches, then triangulation (known poses) or incremental SfM.
+
+    ``focal_priors``: per view a focal length (pixels) that SfM starts from and refines, for
+    views whose ``Ks`` entry is None (else COLMAP's default guess, 1.2 x the longer side).
 
     Returns:
         The reconstruction (SfM: the model with most registered views, joined with the others
@@ -98,7 +103,7 @@ def run_colmap(
 
     report(0.1, "extracting SIFT features")
     t0 = time.perf_counter()
-    _extract_features(database, image_dir, mask_dir, files, sizes, Ks, options)
+    _extract_features(database, image_dir, mask_dir, files, sizes, Ks, options, focal_priors=focal_priors)
     timings["features"] = time.perf_counter() - t0
 
     report(0.4, "matching features")
@@ -171,16 +176,20 @@ def _extract_features(
     sizes: list[tuple[int, int]],
     Ks: list[np.ndarray | None],
     options: SfmOptions,
+    *,
+    focal_priors: Sequence[float | None] | None = None,
 ) -> None:
-    """SIFT into the database, one extraction per camera group (same K, or same size when estimated)."""
+    """SIFT into the database, one extraction per camera group (same K, or same size and focal prior
+    when estimated: a prior is the estimated camera's starting focal length, refined by SfM)."""
     groups: dict[tuple, list[int]] = {}
     for i, (K, (h, w)) in enumerate(zip(Ks, sizes, strict=True)):
+        prior = None if focal_priors is None else focal_priors[i]
         if K is not None:
             key: tuple = ("known", w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
         elif options.shared_intrinsics:
-            key = ("estimated", w, h)
+            key = ("estimated", w, h, prior)
         else:
-            key = ("estimated", w, h, i)
+            key = ("estimated", w, h, prior, i)
         groups.setdefault(key, []).append(i)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = options.sift_max_features
@@ -201,6 +210,8 @@ def _extract_features(
             reader.camera_params = ",".join(repr(float(v)) for v in key[3:])
         else:
             reader.camera_model = "SIMPLE_PINHOLE"
+            if key[3] is not None:  # has_prior_focal_length: the mapper starts from it and refines it
+                reader.camera_params = f"{float(key[3])!r},{key[1] / 2.0!r},{key[2] / 2.0!r}"
         names = [files[i] for i in members]
         pycolmap.import_images(
             database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, image_names=names, options=reader

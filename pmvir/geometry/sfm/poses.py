@@ -17,8 +17,9 @@
   ``sfm.rematch_min_track`` views are dropped; models that must be joined
   get one round per joining pass). Given intrinsics are
   held fixed (PINHOLE); missing ones are estimated as SIMPLE_PINHOLE (one focal
-  length, principal point at the image centre), shared by the views of one
-  image size unless ``sfm.shared_intrinsics`` is off. The result lives in
+  length, principal point at the image centre; refined from ``focal_priors`` where
+  given, e.g. EXIF, else from COLMAP's 1.2 x the longer side), shared by the views
+  of one image size (and prior) unless ``sfm.shared_intrinsics`` is off. The result lives in
   SfM's own frame (known up to a similarity). Where views are left out
   (``sfm.join_models``), every model registers its missed views by absolute
   pose and models agreeing on two or more common views are joined into the
@@ -313,6 +314,7 @@ def estimate_poses(
     workdir: str | Path,
     progress: Progress | None = None,
     fallback_images: Sequence[np.ndarray] | None = None,
+    focal_priors: Sequence[float | None] | None = None,
 ) -> SparseModel:
     """Cameras and sparse points of a set of views (module docstring: the two modes).
 
@@ -334,6 +336,9 @@ def estimate_poses(
             and the model with more registered views is kept (ties: the first); the result's
             ``fallback`` says which. Only the kept model is held to the masks and completed from
             them (``sfm.frontier_weight``, ``sfm.silhouette_register_px``). Ignored with known poses.
+        focal_priors: per view a focal length in pixels to start from (e.g. from EXIF) or None;
+            SfM refines it (SIMPLE_PINHOLE, principal point at the image centre). Used only for
+            views whose intrinsics are not given.
 
     Returns:
         The SparseModel; in known-pose mode its cameras are the given objects.
@@ -347,14 +352,17 @@ def estimate_poses(
     report = progress or (lambda fraction, step: None)
     known = cameras is not None and all(c is not None for c in cameras) and len(cameras) == len(images)
     if fallback_images is None or known:
-        run = _run_sfm(images, cameras, intrinsics, masks, options, workdir, report, names=names)
+        run = _run_sfm(
+            images, cameras, intrinsics, masks, options, workdir, report, names=names, focal_priors=focal_priors
+        )
         return _finish(run, names, cameras, masks, options, report)
     if len(fallback_images) != len(images):
         raise ShapeError(f"expected {len(images)} fallback images (one per view), got {len(fallback_images)}")
     t0 = time.perf_counter()
     n = len(images)
     first, first_error = _attempt(lambda: _run_sfm(
-        images, cameras, intrinsics, masks, options, workdir, lambda f, s: report(0.5 * f, s), names=names
+        images, cameras, intrinsics, masks, options, workdir, lambda f, s: report(0.5 * f, s), names=names,
+        focal_priors=focal_priors,
     ))
     if first is not None and first.num_registered == n:
         try:
@@ -364,7 +372,7 @@ def estimate_poses(
     t1 = time.perf_counter()
     second, second_error = _attempt(lambda: _run_sfm(
         fallback_images, cameras, intrinsics, masks, options, Path(workdir) / "fallback",
-        lambda f, s: report(0.5 + 0.45 * f, f"{s} (second images)"), names=names,
+        lambda f, s: report(0.5 + 0.45 * f, f"{s} (second images)"), names=names, focal_priors=focal_priors,
     ))
     seconds = {"first_images": t1 - t0, "second_images": time.perf_counter() - t1}
     # the model with more registered views first (ties: the first images'); only the kept one is finished
@@ -423,6 +431,7 @@ def _run_sfm(
     report: Progress,
     *,
     names: Sequence[str],
+    focal_priors: Sequence[float | None] | None = None,
 ) -> _SfmRun:
     """COLMAP's features, matches and model (or triangulation with known poses) on one set of images."""
     t_start = time.perf_counter()
@@ -446,7 +455,7 @@ def _run_sfm(
     with quiet_colmap():
         rec, features, partners = run_colmap(
             workdir, image_dir, mask_dir, files, [im.shape[:2] for im in images], Ks,
-            known_cameras if known else None, options, timings, report,
+            known_cameras if known else None, options, timings, report, focal_priors=focal_priors,
         )
     return _SfmRun(
         rec, images, files, Ks, features, partners, known, known_cameras, timings, time.perf_counter() - t_start
