@@ -65,3 +65,7 @@ class MeshError(PmvirError):
 
 class CanceledError(PmvirError):
     """The caller asked the pipeline to stop (checked at stage/iteration boundaries)."""
+
+
+class ResourceLimitError(PmvirError):
+    """A run would need more memory than its limit allows (checked before it starts)."""

@@ -37,6 +37,7 @@ from pmvir.geometry.silhouette.hull_fit import RimFit
 from pmvir.geometry.stage import GeometryResult, geometry_report, run_geometry, write_geometry
 from pmvir.io.illumination import illumination_from_arrays
 from pmvir.io.ply import Mesh
+from pmvir.memory import check_memory, memory_limit
 from pmvir.polarization.noise import closure_noise
 from pmvir.polarization.stokes import PolarizationImages
 from pmvir.progress import Progress
@@ -248,6 +249,7 @@ def run(
     progress: Progress | None = None,
     cache: str | Path | None = None,
     resume_from: Stage | str | None = None,
+    max_memory: int | None = None,
 ) -> PipelineResult:
     """Run the pipeline on a capture and write the result folder.
 
@@ -262,6 +264,8 @@ def run(
             (:mod:`pmvir.stage_cache`), for a later run to resume from.
         resume_from: the first stage to compute; the outputs of the stages before it are
             loaded from ``cache`` (made with the same options for those stages).
+        max_memory: the run's memory limit in bytes (else ``PMVIR_JOB_MEMORY``, else none): a
+            capture whose estimated peak (:mod:`pmvir.memory`) is above it fails before decoding.
 
     Returns:
         The stages run, their timings and the files written (relative to ``out``).
@@ -270,6 +274,7 @@ def run(
         CaptureError: the capture is unreadable or invalid (names the file).
         ReconstructionError: a stage could not produce a usable result.
         CanceledError: the progress object's ``should_cancel()`` returned True.
+        ResourceLimitError: the capture needs more memory than ``max_memory`` (names what fits).
     """
     progress = progress or Progress.none()
     result = ResultFolder(out)
@@ -295,6 +300,9 @@ def run(
         }
         factor = 1 if config.stop_after == Stage.DECODE else working_factor(cap, config.decode.max_working_size_px)
         work_cap = working_capture(cap, factor)
+        limit, source = memory_limit(max_memory)
+        h0, w0 = cap.frame_size(0)
+        check_memory(str(capture), (w0, h0), len(cap.frames), factor, limit, source)
         sections["resolution"] = resolution_report(cap, factor)
         with progress.step(Stage.DECODE, weight[Stage.DECODE]) as p:
             if cache is not None and resume.position > Stage.DECODE.position:  # resuming needs a cache

@@ -33,15 +33,23 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="result folder (created)")
     add_option_arguments(p)
     add_inference_arguments(p)
+    p.add_argument(
+        "--max-memory",
+        metavar="SIZE",
+        help="memory limit of the run, e.g. 12G (K, M, G, T: powers of 1024); a capture estimated to need "
+        "more fails before decoding, naming what fits (default: PMVIR_JOB_MEMORY, else none)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from pmvir.capture import MANIFEST_NAME, open_capture
+    from pmvir.memory import parse_bytes
     from pmvir.pipeline import run as run_pipeline
 
     config = build_config(args)
+    max_memory = None if args.max_memory is None else parse_bytes(args.max_memory)
     infer = inference_options(args)
     with open_capture(args.capture, infer=infer) as cap:
         if infer is not None and cap.inferred is None:
@@ -54,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
             for note in cap.inferred:
                 print(f"  {note}", file=sys.stderr)
         with progress_bar("reconstruct", quiet=args.quiet) as progress:
-            result = run_pipeline(config, cap, args.out, progress=progress)
+            result = run_pipeline(config, cap, args.out, progress=progress, max_memory=max_memory)
     timings = ", ".join(f"{k} {v:.1f} s" for k, v in result.timings.items())
     print(f"{result.out}: {', '.join(result.stages_run)} ({timings})", file=sys.stderr)
     for warning in result.warnings:

@@ -1,0 +1,98 @@
+"""A run's memory, estimated before it starts, so that a capture too large for its limit fails at once.
+
+The estimate is a linear model of the peak resident memory of :func:`pmvir.pipeline.run` with
+the default options, fitted on ``bench/fullsize.py``'s measurements (the benchmarks page):
+
+    peak = BASE_BYTES + PER_VIEW_PIXEL_BYTES * views * working pixels + PER_FRAME_PIXEL_BYTES * frame pixels
+
+The views' decoded images, the refinement's per-view tables and its (vertex, view) pairs
+grow with views x working pixels (the subdivision sizes triangles in working pixels); one
+full-size frame is demosaiced at a time. A limit comes from ``--max-memory`` or the
+``PMVIR_JOB_MEMORY`` environment variable (bytes, or with a K/M/G/T suffix, powers of 1024).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+
+from pmvir.errors import ConfigError, ResourceLimitError
+
+#: Python, NumPy, torch, Open3D and pycolmap loaded, and a small run's working set.
+BASE_BYTES = 1.3 * 2**30
+#: Per view and working pixel: decoded images, refinement tables and (vertex, view) pairs.
+PER_VIEW_PIXEL_BYTES = 260.0
+#: Per pixel of the largest frame: one frame's demosaicing at full resolution.
+PER_FRAME_PIXEL_BYTES = 220.0
+#: The environment variable that caps a job's memory (also read by the service's workers).
+MEMORY_VARIABLE = "PMVIR_JOB_MEMORY"
+
+_UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
+
+
+def parse_bytes(text: str) -> int:
+    """``"12G"``, ``"800M"``, ``"12GiB"`` or ``"1073741824"`` as bytes (suffixes are powers of 1024)."""
+    m = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*([KMGT]?)(?:i?B)?\s*", text, flags=re.IGNORECASE)
+    if m is None:
+        raise ConfigError(f"memory size {text!r}: expected a number of bytes, optionally with K, M, G or T")
+    value = float(m.group(1)) * _UNITS[m.group(2).upper()]
+    if value < 1:
+        raise ConfigError(f"memory size {text!r} must be positive")
+    return int(value)
+
+
+def memory_limit(explicit: int | None = None) -> tuple[int | None, str]:
+    """The limit in bytes and where it came from: ``explicit``, else ``PMVIR_JOB_MEMORY``, else none.
+
+    ``PMVIR_JOB_MEMORY`` of 0 means no limit (as in the service's settings).
+    """
+    if explicit is not None:
+        return explicit, "--max-memory"
+    raw = os.environ.get(MEMORY_VARIABLE, "").strip()
+    if not raw or raw == "0":
+        return None, ""
+    return parse_bytes(raw), MEMORY_VARIABLE
+
+
+def estimated_peak_bytes(frame_size: tuple[int, int], views: int, factor: int) -> int:
+    """The estimated peak of a run on ``views`` frames of ``frame_size`` (width, height) binned by ``factor``."""
+    w, h = frame_size
+    working = (w // factor) * (h // factor)
+    return int(BASE_BYTES + PER_VIEW_PIXEL_BYTES * views * working + PER_FRAME_PIXEL_BYTES * w * h)
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**30:.1f} GiB"
+
+
+def check_memory(
+    label: str, frame_size: tuple[int, int], views: int, factor: int, limit: int | None, source: str
+) -> int:
+    """The estimated peak; ResourceLimitError naming the limit and what would fit when it is above ``limit``.
+
+    Args:
+        label: the capture, as the error names it.
+        frame_size: (width, height) of the largest frame.
+        views: frames to reconstruct.
+        factor: the working resolution's binning factor.
+        limit: bytes, or None for no limit.
+        source: where the limit came from (``--max-memory`` or ``PMVIR_JOB_MEMORY``).
+    """
+    need = estimated_peak_bytes(frame_size, views, factor)
+    if limit is None or need <= limit:
+        return need
+    w, h = frame_size
+    working = (w // factor) * (h // factor)
+    room = limit - BASE_BYTES - PER_FRAME_PIXEL_BYTES * w * h
+    fits: list[str] = []
+    if room > 0 and (max_views := int(room // (PER_VIEW_PIXEL_BYTES * working))) >= 3:
+        fits.append(f"at most {max_views} views at this size")
+    for f in range(factor + 1, factor + 9):
+        if estimated_peak_bytes(frame_size, views, f) <= limit:
+            fits.append(f"decode.max_working_size_px={max(w, h) // f} (frames binned by {f})")
+            break
+    hint = "; it fits with " + " or ".join(fits) if fits else ""
+    raise ResourceLimitError(
+        f"{label}: {views} frames of {w}x{h} at the working size {w // factor}x{h // factor} need about "
+        f"{_gib(need)}, above the memory limit of {_gib(limit)} ({source}){hint}, or raise the limit"
+    )
