@@ -36,6 +36,7 @@ from pmvir.config import DecodeOptions
 from pmvir.errors import CaptureError, ConfigError, ShapeError
 from pmvir.polarization.demosaic import demosaic, saturation_footprint
 from pmvir.polarization.layout import MosaicLayout
+from pmvir.polarization.noise import closure_noise, unbiased_dop
 from pmvir.polarization.preview import (
     aop_preview,
     dop_preview,
@@ -43,7 +44,7 @@ from pmvir.polarization.preview import (
     intensity_preview,
     write_png,
 )
-from pmvir.polarization.stokes import PolarizationImages, PolarizationWriter
+from pmvir.polarization.stokes import PolarizationImages, PolarizationWriter, unpolarized_intensity
 from pmvir.progress import Progress
 
 #: Arrays of a decoded-frame file: name -> (dtype, number of dimensions).
@@ -75,7 +76,7 @@ def decode_frame(
         layout: the sensor layout (angles ccw).
         saturated: optional (H, W) bool, samples at or above the white level.
         mask: optional (H, W) bool foreground mask; False pixels are invalid.
-        options: demosaicing method and noise floor (defaults: ``DecodeOptions()``).
+        options: demosaicing method, noise floor and DoP estimator (defaults: ``DecodeOptions()``).
 
     Returns:
         i_int, i_min (H, W, 3) float32; aop, dop (H, W) float32; valid (H, W) bool.
@@ -96,6 +97,16 @@ def decode_frame(
     writer = PolarizationWriter(intensities, noise_floor=options.noise_floor, invalid=invalid)
     demosaic(mosaic, layout, method=options.demosaic, out=intensities, on_strip=writer.write)
     images = writer.result()
+    if options.dop_estimator == "unbiased":
+        noise = closure_noise(mosaic, layout, valid=images.valid)
+        dop = unbiased_dop(images.dop, noise, method=options.demosaic, channels=layout.channels)
+        images = PolarizationImages(
+            i_int=images.i_int,
+            i_min=unpolarized_intensity(images.i_int, dop),
+            aop=images.aop,
+            dop=dop,
+            valid=images.valid,
+        )
     if images.i_int.shape[2] == 1:
         images = PolarizationImages(
             i_int=np.repeat(images.i_int, 3, axis=2),

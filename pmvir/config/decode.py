@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field
 
 from pmvir.config.base import DemosaicMethod, _Options, advanced, basic
@@ -22,6 +24,12 @@ class DecodeOptions(_Options):
         "polarization: less false polarization), 'eari' (edge-aware residual interpolation) or "
         "'eari-guided'.",
         json_schema_extra=basic(),
+    )
+    dop_estimator: Literal["plain", "unbiased"] = Field(
+        default="plain",
+        description="DoP from demosaiced Stokes: 'plain' sqrt(s1^2 + s2^2) / s0, or 'unbiased': the noise's "
+        "expected share (from the polarizer closure residual) taken out of s1^2 + s2^2 first.",
+        json_schema_extra=advanced(),
     )
     max_working_size_px: int = Field(
         default=1024, ge=0, le=100_000,

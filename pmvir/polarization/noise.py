@@ -15,6 +15,13 @@ the AoP's signal-to-noise ratio.
 :func:`closure_noise` is the local root mean square of ``r / s0`` over blocks whose
 four samples are all valid, at full resolution. The refinement weights E_pol's pairs by
 it (``refine.pol.aop_noise``).
+
+Noise biases the DoP upward: ``E[s1^2 + s2^2]`` is the signal's power plus the noise's.
+:func:`unbiased_dop` subtracts the noise's share, ``gain * closure_noise^2``, from
+``DoP^2`` before the square root (clamped at 0), with ``gain`` the demosaicing method's
+ratio ``E[DoP^2] / E[closure_noise^2]`` on an unpolarized flat field
+(:data:`DOP_NOISE_GAIN`: the interpolation's averaging shrinks the noise of s1 and s2 by
+a factor of its own, the guided filter's most).
 """
 
 from __future__ import annotations
@@ -24,6 +31,22 @@ import numpy as np
 
 from pmvir.errors import ConfigError, DTypeError, ShapeError
 from pmvir.polarization.layout import MosaicLayout
+
+#: ``E[DoP^2] / E[closure_noise^2]`` of an unpolarized, uniformly lit field under shot and read
+#: noise, per (demosaicing method, colour channels of the layout); independent of the level and
+#: the noise's size within 10 % (tests/polarization/test_noise.py measures it).
+DOP_NOISE_GAIN: dict[tuple[str, int], float] = {
+    ("bilinear", 3): 0.154,
+    ("edge-aware", 3): 0.165,
+    ("guided", 3): 0.017,
+    ("eari", 3): 0.133,
+    ("eari-guided", 3): 0.017,
+    ("bilinear", 1): 0.567,
+    ("edge-aware", 1): 0.567,
+    ("guided", 1): 0.0175,
+    ("eari", 1): 0.341,
+    ("eari-guided", 1): 0.0175,
+}
 
 #: Sign of each angle (ANGLES_DEG order: 0, 45, 90, 135) in the closure residual.
 _CLOSURE_SIGN = np.array([1.0, -1.0, 1.0, -1.0], dtype=np.float32)
@@ -99,3 +122,34 @@ def closure_noise(
     full = cv2.resize(np.sqrt(mean_sq), (w, h), interpolation=cv2.INTER_LINEAR)
     near = cv2.resize(den, (w, h), interpolation=cv2.INTER_LINEAR) > 1e-3
     return np.where(near, full, np.nan).astype(np.float32)
+
+
+def unbiased_dop(dop: np.ndarray, noise: np.ndarray, *, method: str, channels: int = 3) -> np.ndarray:
+    """The DoP with the noise's expected share of ``s1^2 + s2^2`` taken out.
+
+    Args:
+        dop: (H, W) float32 DoP as decoded (``sqrt(s1^2 + s2^2) / s0`` of demosaiced values).
+        noise: (H, W) float32 :func:`closure_noise` of the same frame; NaN (unmeasured) leaves
+            the DoP as it is.
+        method: the demosaicing method that made ``dop``.
+        channels: colour channels of the sensor layout (3: colour, 1: monochrome).
+
+    Returns:
+        (H, W) float32 ``sqrt(max(dop^2 - gain * noise^2, 0))``, in [0, 1].
+
+    Example:
+        >>> dop = np.array([[0.05, 0.2]], np.float32)
+        >>> unbiased_dop(dop, np.array([[1.0, 1.0]], np.float32), method="bilinear").astype(float).round(3).tolist()
+        [[0.0, 0.0]]
+        >>> unbiased_dop(dop, np.array([[0.1, np.nan]], np.float32), method="bilinear").astype(float).round(3).tolist()
+        [[0.031, 0.2]]
+    """
+    if (method, channels) not in DOP_NOISE_GAIN:
+        known = sorted({m for m, _ in DOP_NOISE_GAIN})
+        raise ConfigError(f"unknown demosaicing method {method!r} for {channels} channel(s); expected one of {known}")
+    if dop.shape != noise.shape:
+        raise ShapeError(f"dop has shape {dop.shape}, the noise {noise.shape}")
+    power = np.square(dop, dtype=np.float32) - np.float32(DOP_NOISE_GAIN[method, channels]) * np.nan_to_num(
+        noise.astype(np.float32), nan=0.0
+    ) ** 2
+    return np.sqrt(np.maximum(power, np.float32(0.0))).astype(np.float32)
