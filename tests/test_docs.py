@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
 DOCS = ROOT / "docs"
 
-#: The issue's check for history in the documents: "session 12", "Nov 27", "November 3".
+#: The issue's check for history in the documents: a work session's number or a November date.
 HISTORY = re.compile(r"session [0-9]|\bnov(ember)? [0-9]{1,2}\b", re.IGNORECASE)
 #: Markdown links and images: [text](target) and ![alt](target).
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
