@@ -14,7 +14,8 @@ a run on all models only measures what is missing; --fresh measures everything a
 Tables (--tables):
 
 * main (paper Table 3; plastic): initial surface, MVIR (--no-polarimetric), Polarimetric MVIR;
-  columns vertices, accuracy, completeness, albedo RMSE, illumination error, time, plus the %
+  columns vertices, accuracy, completeness, normal error (mean, median), albedo RMSE, illumination error,
+  time, plus the %
   improvement of accuracy / completeness over the initial surface. Targets, on the average over
   the models (of the metrics, as the paper's "Average" rows): Polarimetric MVIR improves accuracy
   by >= 35 % and completeness by >= 15 % over the initial surface, and beats MVIR (lower accuracy
@@ -106,6 +107,17 @@ ROWS = {
     ),
     "materials": ("initial", "mvir", "full"),
 }
+#: The metrics a table shows (averaged over models in its "average" rows).
+METRICS = (
+    "vertices",
+    "accuracy",
+    "completeness",
+    "normal_error",
+    "normal_error_median",
+    "albedo_rmse",
+    "illumination_error",
+    "seconds",
+)
 TARGET_ACCURACY_PCT = 35.0
 TARGET_COMPLETENESS_PCT = 15.0
 SEED = 0
@@ -261,6 +273,8 @@ def metrics_row(result, seconds: float) -> dict:
         "completeness": result.completeness,
         "accuracy_p90": result.accuracy_p90,
         "completeness_p90": result.completeness_p90,
+        "normal_error": result.normal_error,
+        "normal_error_median": result.normal_error_median,
         "signed_offset": result.signed_offset,
         "albedo_rmse": result.albedo_rmse,
         "illumination_error": result.illumination_error,
@@ -283,7 +297,11 @@ def measure(case: Case, row: str, args: argparse.Namespace) -> dict:
     )
     cache = case.dir / f"row-{row}-{key}.json"
     if cache.is_file() and not args.fresh:
-        return json.loads(cache.read_text())
+        out = json.loads(cache.read_text())
+        if "normal_error" not in out and "error" not in out:  # a row cached before the metric existed
+            add_normal_error(case, out, None if opts is None else case.dir / f"row-{row}-{key}.ply")
+            cache.write_text(json.dumps(out, indent=1))
+        return out
     geo = case.geometry()
     gt_mesh, gt_illum = case.gt()
     if opts is None:
@@ -337,6 +355,19 @@ def measure(case: Case, row: str, args: argparse.Namespace) -> dict:
     return out
 
 
+def add_normal_error(case: Case, row: dict, mesh_file: Path | None) -> None:
+    """The normal error of a cached row, from its saved mesh (the initial surface when None)."""
+    if mesh_file is None:
+        geo = case.geometry()
+        mesh = Mesh(geo["vertices"], geo["faces"])
+    elif mesh_file.is_file():
+        mesh = read_mesh(mesh_file)
+    else:
+        return
+    res = evaluate(mesh, case.gt()[0], n_samples=1000, seed=SEED)
+    row.update(normal_error=res.normal_error, normal_error_median=res.normal_error_median)
+
+
 def improvement(initial: float, value: float) -> float:
     return 100.0 * (initial - value) / max(initial, 1e-12)
 
@@ -351,10 +382,10 @@ def table_markdown(title: str, rows: dict[str, dict[str, dict]], names: tuple[st
         f"### {title}",
         "",
         (
-            "| model | method | vertices | acc. (x1e-2) | comp. (x1e-2) | albedo RMSE | illum. error | time (s) "
-            "| acc. impr. | comp. impr. |"
+            "| model | method | vertices | acc. (x1e-2) | comp. (x1e-2) | normal err. mean (deg) "
+            "| normal err. median (deg) | albedo RMSE | illum. error | time (s) | acc. impr. | comp. impr. |"
         ),
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     groups = dict(rows)
     if len(rows) > 1:
@@ -366,7 +397,7 @@ def table_markdown(title: str, rows: dict[str, dict[str, dict]], names: tuple[st
             if m is None:
                 continue
             if "error" in m:
-                lines.append(f"| {model} | {LABELS[name]} | failed: {m['error'][:60]} | | | | | | | |")
+                lines.append(f"| {model} | {LABELS[name]} | failed: {m['error'][:60]} |" + " |" * 9)
                 continue
             ai = ci = "-"
             if init is not None and "error" not in init and name != "initial":
@@ -374,7 +405,8 @@ def table_markdown(title: str, rows: dict[str, dict[str, dict]], names: tuple[st
                 ci = f"{improvement(init['completeness'], m['completeness']):+.1f}%"
             lines.append(
                 f"| {model} | {LABELS[name]} | {m['vertices']:,.0f} | {_fmt(m['accuracy'], 100)} | "
-                f"{_fmt(m['completeness'], 100)} | {_fmt(m['albedo_rmse'])} | "
+                f"{_fmt(m['completeness'], 100)} | {_fmt(m.get('normal_error'), digits=2)} | "
+                f"{_fmt(m.get('normal_error_median'), digits=2)} | {_fmt(m['albedo_rmse'])} | "
                 f"{_fmt(m['illumination_error'])} | "
                 f"{m['seconds']:.1f} | {ai} | {ci} |"
             )
@@ -389,8 +421,8 @@ def average(rows: dict[str, dict[str, dict]], names: tuple[str, ...]) -> dict[st
         return out
     for n in names:
         m: dict = {}
-        for k in ("vertices", "accuracy", "completeness", "albedo_rmse", "illumination_error", "seconds"):
-            vals = [r[n][k] for r in ok]
+        for k in METRICS:
+            vals = [r[n].get(k) for r in ok]
             m[k] = None if any(v is None for v in vals) else float(np.mean(vals))
         out[n] = m
     return out
@@ -496,7 +528,7 @@ def run_rows(case: Case, names: tuple[str, ...], args: argparse.Namespace, log: 
             out[name] = {"error": f"{type(exc).__name__}: {exc}"}
         m = out[name]
         status = m.get("error") or (
-            f"acc {m['accuracy']:.5f} comp {m['completeness']:.5f} "
+            f"acc {m['accuracy']:.5f} comp {m['completeness']:.5f} normal {m.get('normal_error') or 0:.2f} deg "
             f"{m['vertices']:,} vertices {m['seconds']:.1f} s"
         )
         print(f"  {case.model}/{case.material} {LABELS[name]}: {status}", file=sys.stderr, flush=True)
@@ -612,7 +644,7 @@ def main() -> None:
             "refine_options": args.refine_option,
             "poses": "true (from capture.json)",
         },
-        "units": "accuracy/completeness in GT bounding-box diagonals; albedo RMSE linear; illumination error "
+        "units": "accuracy/completeness in GT bounding-box diagonals; normal error in degrees; albedo RMSE linear; illumination error "
         "relative shading RMSE; seconds: initial = geometric stage, others = refinement alone",
         "tables": {},
     }

@@ -10,7 +10,8 @@ The true mesh (gt/mesh.ply) is split by --subdivide uniform sqrt(3) steps withou
 surface does not change; the vertex count comes near the pipeline's subdivided initial surface),
 its visibility computed from the capture's true poses and masks, and each variant refined from it
 exactly as the pipeline's refine stage does (pmvir.refine.refine_surface with the pipeline's
-observations and visibility refresh). Accuracy is measured with pmvir.evaluate (spec section 5);
+observations and visibility refresh). Accuracy and the normal error are measured with pmvir.evaluate
+(spec section 5);
 completeness is printed too, but it depends on the vertex density, which differs from a
 reconstruction's.
 
@@ -98,13 +99,15 @@ def main() -> None:
     )
     print(f"\n{args.capture}: refinement started from {start} ({rows[0]['vertices']:,} vertices)\n")
     print(
-        "| variant | options | accuracy (x1e-2) | signed offset (x1e-2) | completeness (x1e-2) | time (s) |"
+        "| variant | options | accuracy (x1e-2) | signed offset (x1e-2) | completeness (x1e-2) "
+        "| normal err. mean (deg) | normal err. median (deg) | time (s) |"
     )
-    print("|---|---|---:|---:|---:|---:|")
+    print("|---|---|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(
             f"| {r['variant']} | {r['options'] or 'defaults'} | {100 * r['accuracy']:.4f} "
-            f"| {100 * r['signed_offset']:+.4f} | {100 * r['completeness']:.4f} | {r['time']:.0f} |"
+            f"| {100 * r['signed_offset']:+.4f} | {100 * r['completeness']:.4f} "
+            f"| {r['normal_error']:.2f} | {r['normal_error_median']:.2f} | {r['time']:.0f} |"
         )
 
 
@@ -148,6 +151,8 @@ def run(
             "accuracy": start.accuracy,
             "signed_offset": start.signed_offset,
             "completeness": start.completeness,
+            "normal_error": start.normal_error,
+            "normal_error_median": start.normal_error_median,
             "time": 0.0,
         }
     ]
@@ -178,10 +183,15 @@ def run(
                 "accuracy": ev.accuracy,
                 "signed_offset": ev.signed_offset,
                 "completeness": ev.completeness,
+                "normal_error": ev.normal_error,
+                "normal_error_median": ev.normal_error_median,
                 "time": elapsed,
             }
         )
-        print(f"{name}: accuracy {100 * ev.accuracy:.4f}e-2, {elapsed:.0f} s", flush=True)
+        print(
+            f"{name}: accuracy {100 * ev.accuracy:.4f}e-2, normal error {ev.normal_error:.2f} deg, {elapsed:.0f} s",
+            flush=True,
+        )
     return rows
 
 
