@@ -11,6 +11,17 @@ the stage's files for other tools; :mod:`~pmvir.geometry.mesh_ops` and
 :mod:`~pmvir.geometry.projection` are the helpers they share.
 """
 
-from pmvir.geometry.stage import GeometryResult, geometry_report, run_geometry, write_geometry
+from typing import TYPE_CHECKING
+
+from pmvir.geometry._lazy import lazy_exports
+
+if TYPE_CHECKING:
+    from pmvir.geometry.stage import GeometryResult, geometry_report, run_geometry, write_geometry
 
 __all__ = ["GeometryResult", "geometry_report", "run_geometry", "write_geometry"]
+__getattr__ = lazy_exports(
+    __name__,
+    {
+        "pmvir.geometry.stage": ("GeometryResult", "geometry_report", "run_geometry", "write_geometry"),
+    },
+)

@@ -8,9 +8,14 @@ Read in this order: :mod:`~pmvir.geometry.sfm.poses` (the entry point,
 :mod:`~pmvir.geometry.sfm.align` (a reconstruction's similarity to ground truth through its cameras).
 """
 
-from pmvir.geometry.sfm.align import CameraAlignment, Similarity, align_by_cameras, umeyama
-from pmvir.geometry.sfm.frontier import FrontierReport, frontier_adjust
-from pmvir.geometry.sfm.poses import SparseModel, estimate_poses, write_poses_text
+from typing import TYPE_CHECKING
+
+from pmvir.geometry._lazy import lazy_exports
+
+if TYPE_CHECKING:
+    from pmvir.geometry.sfm.align import CameraAlignment, Similarity, align_by_cameras, umeyama
+    from pmvir.geometry.sfm.frontier import FrontierReport, frontier_adjust
+    from pmvir.geometry.sfm.poses import SparseModel, estimate_poses, write_poses_text
 
 __all__ = [
     "CameraAlignment",
@@ -23,3 +28,11 @@ __all__ = [
     "umeyama",
     "write_poses_text",
 ]
+__getattr__ = lazy_exports(
+    __name__,
+    {
+        "pmvir.geometry.sfm.align": ("CameraAlignment", "Similarity", "align_by_cameras", "umeyama"),
+        "pmvir.geometry.sfm.frontier": ("FrontierReport", "frontier_adjust"),
+        "pmvir.geometry.sfm.poses": ("SparseModel", "estimate_poses", "write_poses_text"),
+    },
+)

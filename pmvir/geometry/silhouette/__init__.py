@@ -6,7 +6,19 @@ dense stereo's depth search), :mod:`~pmvir.geometry.silhouette.hull_fit`
 inside, or out to, the silhouettes; used by the geometric stage and the refinement).
 """
 
-from pmvir.geometry.silhouette.hull import Hull, carve_hull
-from pmvir.geometry.silhouette.hull_fit import HullFit, RimFit, fit_inside_hull, fit_to_rims
+from typing import TYPE_CHECKING
+
+from pmvir.geometry._lazy import lazy_exports
+
+if TYPE_CHECKING:
+    from pmvir.geometry.silhouette.hull import Hull, carve_hull
+    from pmvir.geometry.silhouette.hull_fit import HullFit, RimFit, fit_inside_hull, fit_to_rims
 
 __all__ = ["Hull", "HullFit", "RimFit", "carve_hull", "fit_inside_hull", "fit_to_rims"]
+__getattr__ = lazy_exports(
+    __name__,
+    {
+        "pmvir.geometry.silhouette.hull": ("Hull", "carve_hull"),
+        "pmvir.geometry.silhouette.hull_fit": ("HullFit", "RimFit", "fit_inside_hull", "fit_to_rims"),
+    },
+)

@@ -5,7 +5,19 @@ Read in this order: :mod:`~pmvir.geometry.surface.initial` (the entry point,
 component, no slivers, bounded face sizes, outward orientation).
 """
 
-from pmvir.geometry.surface.clean import clean_mesh, split_large_faces
-from pmvir.geometry.surface.initial import SurfaceResult, initial_surface, poisson_surface
+from typing import TYPE_CHECKING
+
+from pmvir.geometry._lazy import lazy_exports
+
+if TYPE_CHECKING:
+    from pmvir.geometry.surface.clean import clean_mesh, split_large_faces
+    from pmvir.geometry.surface.initial import SurfaceResult, initial_surface, poisson_surface
 
 __all__ = ["SurfaceResult", "clean_mesh", "initial_surface", "poisson_surface", "split_large_faces"]
+__getattr__ = lazy_exports(
+    __name__,
+    {
+        "pmvir.geometry.surface.clean": ("clean_mesh", "split_large_faces"),
+        "pmvir.geometry.surface.initial": ("SurfaceResult", "initial_surface", "poisson_surface"),
+    },
+)
