@@ -55,12 +55,20 @@ run. On the Lambert capture (true DoP 0) the measured DoP is false
 polarization: reported at albedo/shading edges (top 20 % of the true
 intensity's log-gradient) and in flat areas (bottom 50 %).
 
+Held-out frames (``--held-out``: only these, written to results/demosaic_heldout.json):
+path-traced plastic frames of shapes, seeds, lighting and sensor noise the decoding was never
+tuned on (the fine-relief rock, panel and cloth, the spring; 2 views each at 612x512, 32 spp,
+cached beside the others), read out at three noise levels (the default sensor; a smaller full
+well with more read noise; that at half the exposure). DoP error and DoP-weighted AoP error as
+above, pooled over frames and noise levels, for the default decoding, its unbiased DoP
+(``decode.dop_estimator unbiased``: :func:`pmvir.polarization.noise.unbiased_dop`) and polanalyser's.
+
 Methods: pmvir's ``bilinear``, ``edge-aware``, ``guided``, ``eari`` (Morimatsu et al.'s
 edge-aware residual interpolation) and ``eari-guided`` (EARI intensities, then the guided
 polarization step), and polanalyser's two.
 
 Run: .venv/bin/python bench/demosaic.py [--frames 3] [--reps 5] [--pairs 5] [--no-mitsuba]
-     [--only-end-to-end]
+     [--only-end-to-end] [--held-out]
 Prints tables, writes bench/results/demosaic.json.
 """
 
@@ -158,15 +166,34 @@ WIDEST = max(PMVIR_METHODS, key=lambda m: support_radius(IMX250MYR, m))
 PA_METHODS = {"polanalyser COLOR_PolarRGB": "COLOR_PolarRGB", "polanalyser COLOR_PolarRGB_EA": "COLOR_PolarRGB_EA"}
 
 
+#: Held-out renders: shapes, seeds, lighting and roughness the decoding was not tuned on.
+HELD_OUT: dict[str, dict[str, object]] = {
+    "heldout-rock": {"shape": "rock", "seed": 7, "lighting": "envmap"},
+    "heldout-cloth": {"shape": "cloth", "seed": 11, "lighting": "sh"},
+    "heldout-spring": {"shape": "spring", "seed": 13, "lighting": "envmap"},
+    "heldout-panel": {"shape": "panel", "seed": 17, "lighting": "envmap", "roughness": 0.3},
+}
+#: Held-out read-outs: name -> (sensor, exposure gain).
+HELD_OUT_NOISE: dict[str, tuple[SensorModel, float]] = {
+    "default sensor": (SensorModel(), 1.0),
+    "4,000 e-, read noise 0.002": (SensorModel(full_well=4000.0, read_noise=0.002), 1.0),
+    "the same, half exposure": (SensorModel(full_well=4000.0, read_noise=0.002), 0.5),
+}
+
+
 def rendered_views(cache: Path, name: str) -> list[dict[str, np.ndarray]]:
     """Noise-free Stokes (H, W, 3, 3) and mask of each view of a cached Mitsuba capture (rendered if absent)."""
     from pmvir.synth.generate import synthesize
 
     cap = cache / name
     if not (cap / "capture.json").is_file():
-        opts = dict(RENDERS[name])
-        synthesize(cap, shape=str(opts.pop("shape")), views=2, lighting="envmap", renderer="mitsuba",
-                   save_stokes=True, overwrite=True, **opts)
+        if name in HELD_OUT:
+            synthesize(cap, views=2, size="612x512", material="plastic", renderer="mitsuba", spp=32,
+                       save_stokes=True, overwrite=True, **HELD_OUT[name])
+        else:
+            opts = dict(RENDERS[name])
+            synthesize(cap, shape=str(opts.pop("shape")), views=2, lighting="envmap", renderer="mitsuba",
+                       save_stokes=True, overwrite=True, **opts)
     views = []
     for path in sorted((cap / "gt" / "views").glob("*.npz")):
         with np.load(path) as z:
@@ -223,6 +250,90 @@ def rendered_accuracy(cache: Path, seed: int) -> dict[str, dict[str, float]]:
                     acc["n"] = acc.get("n", 0.0) + float(sel.sum())
     return {key: {"aop_dopw_deg": v["w_err"] / v["w"], "dop_err": v["dop_err"] / v["n"], "pixels": v["n"]}
             for key, v in sums.items()}
+
+
+HELD_OUT_METHODS = ("pmvir guided (default)", "pmvir guided, unbiased DoP", "pmvir bilinear",
+                    "pmvir bilinear, unbiased DoP", "polanalyser COLOR_PolarRGB")
+
+
+def held_out_accuracy(cache: Path, seed: int) -> dict[str, dict[str, float]]:
+    """DoP error and DoP-weighted AoP error per method on the held-out renders, per noise level and pooled."""
+    import polanalyser as pa
+
+    sums: dict[str, dict[str, float]] = {}
+    for name in HELD_OUT:
+        for k, view in enumerate(rendered_views(cache, name)):
+            aop_t, dop_t = true_aop_dop(view["stokes"])
+            for level, (sensor, gain) in HELD_OUT_NOISE.items():
+                samples = capture_mosaic(view["stokes"], gain=gain, sensor=sensor,
+                                         rng=np.random.default_rng([seed, k, len(name), len(level)]))
+                span = sensor.white_level - sensor.black_level
+                floats = (samples.astype(np.float32) - sensor.black_level) / np.float32(span * gain)
+                saturated = samples >= sensor.white_level
+                results = {}
+                sel = view["mask"] & ~saturation_footprint(saturated, IMX250MYR, method=WIDEST)
+                for method in ("guided", "bilinear"):
+                    for estimator in ("plain", "unbiased"):
+                        d = decode_frame(floats, IMX250MYR, saturated=saturated,
+                                         options=DecodeOptions(demosaic=method, dop_estimator=estimator))
+                        label = f"pmvir {method}" + (" (default)" if method == "guided" else "")
+                        results[label if estimator == "plain" else f"pmvir {method}, unbiased DoP"] = (d.aop, d.dop)
+                        sel &= d.valid
+                above_black = np.clip(samples.astype(np.int32) - sensor.black_level, 0, None).astype(np.uint16)
+                results["polanalyser COLOR_PolarRGB"] = polanalyser_aop_dop(pa.demosaicing(above_black,
+                                                                                           pa.COLOR_PolarRGB))
+                for method, (aop, dop) in results.items():
+                    err = aop_err_deg(aop[sel], aop_t[sel])
+                    for key in (f"{method}|{level}", f"{method}|all"):
+                        acc = sums.setdefault(key, {})
+                        acc["w_err"] = acc.get("w_err", 0.0) + float((dop_t[sel] * err).sum())
+                        acc["w"] = acc.get("w", 0.0) + float(dop_t[sel].sum())
+                        acc["dop_err"] = acc.get("dop_err", 0.0) + float(np.abs(dop[sel] - dop_t[sel]).sum())
+                        acc["dop_bias"] = acc.get("dop_bias", 0.0) + float((dop[sel] - dop_t[sel]).sum())
+                        acc["n"] = acc.get("n", 0.0) + float(sel.sum())
+    return {key: {"aop_dopw_deg": v["w_err"] / v["w"], "dop_err": v["dop_err"] / v["n"],
+                  "dop_bias": v["dop_bias"] / v["n"], "pixels": v["n"]} for key, v in sums.items()}
+
+
+def held_out_main(cache: Path, seed: int) -> None:
+    """Measure the held-out frames, print the table and write results/demosaic_heldout.json."""
+    acc = held_out_accuracy(cache, seed)
+    ref = acc["polanalyser COLOR_PolarRGB|all"]
+    rows = []
+    for method in HELD_OUT_METHODS:
+        a = acc[f"{method}|all"]
+        rows.append([method, round(a["dop_err"], 4), round(a["dop_err"] / ref["dop_err"], 2),
+                     round(a["dop_bias"], 4), round(a["aop_dopw_deg"], 2),
+                     round(a["aop_dopw_deg"] / ref["aop_dopw_deg"], 2)])
+    columns = ["method", "DoP error", "x polanalyser", "DoP bias", "AoP DoP-weighted deg", "x polanalyser"]
+    per_level = []
+    for level in HELD_OUT_NOISE:
+        r = acc[f"polanalyser COLOR_PolarRGB|{level}"]
+        for method in HELD_OUT_METHODS:
+            a = acc[f"{method}|{level}"]
+            per_level.append([level, method, round(a["dop_err"], 4), round(a["dop_err"] / r["dop_err"], 2),
+                              round(a["aop_dopw_deg"], 2), round(a["aop_dopw_deg"] / r["aop_dopw_deg"], 2)])
+    print(f"{'method':<32} {'DoP err':>8} {'x pa':>5} {'bias':>8} {'AoP deg':>8} {'x pa':>5}")
+    for row in rows:
+        print(f"{row[0]:<32} {row[1]:8.4f} {row[2]:5.2f} {row[3]:+8.4f} {row[4]:8.2f} {row[5]:5.2f}")
+    for row in per_level:
+        print(f"  {row[0]:<28} {row[1]:<32} DoP {row[2]:.4f} ({row[3]:.2f}x)  AoP {row[4]:.2f} ({row[5]:.2f}x)")
+    write_results(
+        "demosaic_heldout", title="Decoding on held-out path-traced frames against polanalyser",
+        peer="polanalyser demosaicing (COLOR_PolarRGB) + calcStokes + cvtStokesToAoLP/DoLP",
+        tables=[
+            results_table("Held-out path-traced plastic frames (pooled over renders and noise levels)", columns, rows,
+                          note=f"{', '.join(HELD_OUT)}: 2 views each, 612x512, 32 spp; "
+                          f"{len(HELD_OUT_NOISE)} noise levels. DoP error: mean |DoP - true DoP|; "
+                          "AoP: DoP-weighted mean error modulo 180 deg"),
+            results_table("Per noise level", ["noise", "method", "DoP error", "x polanalyser", "AoP deg",
+                                               "x polanalyser"], per_level),
+        ],
+        data={"renders": {k: {**v, "views": 2, "size": "612x512", "spp": 32} for k, v in HELD_OUT.items()},
+              "noise": {k: {"full_well": s.full_well, "read_noise": s.read_noise, "exposure": g}
+                        for k, (s, g) in HELD_OUT_NOISE.items()},
+              "seed": seed, "results": acc},
+    )
 
 
 def lambert_false_polarization(cache: Path, seed: int) -> dict[str, dict[str, float]]:
@@ -371,12 +482,17 @@ def main() -> None:
                         help="only the alternating end-to-end timing (no other timings, no accuracy)")
     parser.add_argument("--no-mitsuba", dest="mitsuba", action="store_false",
                         help="skip the physically rendered frames")
+    parser.add_argument("--held-out", action="store_true",
+                        help="only the held-out path-traced frames (results/demosaic_heldout.json)")
     parser.add_argument("--cache", type=Path, default=Path(__file__).parent / "results" / "demosaic_frames",
                         help="where the Mitsuba captures are cached")
     args = parser.parse_args()
 
     import polanalyser as pa
 
+    if args.held_out:
+        held_out_main(args.cache, seed=2026)
+        return
     cores = sorted(os.sched_getaffinity(0))
     if len(cores) > 2:
         os.sched_setaffinity(0, cores[:2])

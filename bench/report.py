@@ -26,6 +26,11 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/demosaic.py",
         "polanalyser (demosaicing, calcStokes, cvtStokesToAoLP/DoLP)",
     ),
+    "demosaic_heldout": (
+        "Decoding on held-out path-traced frames",
+        f"{PY} bench/demosaic.py --held-out",
+        "polanalyser (demosaicing, calcStokes, cvtStokesToAoLP/DoLP)",
+    ),
     "synth": ("Synthetic captures", f"{PY} bench/synth.py", None),
     "sfm_poses": (
         "Poses (structure from motion)",
@@ -44,6 +49,11 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         "Refinement started from the true surface",
         f"{PY} bench/refine_from_truth.py CAPTURE --variant mvir pol.enabled=false --variant full",
         "MVIR",
+    ),
+    "relief_aop": (
+        "Decoded AoP at fine relief",
+        f"{PY} bench/relief_aop.py CAPTURE",
+        "the renderer's noise-free AoP",
     ),
     "refine_speed": (
         "Refinement speed and memory",

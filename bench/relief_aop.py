@@ -1,0 +1,116 @@
+"""The decoded AoP against the true azimuth of the surface, at the pixels where the relief is.
+
+For a synthetic capture (``pmvir synth``: gt/views/<stem>.npz holds each view's true camera-frame
+normals and mask) every frame is decoded as the pipeline does (``decode``, default options, and
+the unbiased DoP), and the AoP compared with the perspective-exact azimuth alpha of the true
+normal (spec section 2). A plastic's AoP is alpha where diffuse reflection dominates and
+alpha + 90 degrees where specular reflection does, so the error is taken modulo 90 degrees: what
+remains is the decoding's (noise, demosaicing blur) and the renderer's mixing of the two.
+
+"Relief pixels" are object pixels at least 3 px inside the mask whose true normal turns by more
+than --relief-deg from the normal map blurred over --relief-px (Gaussian sigma): the detail a
+smooth surface does not have. The noise-free AoP the renderer saved (gt/views ``aop``) is scored
+the same way, so what the decoding loses shows apart from what the model cannot see.
+
+Prints a table and writes bench/results/relief_aop.json (or --out).
+Run: .venv/bin/python bench/relief_aop.py CAPTURE [--relief-px 4] [--relief-deg 5] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import cv2
+import numpy as np
+from _results import table, write_results
+
+from pmvir.capture import open_capture
+from pmvir.config import DecodeOptions
+from pmvir.decode import decode_frame
+from pmvir.polarization.azimuth import perspective_azimuth
+
+ROOT = Path(__file__).resolve().parent
+
+
+def err_mod_90(aop: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """|aop - alpha| modulo 90 degrees, in [0, 45], degrees."""
+    d = np.mod(np.degrees(aop.astype(np.float64) - alpha), 90.0)
+    return np.minimum(d, 90.0 - d)
+
+
+def relief_pixels(normal_cam: np.ndarray, mask: np.ndarray, sigma_px: float, min_deg: float) -> np.ndarray:
+    """Pixels inside the mask whose normal turns by more than ``min_deg`` from its blurred neighbourhood."""
+    inside = cv2.erode(mask.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+    w = mask.astype(np.float32)
+    blurred = np.stack([cv2.GaussianBlur(normal_cam[..., k] * w, (0, 0), sigma_px) for k in range(3)], -1)
+    blurred /= np.maximum(np.linalg.norm(blurred, axis=-1, keepdims=True), 1e-9)
+    turn = np.degrees(np.arccos(np.clip((blurred * normal_cam).sum(-1), -1.0, 1.0)))
+    return inside & (turn > min_deg)
+
+
+def measure(capture: Path, sigma_px: float, min_deg: float) -> dict:
+    """DoP-weighted and median AoP errors (mod 90) per decoding, at relief pixels and at all object pixels."""
+    decodings = {"decoded (default)": DecodeOptions(), "decoded, unbiased DoP": DecodeOptions(dop_estimator="unbiased")}
+    acc: dict[str, dict[str, list[np.ndarray]]] = {}
+    with open_capture(capture) as cap:
+        for i, frame in enumerate(cap.frames):
+            with np.load(capture / "gt" / "views" / f"{Path(frame.file).stem}.npz") as z:
+                normal, mask, true_aop = z["normal_cam"].astype(np.float64), z["mask"], z["aop"]
+            cam = frame.camera
+            _, d_world = cam.pixel_rays()
+            alpha, defined = perspective_azimuth(normal, d_world @ cam.R.T)
+            regions = {"relief": relief_pixels(normal.astype(np.float32), mask, sigma_px, min_deg) & defined,
+                       "all": cv2.erode(mask.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool) & defined}
+            raw = cap.read_raw(i)
+            images = {"noise-free (renderer)": (true_aop, None)}
+            for name, opts in decodings.items():
+                d = decode_frame(raw.mosaic, cap.layout, saturated=raw.saturated, mask=cap.read_mask(i),
+                                 options=opts)
+                images[name] = (d.aop, d.dop)
+                for region in regions:
+                    regions[region] &= d.valid
+            for name, (aop, dop) in images.items():
+                err = err_mod_90(aop, alpha)
+                for region, sel in regions.items():
+                    a = acc.setdefault(f"{name}|{region}", {"err": [], "dop": []})
+                    a["err"].append(err[sel])
+                    a["dop"].append(np.ones(int(sel.sum())) if dop is None else dop[sel].astype(np.float64))
+    out = {}
+    for key, a in acc.items():
+        err, w = np.concatenate(a["err"]), np.concatenate(a["dop"])
+        out[key] = {"mean_deg": float(err.mean()), "median_deg": float(np.median(err)),
+                    "dop_weighted_deg": float((err * w).sum() / max(w.sum(), 1e-12)), "pixels": int(err.size)}
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("capture", type=Path, help="a synthetic capture (gt/views with normals)")
+    parser.add_argument("--relief-px", type=float, default=4.0, help="blur (Gaussian sigma, px) of the smooth normals")
+    parser.add_argument("--relief-deg", type=float, default=5.0, help="turn (deg) from the smooth normal that is relief")
+    parser.add_argument("--out", type=Path, default=ROOT / "results" / "relief_aop.json")
+    args = parser.parse_args()
+    res = measure(args.capture, args.relief_px, args.relief_deg)
+    rows = []
+    for name in ("noise-free (renderer)", "decoded (default)", "decoded, unbiased DoP"):
+        for region in ("relief", "all"):
+            r = res[f"{name}|{region}"]
+            rows.append([name, region, r["pixels"], round(r["mean_deg"], 2), round(r["median_deg"], 2),
+                         round(r["dop_weighted_deg"], 2)])
+    print(f"{'AoP':<24} {'pixels':<7} {'count':>8} {'mean':>6} {'median':>6} {'DoP-w':>6}  (deg, mod 90)")
+    for row in rows:
+        print(f"{row[0]:<24} {row[1]:<7} {row[2]:8d} {row[3]:6.2f} {row[4]:6.2f} {row[5]:6.2f}")
+    write_results(
+        "relief_aop", title="Decoded AoP against the true azimuth at relief pixels", path=args.out,
+        tables=[table(f"{args.capture.name}: AoP error modulo 90 deg against the true normal's azimuth",
+                      ["AoP", "pixels", "count", "mean deg", "median deg", "DoP-weighted deg"], rows,
+                      note=f"relief: the true normal turns > {args.relief_deg} deg from its blur over "
+                      f"{args.relief_px} px")],
+        data={"capture": str(args.capture), "relief_px": args.relief_px, "relief_deg": args.relief_deg,
+              "results": res},
+    )
+
+
+if __name__ == "__main__":
+    main()
