@@ -131,17 +131,18 @@ def _complete_bare_capture(root: Path) -> None:
     capture.json inferred from them written (422 naming the file that keeps it from being inferred)."""
     if (root / MANIFEST_NAME).exists():
         return
+    try:  # inferred where the frames lie, so that problems name the files as they were zipped
+        manifest = infer_manifest(root).manifest
+    except (CaptureError, ConfigError) as exc:
+        item = exc if isinstance(exc, CaptureError) else CaptureError(MANIFEST_NAME, str(exc))
+        raise _capture_error(item) from exc
     names = {p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file()}
     if flat_frames(names, ""):
         (root / "frames").mkdir()
         for name in names:
             if "/" not in name:
                 (root / name).rename(root / "frames" / name)
-    try:
-        write_capture_manifest(root, infer_manifest(root).manifest)
-    except (CaptureError, ConfigError) as exc:
-        item = exc if isinstance(exc, CaptureError) else CaptureError(MANIFEST_NAME, str(exc))
-        raise _capture_error(item) from exc
+    write_capture_manifest(root, manifest)
 
 
 def save_upload(src: BinaryIO, dest: Path, limit: int) -> int:

@@ -90,6 +90,16 @@ def test_init_names_the_bad_frame_in_one_line(tmp_path: Path) -> None:
     assert run.returncode == 2 and "a.raw: a headerless frame: give its size (--frame-size WxH)" in run.stderr
 
 
+def test_decode_reads_a_folder_of_frames_with_the_inferred_manifest(tmp_path: Path) -> None:
+    root = tmp_path / "shots"
+    root.mkdir()
+    write_frame(root / "a.png", np.full((16, 24), 1032, np.uint16), bit_depth=12)
+    run = pmvir("decode", root, "--black-level", "8", "--out", tmp_path / "dec", "--no-previews", "--quiet")
+    assert run.returncode == 0, run.stderr
+    decoded = np.load(tmp_path / "dec" / "a.npz")
+    assert np.allclose(decoded["i_int"], (1032 - 8) / (4095 - 8), rtol=1e-5)  # a flat grey: (s - black) / range
+
+
 def test_reconstruct_options_for_inference_refuse_a_capture_with_a_manifest(tmp_path: Path) -> None:
     root = tmp_path / "shots"
     root.mkdir()

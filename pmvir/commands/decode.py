@@ -1,7 +1,8 @@
 """``pmvir decode CAPTURE --out DIR``: raw frames to I_int, I_min, AoP, DoP files and previews.
 
 Writes ``DIR/<stem>.npz`` per frame (spec section 2) and PNG previews beside
-it; see :mod:`pmvir.decode`. Progress goes to stderr (tqdm), a one-line
+it; see :mod:`pmvir.decode`. A folder of frames without capture.json is decoded
+with the manifest inferred as ``pmvir init`` infers it (same options). Progress goes to stderr (tqdm), a one-line
 summary to stdout.
 """
 
@@ -13,6 +14,7 @@ from typing import get_args
 
 from pydantic import ValidationError
 
+from pmvir.commands.init import add_inference_arguments, inference_options
 from pmvir.config import DecodeOptions
 from pmvir.errors import ConfigError
 
@@ -50,6 +52,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         metavar="X",
         help=f"{fields['noise_floor'].description} (default {defaults.noise_floor})",
     )
+    add_inference_arguments(p)
     p.add_argument("--compress", action="store_true", help="zlib-compress the .npz files (slower)")
     p.add_argument("--no-previews", action="store_true", help="write only the .npz files")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -57,6 +60,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pmvir.capture import open_capture
     from pmvir.commands.bar import progress_bar
     from pmvir.decode import decode_capture
 
@@ -66,9 +70,11 @@ def run(args: argparse.Namespace) -> int:
         problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
         raise ConfigError(f"invalid decode options: {problems}") from None
 
-    with progress_bar("decode", quiet=args.quiet) as progress:
+    with open_capture(args.capture, infer=inference_options(args)) as cap, progress_bar(
+        "decode", quiet=args.quiet
+    ) as progress:
         written = decode_capture(
-            args.capture,
+            cap,
             args.out,
             options=options,
             frames=args.frames,

@@ -145,15 +145,17 @@ def find_frame_files(root: Path) -> list[Path]:
     seen_names: dict[str, str] = {}
     for p in files:
         if p.stem in seen_names:
-            raise FrameError(p.name, f"has the same name as {seen_names[p.stem]!r}; frame names must be unique")
+            raise FrameError(
+                p.relative_to(root).as_posix(), f"has the same name as {seen_names[p.stem]!r}; frame names must be unique"
+            )
         seen_names[p.stem] = p.name
     return files
 
 
-def _raw_format(path: Path, size: tuple[int, int] | None) -> RawFormat:
+def _raw_format(path: Path, size: tuple[int, int] | None, label: str) -> RawFormat:
     """The encoding of a headerless frame of ``size`` (w, h), from its length (module docstring)."""
     if size is None:
-        raise FrameError(path.name, "a headerless frame: give its size (--frame-size WxH)")
+        raise FrameError(label, "a headerless frame: give its size (--frame-size WxH)")
     w, h = size
     n, length = w * h, path.stat().st_size
     if length == n:
@@ -166,7 +168,7 @@ def _raw_format(path: Path, size: tuple[int, int] | None) -> RawFormat:
         be = int(data.max()) > 4095 and int(big.max()) <= 4095
         return RawFormat(w, h, "uint16be" if be else "uint16le")
     raise FrameError(
-        path.name,
+        label,
         f"{length} bytes fits no encoding of {w}x{h}: uint8 {n}, mono12p {(3 * n + 1) // 2}, uint16 {2 * n} bytes",
     )
 
@@ -184,38 +186,39 @@ class _Scan:
     raw: RawFormat | None = None
 
 
-def _scan(files: Sequence[Path], options: InferOptions, period: int) -> _Scan:
+def _scan(files: Sequence[Path], root: Path, options: InferOptions, period: int) -> _Scan:
     scan = _Scan()
     for p in files:
+        name = p.relative_to(root).as_posix()  # errors name the file as it lies in the folder
         fmt = frame_format(p)
         raw = None
         if fmt == "raw":
-            raw = _raw_format(p, options.frame_size)
+            raw = _raw_format(p, options.frame_size, name)
             if scan.raw is not None and scan.raw != raw:
-                raise FrameError(p.name, f"encoded as {raw.dtype}, but an earlier frame as {scan.raw.dtype}")
+                raise FrameError(name, f"encoded as {raw.dtype}, but an earlier frame as {scan.raw.dtype}")
             scan.raw = raw
-        samples = read_frame(p, raw=raw, label=p.name)
+        samples = read_frame(p, raw=raw, label=name)
         h, w = samples.shape
         if scan.size is None:
-            scan.size, scan.size_file = (h, w), p.name
+            scan.size, scan.size_file = (h, w), name
         elif scan.size != (h, w):
             sh, sw = scan.size
-            raise FrameError(p.name, f"size {w}x{h} differs from {scan.size_file}'s {sw}x{sh}; all frames must have one size")
+            raise FrameError(name, f"size {w}x{h} differs from {scan.size_file}'s {sw}x{sh}; all frames must have one size")
         if w % period or h % period:
             raise FrameError(
-                p.name, f"size {w}x{h}: width and height must be multiples of {period} for {options.layout}"
+                name, f"size {w}x{h}: width and height must be multiples of {period} for {options.layout}"
             )
         bits = {"uint8": 8, "mono12p": 12}.get(raw.dtype, 16) if raw is not None else 8 * samples.dtype.itemsize
-        scan.container.setdefault(bits, p.name)
+        scan.container.setdefault(bits, name)
         scan.peak = max(scan.peak, int(samples.max()))
         if fmt == "dng":
-            black, white = dng_levels(p, label=p.name)
-            scan.dng.append((p.name, black, white))
-            scan.declared[p.name] = max(1, white.bit_length())
+            black, white = dng_levels(p, label=name)
+            scan.dng.append((name, black, white))
+            scan.declared[name] = max(1, white.bit_length())
         elif fmt == "png" and (sbit := png_significant_bits(p)) is not None:
-            scan.declared[p.name] = sbit
+            scan.declared[name] = sbit
         elif fmt == "tiff" and (top := tiff_max_sample_value(p)) is not None:
-            scan.declared[p.name] = top.bit_length()
+            scan.declared[name] = top.bit_length()
     return scan
 
 
@@ -284,7 +287,7 @@ def _frame_entry(p: Path, root: Path) -> FrameEntry:
         return FrameEntry(file=f"frames/{p.name}", mask=f"masks/{mask.name}" if mask.is_file() else None)
     except ValidationError as exc:
         msg = "; ".join(e["msg"].removeprefix("Value error, ") for e in exc.errors())
-        raise FrameError(p.name, f"the file name cannot be used in a manifest: {msg}") from None
+        raise FrameError(p.relative_to(root).as_posix(), f"the file name cannot be used in a manifest: {msg}") from None
 
 
 def infer_manifest(root: str | Path, options: InferOptions | None = None) -> InferredManifest:
@@ -308,7 +311,7 @@ def infer_manifest(root: str | Path, options: InferOptions | None = None) -> Inf
     files = find_frame_files(root)
     layout = layout_from_sensor(options.layout)
     entries = [_frame_entry(p, root) for p in files]
-    scan = _scan(files, options, layout.period)
+    scan = _scan(files, root, options, layout.period)
     assert scan.size is not None  # at least one frame was read
     h, w = scan.size
     notes = [

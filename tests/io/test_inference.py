@@ -153,6 +153,12 @@ def test_frames_of_different_sizes_are_an_error_naming_the_file(tmp_path):
     write_frame(root / "img9.png", _samples(3, size=(H, W + 4)), bit_depth=12)
     with pytest.raises(FrameError, match=r"img9\.png: size 36x24 differs from img0\.png's 32x24"):
         infer_manifest(root)
+    cap = tmp_path / "cap"  # frames in frames/: named as they lie there
+    (cap / "frames").mkdir(parents=True)
+    for p in root.iterdir():
+        p.rename(cap / "frames" / p.name)
+    with pytest.raises(FrameError, match=r"frames/img9\.png: size 36x24 differs from frames/img0\.png's"):
+        open_capture(cap)
 
 
 def test_an_unreadable_frame_is_an_error_naming_the_file(tmp_path):
