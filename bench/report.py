@@ -123,7 +123,7 @@ def render_section(name: str, doc: dict[str, Any] | None) -> list[str]:
     title, command, peer = BENCHMARKS.get(name, (name, f"{PY} bench/{name}.py", None))
     if doc is not None:
         title = BENCHMARKS[name][0] if name in BENCHMARKS else doc.get("title", name)
-        peer = doc.get("peer") or peer
+        peer = doc.get("peer")  # what this measurement compared with (None: no peer in this run)
     lines = [f"## {title}", ""]
     if peer:
         lines += [f"Compared with: {peer}.", ""]
