@@ -13,12 +13,13 @@ smooth surface does not have. The noise-free AoP the renderer saved (gt/views ``
 the same way, so what the decoding loses shows apart from what the model cannot see.
 
 Prints a table and writes bench/results/relief_aop.json (or --out).
-Run: .venv/bin/python bench/relief_aop.py CAPTURE [--relief-px 4] [--relief-deg 5] [--out FILE]
+Run: .venv/bin/python bench/relief_aop.py CAPTURE [CAPTURE ...] [--relief-px 4] [--relief-deg 5] [--out FILE]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import cv2
@@ -86,29 +87,39 @@ def measure(capture: Path, sigma_px: float, min_deg: float) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("capture", type=Path, help="a synthetic capture (gt/views with normals)")
+    parser.add_argument("captures", type=Path, nargs="+", metavar="CAPTURE",
+                        help="synthetic captures (gt/views with normals)")
     parser.add_argument("--relief-px", type=float, default=4.0, help="blur (Gaussian sigma, px) of the smooth normals")
     parser.add_argument("--relief-deg", type=float, default=5.0, help="turn (deg) from the smooth normal that is relief")
     parser.add_argument("--out", type=Path, default=ROOT / "results" / "relief_aop.json")
     args = parser.parse_args()
-    res = measure(args.capture, args.relief_px, args.relief_deg)
-    rows = []
-    for name in ("noise-free (renderer)", "decoded (default)", "decoded, unbiased DoP"):
-        for region in ("relief", "all"):
-            r = res[f"{name}|{region}"]
-            rows.append([name, region, r["pixels"], round(r["mean_deg"], 2), round(r["median_deg"], 2),
-                         round(r["dop_weighted_deg"], 2)])
-    print(f"{'AoP':<24} {'pixels':<7} {'count':>8} {'mean':>6} {'median':>6} {'DoP-w':>6}  (deg, mod 90)")
-    for row in rows:
-        print(f"{row[0]:<24} {row[1]:<7} {row[2]:8d} {row[3]:6.2f} {row[4]:6.2f} {row[5]:6.2f}")
+    tables, data = [], {}
+    for capture in args.captures:
+        res = measure(capture, args.relief_px, args.relief_deg)
+        data[str(capture)] = res
+        rows = []
+        for name in ("noise-free (renderer)", "decoded (default)", "decoded, unbiased DoP"):
+            for region in ("relief", "all"):
+                r = res[f"{name}|{region}"]
+                rows.append([name, region, r["pixels"], round(r["mean_deg"], 2), round(r["median_deg"], 2),
+                             round(r["dop_weighted_deg"], 2)])
+        print(f"{capture}\n{'AoP':<24} {'pixels':<7} {'count':>8} {'mean':>6} {'median':>6} {'DoP-w':>6}  (deg, mod 90)")
+        for row in rows:
+            print(f"{row[0]:<24} {row[1]:<7} {row[2]:8d} {row[3]:6.2f} {row[4]:6.2f} {row[5]:6.2f}")
+        synth = json.loads((capture / "gt" / "synth.json").read_text())
+        o = synth["options"]
+        made = (f"{synth['source'].get('shape', 'mesh')}, {o['renderer']}"
+                + (f" {o['spp']} spp" if o["renderer"] == "mitsuba" else "")
+                + f", {o['material']}, {o['lighting']} lighting, {o['views']} views {o['size'][0]}x{o['size'][1]}, "
+                f"seed {o['seed']}")
+        tables.append(table(f"{capture.name} ({made}): AoP error modulo 90 deg against the true normal's azimuth",
+                            ["AoP", "pixels", "count", "mean deg", "median deg", "DoP-weighted deg"], rows,
+                            note=f"relief: the true normal turns > {args.relief_deg} deg from its blur over "
+                            f"{args.relief_px} px"))
     write_results(
         "relief_aop", title="Decoded AoP against the true azimuth at relief pixels", path=args.out,
-        tables=[table(f"{args.capture.name}: AoP error modulo 90 deg against the true normal's azimuth",
-                      ["AoP", "pixels", "count", "mean deg", "median deg", "DoP-weighted deg"], rows,
-                      note=f"relief: the true normal turns > {args.relief_deg} deg from its blur over "
-                      f"{args.relief_px} px")],
-        data={"capture": str(args.capture), "relief_px": args.relief_px, "relief_deg": args.relief_deg,
-              "results": res},
+        peer="the renderer's noise-free AoP", tables=tables,
+        data={"relief_px": args.relief_px, "relief_deg": args.relief_deg, "results": data},
     )
 
 
