@@ -46,7 +46,7 @@ def test_job_runs_end_to_end_and_its_result_parses(
     assert job["progress"] == 1.0 and job["stage"] == "decode"
     assert job["stage_timings"]["decode"] > 0
     assert job["deliveries"] == 1 and job["error"] is None
-    assert set(job["results"]) == {"decoded.zip", "previews.zip", "report.json", "result.zip"}
+    assert set(job["results"]) == {"capture.json", "decoded.zip", "previews.zip", "report.json", "result.zip"}
     assert {f["path"] for f in job["files"]} == set(done_job["uploads"])
     progresses = [j["progress"] for j in done_job["seen"]]
     assert progresses == sorted(progresses)
