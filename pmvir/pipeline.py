@@ -397,7 +397,7 @@ def _refine_stage(
         decode_share = 0.1 * share
         with progress.step("images", decode_share) as q:
             observations = refinement_observations(cap, views, registered, config.decode, options, q)
-    masks = [cap.read_mask(i) for i in registered]
+    masks = [geometry.masks[i] if geometry.masks else cap.read_mask(i) for i in registered]  # given or isolated
     visibility_fn = make_visibility_fn(
         cameras, masks, min_cos=config.geometry.visibility.min_cos, rel_tol=config.geometry.visibility.rel_tol
     )

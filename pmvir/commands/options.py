@@ -81,6 +81,11 @@ def add_option_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-dop-weight", action="store_true", help="E_pol without the DoP weight")
     p.add_argument("--intensity", choices=("int", "min"), help="photometric images: I_int or I_min")
     p.add_argument("--device", help="refinement device: auto, cpu, cuda")
+    p.add_argument(
+        "--bbox",
+        metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
+        help="without masks: the object is what lies in this box (world units), not the cluster the views aim at",
+    )
 
 
 def build_config(args: argparse.Namespace) -> PipelineConfig:
@@ -100,6 +105,7 @@ def build_config(args: argparse.Namespace) -> PipelineConfig:
         ("refine", "pol", "dop_weight"): False if args.no_dop_weight else None,
         ("refine", "pho", "intensity"): args.intensity,
         ("refine", "device"): args.device,
+        ("geometry", "isolate", "bbox"): _bbox(args.bbox) if getattr(args, "bbox", None) else None,
     }
     for path, value in named.items():
         if value is not None:
@@ -109,6 +115,17 @@ def build_config(args: argparse.Namespace) -> PipelineConfig:
     except ValidationError as exc:
         problems = "; ".join(_problem(e) for e in exc.errors())
         raise ConfigError(f"invalid options: {problems}") from exc
+
+
+def _bbox(text: str) -> list[float]:
+    """``--bbox`` as six numbers; ConfigError naming the flag otherwise."""
+    try:
+        values = [float(x) for x in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 6:
+        raise ConfigError(f"--bbox {text!r}: expected six numbers xmin,ymin,zmin,xmax,ymax,zmax")
+    return values
 
 
 def _problem(error: Any) -> str:

@@ -7,6 +7,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from pmvir.config.base import _Options, advanced, basic
+from pmvir.config.isolate import IsolateOptions
 from pmvir.config.sfm import SfmOptions
 
 
@@ -245,5 +246,8 @@ class GeometryOptions(_Options):
     )
     subdivision: SubdivisionOptions = Field(
         default_factory=SubdivisionOptions, description="sqrt(3) subdivision of the initial surface."
+    )
+    isolate: IsolateOptions = Field(
+        default_factory=IsolateOptions, description="The object and its masks found in a capture without masks."
     )
 

@@ -7,6 +7,10 @@
    ``cam_from_world``, else incremental SfM, by default on I_min with I_int as the
    fallback: ``sfm.grey``);
 2. ``depth_maps`` and ``fusion``: :func:`pmvir.geometry.mvs.dense.dense_stereo`;
+   ``isolation`` (a capture without masks, ``geometry.isolate``):
+   :func:`pmvir.geometry.silhouette.isolate.isolate_object` finds the object
+   (support plane removed, the cluster the views aim at kept), draws its masks
+   and keeps its dense points; the steps below use those masks as given ones;
 3. ``surface``: :func:`pmvir.geometry.surface.initial_surface` (screened
    Poisson, trimmed, simplified, cleaned to one manifold component);
 4. ``visibility``: :func:`pmvir.geometry.visibility.vertex_visibility`;
@@ -19,7 +23,8 @@
 :func:`write_geometry` writes a result folder's ``initial.ply`` (the subdivided
 initial surface), ``poses/`` (a COLMAP model, binary and text, of the registered
 views and the sparse points with their tracks), ``images/`` (the viewable I_int
-images the model names), ``sparse.ply`` and ``dense.ply`` (the fused points), and :func:`geometry_report` gives the
+images the model names), ``sparse.ply`` and ``dense.ply`` (the fused points), ``masks/`` (the
+masks the isolation drew, when it ran), and :func:`geometry_report` gives the
 JSON-ready counts and timings for ``report.json`` (spec section 3).
 """
 
@@ -27,7 +32,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +53,13 @@ from pmvir.geometry.export import (
 from pmvir.geometry.mvs.dense import DenseResult, dense_stereo
 from pmvir.geometry.sfm.poses import SparseModel, estimate_poses
 from pmvir.geometry.silhouette.hull_fit import HullFit, fit_inside_hull
+from pmvir.geometry.silhouette.isolate import (
+    Isolation,
+    isolate_object,
+    kept_points,
+    wants_isolation,
+    write_masks,
+)
 from pmvir.geometry.subdivision import subdivide_until
 from pmvir.geometry.surface.initial import SurfaceResult, initial_surface
 from pmvir.geometry.visibility import vertex_visibility
@@ -57,7 +69,7 @@ from pmvir.progress import Progress
 from pmvir.result import ResultFolder
 
 #: Share of the stage's progress bar given to each step (they sum to 1).
-_STEP_WEIGHTS = {"poses": 0.25, "dense": 0.45, "surface": 0.1, "visibility": 0.1, "subdivision": 0.08, "silhouettes": 0.02}
+_STEP_WEIGHTS = {"poses": 0.25, "dense": 0.42, "isolation": 0.03, "surface": 0.1, "visibility": 0.1, "subdivision": 0.08, "silhouettes": 0.02}
 
 
 @dataclass(frozen=True)
@@ -81,6 +93,8 @@ class GeometryResult:
             (``surface.hull_tolerance_px``; :func:`pmvir.geometry.silhouette.hull_fit.fit_inside_hull`), or None (off).
         timings: seconds per step: poses, depth_maps, fusion, surface, visibility, subdivision, total.
         previews: per frame (H, W, 3) uint8 sRGB I_int with one exposure for all frames (``images/``).
+        masks: per frame the object mask the stage used (given, or drawn by the isolation; None: none).
+        isolation: what the isolation found (``geometry.isolate``), or None where it did not run.
     """
 
     names: list[str]
@@ -98,6 +112,8 @@ class GeometryResult:
     hull_fit: HullFit | None = None
     timings: dict[str, float] = field(default_factory=dict)
     previews: list[np.ndarray] = field(default_factory=list)
+    masks: list[np.ndarray | None] = field(default_factory=list)
+    isolation: Isolation | None = None
 
     @property
     def registered(self) -> list[bool]:
@@ -183,6 +199,15 @@ def run_geometry(
             progress=p,
         )
 
+    isolation = None
+    if wants_isolation(options.isolate.enabled, masks):
+        with progress.step("isolation", _STEP_WEIGHTS["isolation"]):
+            isolation = isolate_object(
+                dense.points.points, cameras, viewable_images(images), settings=options.isolate
+            )
+            masks = isolation.masks
+            dense = replace(dense, points=kept_points(dense.points, isolation.keep))
+
     with progress.step("surface", _STEP_WEIGHTS["surface"]):
         surface = initial_surface(
             dense.points.points,
@@ -240,6 +265,8 @@ def run_geometry(
         hull_fit=hull,
         timings=timings,
         previews=viewable_images(images, masks),
+        masks=masks,
+        isolation=isolation,
     )
 
 
@@ -273,6 +300,9 @@ def write_geometry(result: ResultFolder, geometry: GeometryResult) -> None:
         else None
     )
     result.write_file("dense.ply", lambda path: write_points_ply(path, dense.points, colours, dense.normals))
+    if geometry.isolation is not None:
+        isolated = geometry.isolation.masks
+        result.write_folder("masks", lambda folder: write_masks(folder, geometry.names, isolated))
 
 
 def sift_inputs(
@@ -326,6 +356,7 @@ def geometry_report(result: GeometryResult) -> dict[str, Any]:
             if len(result.vertices)
             else 0.0,
         },
+        "isolation": None if result.isolation is None else result.isolation.to_dict(),  # geometry.isolate
         "hull_fit": None if result.hull_fit is None else result.hull_fit.to_dict(),  # surface.hull_tolerance_px
         "timings": {k: float(v) for k, v in result.timings.items()},
     }

@@ -1,0 +1,411 @@
+"""The object found without masks: support plane removed, the looked-at cluster kept, masks per view.
+
+A capture without masks shows the object on whatever holds it (a table, a
+turntable) before a room or a backdrop; the dense points hold all of it.
+:func:`isolate_object` finds the object and draws its masks, so the silhouette
+steps (visual hull, hull and rim fits, the mask-margin estimate) run as with
+given masks:
+
+1. **Look-at point**: the point nearest to every registered view's optical
+   axis (the cameras aim at the object).
+2. **Support plane**: RANSAC (Open3D ``segment_plane``) on the dense points with
+   an inlier distance of ``plane_distance`` times the median camera distance to
+   the look-at point. It is taken as the support when it holds at least
+   ``plane_min_fraction`` of the points and every camera lies on one side of it
+   (views from above); points within ``plane_clearance`` inlier distances of it
+   or below it are removed.
+3. **Cluster**: DBSCAN (Open3D ``cluster_dbscan``) of the rest with a radius of
+   ``cluster_eps`` median point spacings; the cluster whose median point is
+   nearest to the look-at point (among clusters of at least 2 % of the
+   remaining points) is the object. A bounding box (world units) replaces this
+   choice: the points inside it, off the plane, are the object.
+4. **Masks**: per view the object's solid points (dense neighbourhoods, not
+   the sparse points stereo adds beside silhouettes) and vertical columns from
+   their lower half down to the plane (the underside the points miss) are
+   splatted (discs of the points' projected spacing), closed, and refined by
+   GrabCut (OpenCV) on the view's 8-bit preview: certain foreground on the
+   eroded projection of the points, probable foreground on the rest of it,
+   probable background in a band of ``band_px`` around it, background beyond.
+   The refined mask stays within that band.
+5. **Points**: the dense points inside every view's mask (where they project
+   into the image) and above the plane's inlier distance are the object's; the
+   stage continues with them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pmvir.camera import Camera
+from pmvir.config.isolate import IsolateOptions
+from pmvir.errors import ConfigError, ReconstructionError
+from pmvir.geometry.projection import project_points
+from pmvir.geometry.silhouette.hull import _axes_point
+
+if TYPE_CHECKING:
+    from pmvir.geometry.mvs.fusion import DensePoints
+
+#: Clusters smaller than this share of the points left after the plane's removal are not candidates.
+_MIN_CLUSTER_SHARE = 0.02
+#: DBSCAN runs on at most this many points (a random subset); the rest take their nearest one's label.
+_MAX_CLUSTER_POINTS = 60_000
+#: A point with fewer neighbours than this share of the median count is not solid (:func:`solid_points`);
+#: measured on a 12-view table scene: 9 (median) on points beside the object, 23 (5th percentile) on it.
+_SOLID_SHARE = 0.4
+#: RANSAC iterations per plane (3 points each): with 10 % of the points on the plane, the chance of
+#: never drawing three of them is (1 - 0.001)^3000, about 5 %.
+_RANSAC_ITERATIONS = 3000
+#: Planes tried in turn when one has cameras on both sides (a wall, a backdrop).
+_PLANE_ATTEMPTS = 3
+#: RANSAC draws its planes from a random subset of at most this many points.
+_MAX_RANSAC_POINTS = 20_000
+#: RANSAC's and the subsets' random seed (the same capture gives the same masks).
+_SEED = 0
+
+
+@dataclass(frozen=True)
+class Isolation:
+    """The object found in a capture without masks.
+
+    Attributes:
+        masks: per view (H, W) bool object mask (None for views without a camera).
+        keep: (P,) bool, the dense points inside every mask (the object's).
+        plane: (4,) float64 (a, b, c, d), unit normal toward the cameras, of the support plane, or None.
+        look_at: (3,) the point nearest to the views' optical axes.
+        method: "cluster" (the cluster nearest to the look-at point) or "bbox" (a given box).
+        counts: dense points, plane inliers, points removed with the plane, clusters, cluster points,
+            points kept.
+    """
+
+    masks: list[np.ndarray | None]
+    keep: np.ndarray
+    plane: np.ndarray | None
+    look_at: np.ndarray
+    method: str
+    counts: dict[str, int] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary for ``report.json``."""
+        covered = [float(m.mean()) for m in self.masks if m is not None]
+        return {
+            "method": self.method,
+            "plane": None if self.plane is None else [float(x) for x in self.plane],
+            "look_at": [float(x) for x in self.look_at],
+            "counts": {k: int(v) for k, v in self.counts.items()},
+            "mask_fraction_median": float(np.median(covered)) if covered else 0.0,
+        }
+
+
+def point_spacing(points: np.ndarray) -> float:
+    """Median distance of a point to its 4th nearest neighbour (at most 20k points sampled)."""
+    pts = np.asarray(points, np.float64)
+    if len(pts) < 5:
+        return 0.0
+    sample = pts[np.random.default_rng(0).choice(len(pts), min(len(pts), 20_000), replace=False)]
+    d, _ = cKDTree(pts).query(sample, k=5)
+    return float(np.median(d[:, 4]))
+
+
+def support_plane(
+    points: np.ndarray, cameras: Sequence[Camera], *, distance: float, min_fraction: float, seed: int = 0
+) -> tuple[np.ndarray | None, int]:
+    """The dominant plane of the points if it is a support seen from above (module docstring, step 2).
+
+    Args:
+        points: (P, 3) world points.
+        cameras: the registered views.
+        distance: RANSAC inlier distance, world units (> 0).
+        min_fraction: least share of the points on the plane.
+        seed: RANSAC's random seed.
+
+    Returns:
+        (a, b, c, d) with the unit normal toward the cameras (a x + b y + c z + d > 0 on their side),
+        or None; and the number of inliers (0 without a support). Up to :data:`_PLANE_ATTEMPTS`
+        planes are tried, each found among the points the earlier ones left.
+    """
+    import open3d as o3d
+
+    if len(points) < 3 or distance <= 0:
+        return None, 0
+    o3d.utility.random.seed(seed)
+    pts = np.asarray(points, np.float64)
+    rng = np.random.default_rng(seed)
+    for _ in range(_PLANE_ATTEMPTS):
+        if len(pts) < max(3, min_fraction * len(points)):
+            break
+        sample = pts[rng.choice(len(pts), min(len(pts), _MAX_RANSAC_POINTS), replace=False)]
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sample))
+        model, _ = pcd.segment_plane(distance_threshold=distance, ransac_n=3, num_iterations=_RANSAC_ITERATIONS)
+        plane = np.asarray(model, np.float64) / max(float(np.linalg.norm(model[:3])), 1e-12)
+        inliers = np.abs(pts @ plane[:3] + plane[3]) <= distance
+        if inliers.sum() < min_fraction * len(points):
+            break  # RANSAC found its largest plane: smaller ones are no support
+        plane = _refit(pts[inliers])
+        side = np.array([plane[:3] @ cam.center + plane[3] for cam in cameras])
+        if np.all(side > distance) or np.all(side < -distance):
+            return (plane if side[0] > 0 else -plane), int(inliers.sum())
+        pts = pts[~inliers]  # cameras on both sides: a wall, not a support; look again
+    return None, 0
+
+
+def _refit(points: np.ndarray) -> np.ndarray:
+    """Least-squares plane (a, b, c, d), unit normal, of RANSAC's inliers (the sample plane tilts with noise)."""
+    centre = points.mean(axis=0)
+    normal = np.linalg.svd(points - centre, full_matrices=False)[2][2]
+    return np.append(normal, -normal @ centre)
+
+
+def _clusters(points: np.ndarray, eps: float, seed: int) -> np.ndarray:
+    """(P,) DBSCAN labels (-1: noise) of the points, on a subset of at most _MAX_CLUSTER_POINTS."""
+    import open3d as o3d
+
+    idx = np.arange(len(points))
+    if len(points) > _MAX_CLUSTER_POINTS:
+        idx = np.sort(np.random.default_rng(seed).choice(len(points), _MAX_CLUSTER_POINTS, replace=False))
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[idx]))
+    scale = np.sqrt(len(points) / len(idx))  # a thinner subset is farther apart
+    sub = np.asarray(pcd.cluster_dbscan(eps=eps * scale, min_points=8), np.int64)
+    if len(idx) == len(points):
+        return sub
+    _, nearest = cKDTree(points[idx]).query(points, k=1)
+    return sub[nearest]
+
+
+def object_points(
+    points: np.ndarray,
+    cameras: Sequence[Camera],
+    *,
+    settings: IsolateOptions,
+    bbox: Sequence[float] | None = None,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, dict[str, int]]:
+    """The dense points of the object (module docstring, steps 1-3).
+
+    Returns:
+        (P,) bool object points, the support plane or None, the look-at point and counts.
+
+    Raises:
+        ReconstructionError: no points are left after the plane's removal, or none in the box.
+    """
+    pts = np.asarray(points, np.float64)
+    look = _axes_point(cameras)
+    reach = float(np.median([np.linalg.norm(cam.center - look) for cam in cameras]))
+    distance = settings.plane_distance * reach
+    plane, inliers = support_plane(
+        pts, cameras, distance=distance, min_fraction=settings.plane_min_fraction, seed=_SEED
+    )
+    off = np.ones(len(pts), bool) if plane is None else pts @ plane[:3] + plane[3] > settings.plane_clearance * distance
+    counts = {"points": len(pts), "plane_inliers": inliers, "removed_with_plane": int((~off).sum())}
+    if not off.any():
+        raise ReconstructionError("isolating the object: no dense point lies above the support plane")
+    if bbox is not None:
+        lo, hi = np.asarray(bbox[:3], np.float64), np.asarray(bbox[3:], np.float64)
+        keep = off & np.all((pts >= lo) & (pts <= hi), axis=1)
+        if not keep.any():
+            raise ReconstructionError(f"isolating the object: no dense point off the support lies in the box {list(bbox)}")
+        return keep, plane, look, counts | {"clusters": 0, "object_points": int(keep.sum())}
+    rest = np.flatnonzero(off)
+    labels = _clusters(pts[rest], settings.cluster_eps * point_spacing(pts[rest]), _SEED)
+    names, sizes = np.unique(labels[labels >= 0], return_counts=True)
+    candidates = names[sizes >= _MIN_CLUSTER_SHARE * len(rest)]
+    if not len(candidates):
+        candidates = names[sizes == sizes.max()] if len(names) else np.array([-1])
+    gaps = [float(np.linalg.norm(np.median(pts[rest[labels == c]], axis=0) - look)) for c in candidates]
+    chosen = candidates[int(np.argmin(gaps))]
+    keep = np.zeros(len(pts), bool)
+    keep[rest[labels == chosen]] = True
+    return keep, plane, look, counts | {"clusters": len(names), "object_points": int(keep.sum())}
+
+
+def solid_points(points: np.ndarray, spacing: float) -> np.ndarray:
+    """(P,) bool: points with at least :data:`_SOLID_SHARE` of the median neighbour count within
+    3 spacings: the object's surface, not the sparse points stereo puts beside its silhouettes."""
+    if len(points) < 10 or spacing <= 0:
+        return np.ones(len(points), bool)
+    tree = cKDTree(points)
+    counts = tree.query_ball_point(points, 3.0 * spacing, return_length=True)
+    return np.asarray(counts >= _SOLID_SHARE * np.median(counts))
+
+
+def columns_to_plane(points: np.ndarray, plane: np.ndarray, spacing: float, *, seed: int = 0) -> np.ndarray:
+    """Points on the vertical segments from the lower half of ``points`` down to the support plane.
+
+    What the dense points miss of an object's lower part (its underside, seen at a grazing angle or
+    in shadow) lies between them and the plane it stands on. At most 4000 points of the lower half
+    are used, each segment sampled every ``spacing`` (at most 64 samples); (M, 3) float64.
+    """
+    pts = np.asarray(points, np.float64)
+    if plane is None or len(pts) == 0 or spacing <= 0:
+        return np.zeros((0, 3))
+    height = pts @ plane[:3] + plane[3]
+    low = pts[height <= np.median(height)]
+    if len(low) > 4000:
+        low = low[np.random.default_rng(seed).choice(len(low), 4000, replace=False)]
+    h_low = low @ plane[:3] + plane[3]
+    steps = np.linspace(0.0, 1.0, int(np.clip(np.ceil(h_low.max(initial=0.0) / spacing), 2, 64)))
+    return (low[:, None, :] - steps[None, :, None] * h_low[:, None, None] * plane[None, None, :3]).reshape(-1, 3)
+
+
+def _splat(points: np.ndarray, camera: Camera, spacing: float) -> np.ndarray:
+    """(H, W) bool: the points' projections, each a disc of its projected spacing, closed."""
+    h, w = camera.height, camera.width
+    uv, z = project_points(camera, points)
+    ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    out = np.zeros((h, w), np.uint8)
+    if not ok.any():
+        return out.astype(bool)
+    out[uv[ok, 1].astype(np.int64), uv[ok, 0].astype(np.int64)] = 1
+    f = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
+    r = int(np.clip(np.ceil(spacing * f / float(np.median(z[ok]))), 1, 0.05 * max(h, w)))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    closed = cv2.morphologyEx(cv2.dilate(out, disc), cv2.MORPH_CLOSE, disc, iterations=2)
+    return np.asarray(closed, bool)
+
+
+def refine_mask(
+    image: np.ndarray, rough: np.ndarray, *, band_px: float, iterations: int, core: np.ndarray | None = None
+) -> np.ndarray:
+    """GrabCut of one view inside a band around a rough mask (module docstring, step 4).
+
+    Args:
+        image: (H, W, 3) uint8 RGB preview of the view.
+        rough: (H, W) bool the projected object points.
+        band_px: half-width of the undecided band, pixels (>= 1).
+        iterations: GrabCut iterations (0: ``rough`` unchanged).
+        core: (H, W) bool where the object surely is before erosion (default ``rough``).
+
+    Returns:
+        (H, W) bool mask.
+    """
+    if iterations <= 0 or not rough.any() or rough.all():
+        return rough
+    k = max(1, round(band_px))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
+    r8 = rough.astype(np.uint8)
+    core = cv2.erode(r8 if core is None else core.astype(np.uint8), disc).astype(bool)
+    outer = cv2.dilate(r8, disc).astype(bool)
+    labels = np.full(rough.shape, cv2.GC_BGD, np.uint8)
+    labels[outer] = cv2.GC_PR_BGD
+    labels[rough] = cv2.GC_PR_FGD
+    labels[core] = cv2.GC_FGD
+    if not (labels == cv2.GC_FGD).any():
+        return rough
+    rows, cols = np.nonzero(outer)
+    h, w = rough.shape
+    r0, r1 = max(0, rows.min() - 2 * k), min(h, rows.max() + 2 * k + 1)  # the band and as much background
+    c0, c1 = max(0, cols.min() - 2 * k), min(w, cols.max() + 2 * k + 1)
+    crop = np.ascontiguousarray(labels[r0:r1, c0:c1])
+    if not (crop == cv2.GC_BGD).any():
+        return rough
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    pixels = np.ascontiguousarray(image[r0:r1, c0:c1, ::-1])
+    # the stubs refuse rect=None, which GC_INIT_WITH_MASK takes
+    cv2.grabCut(pixels, crop, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)  # type: ignore[call-overload]
+    out = np.zeros_like(rough)
+    out[r0:r1, c0:c1] = (crop == cv2.GC_FGD) | (crop == cv2.GC_PR_FGD)
+    return out & outer
+
+
+def inside_masks(
+    points: np.ndarray, cameras: Sequence[Camera | None], masks: Sequence[np.ndarray | None], *, grow_px: int = 2
+) -> np.ndarray:
+    """(P,) bool: points inside every view's mask (grown by ``grow_px``) where they project into its image."""
+    pts = np.asarray(points, np.float64)
+    keep = np.ones(len(pts), bool)
+    kernel = np.ones((2 * grow_px + 1, 2 * grow_px + 1), np.uint8) if grow_px > 0 else None
+    for cam, mask in zip(cameras, masks, strict=True):
+        if cam is None or mask is None:
+            continue
+        grown = mask if kernel is None else cv2.dilate(mask.astype(np.uint8), kernel).astype(bool)
+        uv, z = project_points(cam, pts)
+        col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        seen = (z > 0) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+        keep[seen] &= grown[row[seen], col[seen]]
+    return keep
+
+
+def isolate_object(
+    points: np.ndarray,
+    cameras: Sequence[Camera | None],
+    previews: Sequence[np.ndarray],
+    *,
+    settings: IsolateOptions | None = None,
+) -> Isolation:
+    """Find the object in dense points and draw its masks (module docstring).
+
+    Args:
+        points: (P, 3) float64 fused dense points, world units.
+        cameras: per view its camera, None where it was not registered.
+        previews: per view (H, W, 3) uint8 RGB images (one exposure for all views).
+        settings: ``geometry.isolate`` (default :class:`~pmvir.config.isolate.IsolateOptions`); its
+            ``bbox`` (xmin, ymin, zmin, xmax, ymax, zmax, world units) is the object's box, instead
+            of the cluster nearest to the look-at point.
+
+    Returns:
+        :class:`Isolation`.
+
+    Raises:
+        ConfigError: not one preview per view.
+        ReconstructionError: fewer than 2 registered views, no points, or none left for the object.
+    """
+    settings = settings or IsolateOptions()
+    bbox = settings.bbox
+    if len(previews) != len(cameras):
+        raise ConfigError(f"expected one preview per view ({len(cameras)}), got {len(previews)}")
+    reg = [cam for cam in cameras if cam is not None]
+    if len(reg) < 2:
+        raise ReconstructionError("isolating the object needs at least 2 registered views")
+    pts = np.asarray(points, np.float64)
+    if len(pts) < 10:
+        raise ReconstructionError(f"isolating the object needs dense points, got {len(pts)}")
+    chosen, plane, look, counts = object_points(pts, reg, settings=settings, bbox=bbox)
+    spacing = point_spacing(pts[chosen])
+    solid = pts[chosen][solid_points(pts[chosen], spacing)]
+    below = np.zeros((0, 3)) if plane is None else columns_to_plane(solid, plane, spacing, seed=_SEED)
+    masks: list[np.ndarray | None] = []
+    for cam, image in zip(cameras, previews, strict=True):
+        if cam is None:
+            masks.append(None)
+            continue
+        seen = _splat(solid, cam, spacing)
+        rough = seen | _splat(below, cam, spacing)
+        band = settings.band_px or 0.02 * float(np.hypot(cam.width, cam.height))
+        masks.append(refine_mask(image, rough, band_px=band, iterations=settings.grabcut_iterations, core=seen))
+    keep = inside_masks(pts, cameras, masks)
+    if plane is not None:  # the object's base, near the plane, where the masks hold it
+        keep &= pts @ plane[:3] + plane[3] > settings.plane_distance * float(
+            np.median([np.linalg.norm(cam.center - look) for cam in reg])
+        )
+    return Isolation(
+        masks=masks, keep=keep, plane=plane, look_at=look,
+        method="bbox" if bbox is not None else "cluster", counts=counts | {"kept": int(keep.sum())},
+    )
+
+
+def wants_isolation(enabled: Literal["auto", "on", "off"], masks: Sequence[np.ndarray | None]) -> bool:
+    """Whether the stage isolates the object: 'on', or 'auto' where no frame has a mask."""
+    return enabled == "on" or (enabled == "auto" and all(m is None for m in masks))
+
+
+def kept_points(points: DensePoints, keep: np.ndarray) -> DensePoints:
+    """The dense points where ``keep`` (P,) bool is True, every per-point array subset alike."""
+    return replace(points, **{f.name: getattr(points, f.name)[keep] for f in fields(points)})
+
+
+def write_masks(folder: str | Path, names: Sequence[str], masks: Sequence[np.ndarray | None]) -> None:
+    """``folder/<name>.png``: 8-bit masks, 255 = object (as a capture's masks/); None entries are skipped."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, mask in zip(names, masks, strict=True):
+        if mask is None:
+            continue
+        ok, buf = cv2.imencode(".png", mask.astype(np.uint8) * 255)
+        if not ok:
+            raise ReconstructionError(f"{folder / name}.png: PNG encoding of the mask failed")
+        (folder / f"{name}.png").write_bytes(buf.tobytes())

@@ -1,0 +1,173 @@
+"""Isolating the object without masks (pmvir.geometry.silhouette.isolate): plane, cluster, GrabCut."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from pmvir.camera import Camera, look_at
+from pmvir.config.isolate import IsolateOptions
+from pmvir.errors import ReconstructionError
+from pmvir.geometry.silhouette.isolate import (
+    columns_to_plane,
+    inside_masks,
+    isolate_object,
+    object_points,
+    refine_mask,
+    support_plane,
+)
+
+CENTRE = np.array([0.0, 0.0, 0.3])
+
+
+def ring(elevation_deg: float, n: int = 8, size: tuple[int, int] = (160, 128)) -> list[Camera]:
+    w, h = size
+    cams = []
+    for k in range(n):
+        a, e = 2 * np.pi * k / n, np.radians(elevation_deg)
+        c = CENTRE + 2.0 * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+        R, t = look_at(c, CENTRE, np.array([0.0, 0.0, 1.0]))
+        cams.append(Camera.from_intrinsics(150.0, 150.0, w / 2, h / 2, w, h, R, t))
+    return cams
+
+
+def sphere_points(centre, radius: float, n: int, rng) -> np.ndarray:
+    d = rng.normal(size=(n, 3))
+    return np.asarray(centre) + radius * d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """A table (z = 0, 4 x 4, noisy), a ball standing on it at the centre, a smaller ball off to the side."""
+    rng = np.random.default_rng(0)
+    table = np.column_stack([rng.uniform(-2, 2, (30_000, 2)), rng.normal(0, 0.002, 30_000)])
+    ball = sphere_points(CENTRE, 0.3, 8000, rng)
+    other = sphere_points([1.3, 1.3, 0.2], 0.2, 3000, rng)
+    points = np.concatenate([table, ball, other])
+    labels = np.repeat([0, 1, 2], [len(table), len(ball), len(other)])
+    return points, labels
+
+
+def test_support_plane_is_the_table_with_its_normal_toward_the_cameras(scene):
+    points, labels = scene
+    plane, inliers = support_plane(points, ring(30.0), distance=0.01, min_fraction=0.1)
+    assert plane is not None
+    np.testing.assert_allclose(plane[:3], [0.0, 0.0, 1.0], atol=0.01)
+    assert abs(plane[3]) < 0.01
+    assert inliers >= 0.95 * (labels == 0).sum()
+
+
+def test_a_plane_with_cameras_on_both_sides_is_no_support(scene):
+    points, _ = scene
+    cams = ring(30.0, 4) + ring(-60.0, 4)
+    assert support_plane(points, cams, distance=0.01, min_fraction=0.1)[0] is None
+
+
+def test_the_cluster_the_cameras_look_at_is_the_object(scene):
+    points, labels = scene
+    keep, plane, look, counts = object_points(points, ring(30.0), settings=IsolateOptions())
+    assert plane is not None and np.linalg.norm(look - CENTRE) < 0.05
+    assert keep[labels == 0].sum() == 0 and keep[labels == 2].sum() == 0
+    assert keep[labels == 1].mean() > 0.9  # the ball but its lowest cap (removed with the plane)
+    assert counts["object_points"] == keep.sum()
+
+
+def test_a_box_overrides_the_cluster(scene):
+    points, labels = scene
+    box = IsolateOptions(bbox=[1.0, 1.0, -1.0, 1.6, 1.6, 1.0])
+    keep, *_ = object_points(points, ring(30.0), settings=box, bbox=box.bbox)
+    assert keep[labels == 2].mean() > 0.85 and not keep[labels != 2].any()  # but its cap on the plane
+    empty = [5.0, 5.0, 5.0, 6.0, 6.0, 6.0]
+    with pytest.raises(ReconstructionError, match="in the box"):
+        object_points(points, ring(30.0), settings=IsolateOptions(), bbox=empty)
+
+
+def test_columns_reach_down_to_the_plane():
+    pts = np.array([[0.0, 0.0, 0.5], [0.1, 0.0, 0.2], [0.0, 0.1, 0.9]])
+    cols = columns_to_plane(pts, np.array([0.0, 0.0, 1.0, 0.0]), 0.05)
+    assert cols[:, 2].min() == pytest.approx(0.0, abs=1e-12) and cols[:, 2].max() <= 0.5 + 1e-12
+    assert set(np.round(cols[:, :2], 6).view([("x", float), ("y", float)]).ravel().tolist()) <= {
+        (0.0, 0.0), (0.1, 0.0)}  # vertical: only the lower half's points, straight down
+
+
+def test_grabcut_recovers_a_disc_from_a_shrunk_and_clipped_projection():
+    rng = np.random.default_rng(1)
+    h, w = 120, 160
+    noise = cv2.resize(rng.uniform(0, 1, (15, 20, 3)).astype(np.float32), (w, h), interpolation=cv2.INTER_CUBIC)
+    image = (40 + 120 * noise * np.array([0.3, 1.0, 0.6])).astype(np.uint8)  # textured green table
+    truth = np.zeros((h, w), np.uint8)
+    cv2.circle(truth, (80, 60), 35, 1, -1)
+    image[truth > 0] = (200, 60, 50) + rng.integers(-20, 20, (int(truth.sum()), 3))  # a red object
+    rough = np.zeros_like(truth)
+    cv2.circle(rough, (80, 60), 30, 1, -1)
+    rough[85:] = 0  # the lower part missed by the points
+    out = refine_mask(image, rough.astype(bool), band_px=12, iterations=4)
+    t = truth.astype(bool)
+    iou = (out & t).sum() / (out | t).sum()
+    assert iou > 0.95
+    assert (rough.astype(bool) & t).sum() / (rough.astype(bool) | t).sum() < 0.8  # it had work to do
+
+
+def test_inside_masks_keeps_points_in_every_silhouette():
+    cams = ring(30.0, 4)
+    pts = np.array([CENTRE, CENTRE + [0.0, 0.0, 0.5]])
+    masks = []
+    for cam in cams:
+        m = np.zeros((cam.height, cam.width), bool)
+        uv, _ = cam.project(CENTRE[None])
+        m[int(uv[0, 1]) - 3 : int(uv[0, 1]) + 4, int(uv[0, 0]) - 3 : int(uv[0, 0]) + 4] = True
+        masks.append(m)
+    np.testing.assert_array_equal(inside_masks(pts, cams, masks), [True, False])
+
+
+def test_isolate_object_draws_masks_of_the_ball(scene):
+    points, labels = scene
+    cams = ring(30.0, 4)
+    previews = []
+    for cam in cams:  # grey table, orange ball: the ball's true silhouette painted
+        img = np.full((cam.height, cam.width, 3), 90, np.uint8)
+        img[_disc_mask(cam)] = (230, 140, 40)
+        previews.append(img)
+    iso = isolate_object(points, [*cams, None], [*previews, previews[0]])
+    assert iso.masks[-1] is None and iso.method == "cluster"
+    for cam, m in zip(cams, iso.masks, strict=False):
+        t = _disc_mask(cam)
+        assert m is not None and (m & t).sum() / (m | t).sum() > 0.9
+    assert iso.keep[labels == 1].mean() > 0.9 and not iso.keep[labels != 1].any()
+    assert iso.to_dict()["counts"]["kept"] == iso.keep.sum()
+
+
+def _disc_mask(cam: Camera) -> np.ndarray:
+    """The ball's silhouette: pixels whose ray passes within its radius of its centre."""
+    origins, dirs = cam.pixel_rays()
+    v = CENTRE - origins
+    dist = np.linalg.norm(v - (v * dirs).sum(-1, keepdims=True) * dirs, axis=-1)
+    return dist < 0.3
+
+
+def test_isolate_options_are_checked():
+    with pytest.raises(ValidationError, match="bbox"):
+        IsolateOptions(bbox=[1, 0, 0, 0, 1, 1])
+    with pytest.raises(ValidationError):
+        IsolateOptions(enabled="sometimes")
+    for name, f in IsolateOptions.model_fields.items():
+        assert f.description and len(f.description) <= 200, name
+
+
+def test_cli_bbox_sets_the_isolation_box():
+    import argparse
+
+    from pmvir.commands.options import add_option_arguments, build_config
+    from pmvir.errors import ConfigError
+
+    parser = argparse.ArgumentParser()
+    add_option_arguments(parser)
+    config = build_config(parser.parse_args(["--bbox=-0.5,-0.5,0,0.5,0.5,1"]))  # "=": it starts with "-"
+    assert config.geometry.isolate.bbox == [-0.5, -0.5, 0.0, 0.5, 0.5, 1.0]
+    assert build_config(parser.parse_args([])).geometry.isolate.bbox is None
+    with pytest.raises(ConfigError, match="--bbox"):
+        build_config(parser.parse_args(["--bbox", "1,2,3"]))
+    with pytest.raises(ConfigError, match="bbox"):
+        build_config(parser.parse_args(["--bbox", "1,0,0,0,1,1"]))  # xmin > xmax
