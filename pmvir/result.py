@@ -71,6 +71,7 @@ RESULT_FILES: tuple[ResultFile, ...] = (
         "sparse.ply", "geometry", "application/octet-stream", "the sparse points (SfM / triangulation)"
     ),
     ResultFile("dense.ply", "geometry", "application/octet-stream", "the fused dense stereo points"),
+    ResultFile("masks/", "geometry", "application/zip", "the object masks pmvir drew (captures without masks)"),
     ResultFile("report.json", "report", "application/json", "timings, counts, parameters, energies"),
     ResultFile(
         "capture.json", "decode", "application/json", "the manifest used (as given, or inferred from the frames)"
