@@ -45,13 +45,13 @@ import argparse
 import hashlib
 import json
 import os
-import platform
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from _results import table, write_results
 
 from pmvir.camera import Camera
 from pmvir.capture import open_capture
@@ -79,7 +79,7 @@ VARIANTS: dict[str, dict] = {
     "i_int": {"pho": {"intensity": "int"}},
     "least_squares": {"pho": {"robust": "none"}},
     "raw_dop_weight": {"pol": {"dop_weight_normalized": False}},
-    "previous": {"pho": {"robust": "none"}, "pol": {"dop_weight_normalized": False}},
+    "least_squares_raw_weight": {"pho": {"robust": "none"}, "pol": {"dop_weight_normalized": False}},
     "no_relax": {"surface": {"relax_iterations": 0}},
 }
 LABELS = {
@@ -90,7 +90,7 @@ LABELS = {
     "i_int": "I_int instead of I_min",
     "least_squares": "least-squares E_pho (pho_robust none)",
     "raw_dop_weight": "DoP weight not normalized",
-    "previous": "previous defaults (both)",
+    "least_squares_raw_weight": "least-squares E_pho and DoP weight not normalized",
     "no_relax": "no tangential relaxation",
 }
 ROWS = {
@@ -100,7 +100,7 @@ ROWS = {
         "no_dop_weight",
         "raw_dop_weight",
         "least_squares",
-        "previous",
+        "least_squares_raw_weight",
         "no_relax",
         "i_int",
         "mvir",
@@ -413,6 +413,43 @@ def table_markdown(title: str, rows: dict[str, dict[str, dict]], names: tuple[st
     return "\n".join(lines)
 
 
+def r4(value: float | None, scale: float = 1.0) -> float | None:
+    """``scale * value`` to four decimals (None stays None)."""
+    return None if value is None else round(scale * value, 4)
+
+
+def page_table(title: str, rows: dict[str, dict[str, dict]], names: tuple[str, ...]) -> dict:
+    """The rows of :func:`table_markdown` as a table of the benchmarks page (bench/report.py)."""
+    groups = dict(rows)
+    if len(rows) > 1:
+        groups["average"] = average(rows, names)
+    out = []
+    for model, r in groups.items():
+        init = r.get("initial")
+        for name in names:
+            m = r.get(name)
+            if m is None:
+                continue
+            if "error" in m:
+                out.append([model, LABELS[name], *[None] * 10])
+                continue
+            ai = ci = None
+            if init is not None and "error" not in init and name != "initial":
+                ai = f"{improvement(init['accuracy'], m['accuracy']):+.1f}%"
+                ci = f"{improvement(init['completeness'], m['completeness']):+.1f}%"
+
+            out.append([model, LABELS[name], round(m["vertices"]), r4(m["accuracy"], 100), r4(m["completeness"], 100),
+                        r4(m.get("normal_error")), r4(m.get("normal_error_median")), r4(m["albedo_rmse"]),
+                        r4(m["illumination_error"]), round(m["seconds"], 1), ai, ci])
+    return table(
+        title,
+        ["model", "method", "vertices", "accuracy x1e-2", "completeness x1e-2", "normal error mean deg",
+         "normal error median deg", "albedo RMSE", "illumination error", "seconds", "accuracy gain",
+         "completeness gain"],
+        out,
+    )
+
+
 def average(rows: dict[str, dict[str, dict]], names: tuple[str, ...]) -> dict[str, dict]:
     """Per row name the mean of each metric over the models where every row succeeded."""
     ok = [r for r in rows.values() if all(n in r and "error" not in r[n] for n in names)]
@@ -627,8 +664,6 @@ def main() -> None:
 
     t0 = time.perf_counter()
     doc: dict = {
-        "machine": platform.machine(),
-        "cpu_count": os.cpu_count(),
         "load_average_start": os.getloadavg(),
         "settings": {
             "models": args.models,
@@ -646,35 +681,38 @@ def main() -> None:
         },
         "units": "accuracy/completeness in GT bounding-box diagonals; normal error in degrees; albedo RMSE linear; illumination error "
         "relative shading RMSE; seconds: initial = geometric stage, others = refinement alone",
-        "tables": {},
+        "results": {},
     }
     text = []
+    tables = []
     extra = "".join(f", {k}={json.dumps(v)}" for k, v in args.refine_option.items())
     by = f" ({args.renderer} renderer, {args.views} views {args.size[0]}x{args.size[1]}{extra})"
     if "main" in args.tables:
         rows = {m: rows_for(m, "plastic", ROWS["main"]) for m in args.models}
-        doc["tables"]["main"] = {
+        doc["results"]["main"] = {
             "rows": rows,
             "average": average(rows, ROWS["main"]),
             "targets": targets(rows),
         }
+        title = "Table 3: plastic, initial surface vs MVIR vs Polarimetric MVIR" + by
+        tables.append(page_table(title, rows, ROWS["main"]))
         text += [
-            table_markdown(
-                "Table 3: plastic, initial surface vs MVIR vs Polarimetric MVIR" + by, rows, ROWS["main"]
-            ),
-            targets_markdown(doc["tables"]["main"]["targets"]),
+            table_markdown(title, rows, ROWS["main"]),
+            targets_markdown(doc["results"]["main"]["targets"]),
         ]
     if "ablation" in args.tables:
         names = ("initial", *(r for r in ROWS["ablation"] if r in args.ablation_rows))
         rows = {m: rows_for(m, "plastic", names) for m in args.models}
-        doc["tables"]["ablation"] = {"rows": rows, "average": average(rows, names)}
+        doc["results"]["ablation"] = {"rows": rows, "average": average(rows, names)}
         text.append(table_markdown("Table 4: ablation (plastic)" + by, rows, names))
+        tables.append(page_table("Table 4: ablation (plastic)" + by, rows, names))
     if "materials" in args.tables:
-        doc["tables"]["materials"] = {}
+        doc["results"]["materials"] = {}
         for material in (m for m in MATERIALS if m in args.materials):
             rows = {m: rows_for(m, material, ROWS["materials"]) for m in args.models}
-            doc["tables"]["materials"][material] = {"rows": rows, "average": average(rows, ROWS["materials"])}
+            doc["results"]["materials"][material] = {"rows": rows, "average": average(rows, ROWS["materials"])}
             text.append(table_markdown(f"Materials: {material}" + by, rows, ROWS["materials"]))
+            tables.append(page_table(f"Materials: {material}" + by, rows, ROWS["materials"]))
     doc["cases"] = logs
     doc["wall_s"] = time.perf_counter() - t0
     doc["load_average_end"] = os.getloadavg()
@@ -683,9 +721,14 @@ def main() -> None:
         f"\naccuracy / completeness x 1e-2 GT diagonals; {os.cpu_count()} cores, "
         f"load average {os.getloadavg()[0]:.1f}; wall {doc['wall_s']:.0f} s"
     )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(doc, indent=1))
+    tmp = write_results(
+        "refine",
+        title="Refinement against ground truth",
+        path=args.out.with_suffix(".json.tmp"),
+        peer="MVIR (the same refinement without E_pol)",
+        tables=tables,
+        data=doc,
+    )
     os.replace(tmp, args.out)
 
 

@@ -24,12 +24,12 @@ Run: .venv/bin/python bench/refine_from_truth.py CAPTURE [--subdivide 1] [--iter
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from _results import table, write_results
 
 from pmvir.capture import open_capture
 from pmvir.commands.options import parse_overrides
@@ -87,15 +87,26 @@ def main() -> None:
         )
     except PmvirError as e:
         sys.exit(f"error: {e}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(
-        json.dumps(
-            {"capture": str(args.capture), "subdivide": args.subdivide, "offset": args.offset, "rows": rows},
-            indent=1,
-        )
-    )
     start = "the true surface" + (
         f" moved {args.offset:+g} diagonals along its normals" if args.offset else ""
+    )
+    write_results(
+        "refine_from_truth",
+        title="Refinement started from the true surface",
+        path=args.out,
+        peer="MVIR (the refinement without E_pol)" if "mvir" in {r["variant"] for r in rows} else None,
+        tables=[
+            table(
+                f"{args.capture.name}: refined from {start} ({rows[0]['vertices']:,} vertices)",
+                ["variant", "options", "accuracy x1e-2", "signed offset x1e-2", "completeness x1e-2",
+                 "normal error mean deg", "normal error median deg", "seconds"],
+                [[r["variant"], r["options"] or "defaults", round(100 * r["accuracy"], 4),
+                  round(100 * r["signed_offset"], 4), round(100 * r["completeness"], 4),
+                  round(r["normal_error"], 2), round(r["normal_error_median"], 2), round(r["time"])]
+                 for r in rows],
+            )
+        ],
+        data={"capture": str(args.capture), "subdivide": args.subdivide, "offset": args.offset, "rows": rows},
     )
     print(f"\n{args.capture}: refinement started from {start} ({rows[0]['vertices']:,} vertices)\n")
     print(
