@@ -31,6 +31,16 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/demosaic.py --held-out",
         "polanalyser (demosaicing, calcStokes, cvtStokesToAoLP/DoLP)",
     ),
+    "demosaic_heldout": (
+        "Decoding on held-out path-traced frames",
+        f"{PY} bench/demosaic.py --held-out",
+        "polanalyser",
+    ),
+    "relief_aop": (
+        "Decoded AoP at the relief",
+        f"{PY} bench/relief_aop.py CAPTURE",
+        "the renderer's noise-free AoP",
+    ),
     "synth": ("Synthetic captures", f"{PY} bench/synth.py", None),
     "sfm_poses": (
         "Poses (structure from motion)",
@@ -64,6 +74,7 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
     "mitsuba_render": ("Path tracing (Mitsuba 3)", f"{PY} bench/mitsuba_render.py", None),
     "evaluate": ("Evaluation", f"{PY} bench/bench_evaluate.py", None),
     "service": ("Service uploads", f"{PY} bench/service.py", None),
+    "throughput": ("Service throughput (jobs per hour)", f"{PY} bench/throughput.py", None),
     "console": ("Web console", f"{PY} bench/console.py", None),
 }
 
