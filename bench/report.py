@@ -31,16 +31,6 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/demosaic.py --held-out",
         "polanalyser (demosaicing, calcStokes, cvtStokesToAoLP/DoLP)",
     ),
-    "demosaic_heldout": (
-        "Decoding on held-out path-traced frames",
-        f"{PY} bench/demosaic.py --held-out",
-        "polanalyser",
-    ),
-    "relief_aop": (
-        "Decoded AoP at the relief",
-        f"{PY} bench/relief_aop.py CAPTURE",
-        "the renderer's noise-free AoP",
-    ),
     "synth": ("Synthetic captures", f"{PY} bench/synth.py", None),
     "sfm_poses": (
         "Poses (structure from motion)",
