@@ -136,9 +136,11 @@ def test_a_relaxed_stage_keeps_its_surface_and_solves_the_albedo_at_the_new_vert
     projected albedo's exact minimizer at their own positions."""
     faces = scene_inputs[0].faces.astype(np.int64)
     # One stage, so it is the last: the relaxation follows it.
-    plain_state, _ = _first_stage_solved(scene_inputs, relax_iterations=0, max_iterations=15, **ONE_STAGE)
+    plain_state, _ = _first_stage_solved(
+        scene_inputs, surface={"relax_iterations": 0}, solver={"max_iterations": 15}, **ONE_STAGE
+    )
     relaxed_state, stage = _first_stage_solved(
-        scene_inputs, relax_iterations=20, max_iterations=15, **ONE_STAGE
+        scene_inputs, surface={"relax_iterations": 20}, solver={"max_iterations": 15}, **ONE_STAGE
     )
     plain = plain_state.vertices.numpy().astype(np.float64)
     relaxed = relaxed_state.vertices.numpy().astype(np.float64)
@@ -154,6 +156,10 @@ def test_a_relaxed_stage_keeps_its_surface_and_solves_the_albedo_at_the_new_vert
 
 def test_only_the_last_stage_is_relaxed(scene_inputs) -> None:
     """Stages before the last end where L-BFGS left them: relaxing between stages measured worse."""
-    plain, _ = _first_stage_solved(scene_inputs, relax_iterations=0, max_iterations=5)
-    relaxed, _ = _first_stage_solved(scene_inputs, relax_iterations=20, max_iterations=5)
+    plain, _ = _first_stage_solved(
+        scene_inputs, surface={"relax_iterations": 0}, solver={"max_iterations": 5}
+    )
+    relaxed, _ = _first_stage_solved(
+        scene_inputs, surface={"relax_iterations": 20}, solver={"max_iterations": 5}
+    )
     assert np.array_equal(plain.vertices.numpy(), relaxed.vertices.numpy())

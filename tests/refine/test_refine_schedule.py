@@ -10,7 +10,7 @@ import pytest
 from pydantic import ValidationError
 from refine_scene import accuracy, make_scene
 
-from pmvir.config import PipelineConfig, RefineOptions
+from pmvir.config import PipelineConfig, RefineOptions, merge_options
 from pmvir.errors import CanceledError, ConfigError, MeshError, ReconstructionError
 from pmvir.progress import Progress
 from pmvir.refine import Observation, make_visibility_fn, observation_from_decoded, refine_surface
@@ -193,8 +193,11 @@ def test_ablations_run_and_lower_the_cost(plastic) -> None:
     for opts, obs in [
         (RefineOptions(pho={"intensity": "int"}, pol={"dop_weight": False}, **one_stage), obs_int),
         (
-            RefineOptions(
-                solver={"vertex_motion": "normal", "albedo_solve": "joint"}, pol={"dop_min": 0.0}, **one_stage
+            RefineOptions.model_validate(
+                merge_options(
+                    one_stage,
+                    {"solver": {"vertex_motion": "normal", "albedo_solve": "joint"}, "pol": {"dop_min": 0.0}},
+                )
             ),
             plastic[1],
         ),
