@@ -202,7 +202,7 @@ def _pairs(
     return pairs
 
 
-def _zncc_cost(
+def _mean_zncc_cost(
     vertices: np.ndarray,
     faces: np.ndarray,
     cameras: Sequence[Camera],
@@ -313,7 +313,7 @@ def photo_consistent_offset(
     def costs_of(images: list[np.ndarray], pairs: list[_Pair]) -> tuple[np.ndarray, int]:
         costs, counts = [], []
         for d in offsets_px:
-            cost, count = _zncc_cost(vertices + d * pixel_size * normals, faces, cameras, images, pairs)
+            cost, count = _mean_zncc_cost(vertices + d * pixel_size * normals, faces, cameras, images, pairs)
             costs.append(cost)
             counts.append(count)
         return np.asarray(costs), (int(min(counts)) if counts else 0)

@@ -13,18 +13,18 @@ import numpy as np
 import pycolmap
 
 from pmvir.config import SfmOptions
-from pmvir.geometry.sfm.colmap import _extract_features
-from pmvir.geometry.sfm.poses import _write_inputs
+from pmvir.geometry.sfm.inputs import write_inputs
+from pmvir.geometry.sfm.matching import extract_features
 
 
 def test_a_focal_prior_starts_the_estimated_camera(tmp_path: Path) -> None:
     rng = np.random.default_rng(0)
     images = [rng.random((64, 80, 3), dtype=np.float32) for _ in range(3)]
     opts = SfmOptions(sift_affine_shape=False, sift_upsample=False)
-    image_dir, mask_dir, files = _write_inputs(tmp_path, images, None, opts)
+    image_dir, mask_dir, files = write_inputs(tmp_path, images, None, opts)
     database = tmp_path / "database.db"
     sizes = [im.shape[:2] for im in images]
-    _extract_features(database, image_dir, mask_dir, files, sizes, [None] * 3, opts, focal_priors=[100.0, 100.0, None])
+    extract_features(database, image_dir, mask_dir, files, sizes, [None] * 3, opts, focal_priors=[100.0, 100.0, None])
     db = pycolmap.Database.open(str(database))
     try:
         cameras = {c.camera_id: c for c in db.read_all_cameras()}

@@ -34,14 +34,9 @@ from pmvir.decode import decode_frame
 from pmvir.errors import ReconstructionError, ShapeError
 from pmvir.evaluate import SurfaceQuery
 from pmvir.geometry.sfm.align import umeyama
-from pmvir.geometry.sfm.poses import (
-    SparseModel,
-    estimate_poses,
-    fundamental_matrix,
-    sampson_error,
-    sift_image,
-    write_poses_text,
-)
+from pmvir.geometry.sfm.inputs import sift_image
+from pmvir.geometry.sfm.matching import fundamental_matrix, sampson_error
+from pmvir.geometry.sfm.poses import SparseModel, estimate_poses, write_poses_text
 from pmvir.io.colmap_text import camera_from_colmap, read_colmap_text_model
 from pmvir.io.ply import read_mesh
 from pmvir.polarization.stokes import PolarizationImages
@@ -294,12 +289,12 @@ def test_mask_erosion_option_shrinks_the_feature_masks(sfm_views: dict, tmp_path
     """sfm.mask_erosion_px reaches the masks COLMAP detects features in (0: the masks as given)."""
     import cv2
 
-    from pmvir.geometry.sfm.poses import _write_inputs
+    from pmvir.geometry.sfm.inputs import write_inputs
 
     images, masks = sfm_views["images"][:2], sfm_views["masks"][:2]
     areas = {}
     for px in (0, 4):
-        _, mask_dir, files = _write_inputs(tmp_path / f"e{px}", images, masks, SfmOptions(mask_erosion_px=px))
+        _, mask_dir, files = write_inputs(tmp_path / f"e{px}", images, masks, SfmOptions(mask_erosion_px=px))
         written = cv2.imread(str(mask_dir / f"{files[0]}.png"), cv2.IMREAD_GRAYSCALE) > 0
         areas[px] = int(written.sum())
         if px == 0:
@@ -311,18 +306,18 @@ def test_match_ratio_option_reaches_colmap_matching(sfm_views: dict, tmp_path: P
     """A stricter ratio test (sfm.match_max_ratio) keeps fewer raw matches between neighbouring views."""
     import pycolmap
 
-    from pmvir.geometry.sfm.colmap import _extract_features, _match
-    from pmvir.geometry.sfm.poses import _write_inputs
+    from pmvir.geometry.sfm.inputs import write_inputs
+    from pmvir.geometry.sfm.matching import extract_features, match_images
 
     images, masks = sfm_views["images"][:3], sfm_views["masks"][:3]
     counts = {}
     for ratio in (0.7, 0.95):
         opts = SfmOptions(match_max_ratio=ratio, sift_affine_shape=False, sift_upsample=False)
-        image_dir, mask_dir, files = _write_inputs(tmp_path / f"r{ratio}", images, masks, opts)
+        image_dir, mask_dir, files = write_inputs(tmp_path / f"r{ratio}", images, masks, opts)
         database = tmp_path / f"r{ratio}" / "database.db"
         sizes = [im.shape[:2] for im in images]
-        _extract_features(database, image_dir, mask_dir, files, sizes, [None] * len(files), opts)
-        _match(database, len(files), opts)
+        extract_features(database, image_dir, mask_dir, files, sizes, [None] * len(files), opts)
+        match_images(database, len(files), opts)
         db = pycolmap.Database.open(str(database))
         counts[ratio] = db.num_matches()
         db.close()
@@ -335,18 +330,18 @@ def test_views_are_numbered_in_order_and_known_pose_matches_repeat(sfm_views: di
     matching visits pairs in image-id order and its ratio test is one-sided)."""
     import pycolmap
 
-    from pmvir.geometry.sfm.colmap import _extract_features, _match_known_poses
-    from pmvir.geometry.sfm.poses import _write_inputs
+    from pmvir.geometry.sfm.inputs import write_inputs
+    from pmvir.geometry.sfm.matching import extract_features, match_known_poses
 
     images, masks, cameras = sfm_views["images"][:12], sfm_views["masks"][:12], sfm_views["cameras"][:12]
     opts = SfmOptions(sift_affine_shape=False, sift_upsample=False)
     runs = []
     for run in range(2):
-        image_dir, mask_dir, files = _write_inputs(tmp_path / f"run{run}", images, masks, opts)
+        image_dir, mask_dir, files = write_inputs(tmp_path / f"run{run}", images, masks, opts)
         database = tmp_path / f"run{run}" / "database.db"
         sizes = [im.shape[:2] for im in images]
-        _extract_features(database, image_dir, mask_dir, files, sizes, [c.K for c in cameras], opts)
-        _match_known_poses(database, files, cameras)
+        extract_features(database, image_dir, mask_dir, files, sizes, [c.K for c in cameras], opts)
+        match_known_poses(database, files, cameras)
         db = pycolmap.Database.open(str(database))
         try:
             name = {im.image_id: im.name for im in db.read_all_images()}

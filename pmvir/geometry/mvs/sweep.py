@@ -284,7 +284,7 @@ def _ref_stats(img: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray, np
     return ref, mean, var, weights
 
 
-def _zncc_cost(
+def _pixel_zncc_cost(
     warped: np.ndarray,
     ref: np.ndarray,
     ref_mean: np.ndarray,
@@ -426,7 +426,7 @@ def sweep_depth(
                 borderMode=cv2.BORDER_CONSTANT,
                 borderValue=border,
             )
-            costs[j] = _zncc_cost(warped, ref4, ref_mean, ref_var, weights, window)
+            costs[j] = _pixel_zncc_cost(warped, ref4, ref_mean, ref_var, weights, window)
         volume[i] = _aggregate(costs, top_k)
     best = np.argmin(volume, axis=0)
     c_best = np.take_along_axis(volume, best[None], 0)[0]

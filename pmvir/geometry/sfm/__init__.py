@@ -2,7 +2,9 @@
 
 Read in this order: :mod:`~pmvir.geometry.sfm.poses` (the entry point,
 :func:`estimate_poses`: known-pose triangulation or SfM),
-:mod:`~pmvir.geometry.sfm.colmap` (database, features, matching, mapping, refinement),
+:mod:`~pmvir.geometry.sfm.inputs` (the views checked, the SIFT images written),
+:mod:`~pmvir.geometry.sfm.matching` (features and matches in COLMAP's database),
+:mod:`~pmvir.geometry.sfm.colmap` (mapping, triangulation, refinement),
 :mod:`~pmvir.geometry.sfm.join` (joining disconnected models),
 :mod:`~pmvir.geometry.sfm.frontier` (poses held to the masks' epipolar tangencies),
 :mod:`~pmvir.geometry.sfm.align` (a reconstruction's similarity to ground truth through its cameras).

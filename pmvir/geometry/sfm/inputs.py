@@ -1,0 +1,106 @@
+"""What SfM is given: the views checked, their 8-bit SIFT images and masks written for COLMAP, their intrinsics."""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pmvir.camera import Camera
+from pmvir.config import SfmOptions
+from pmvir.errors import InputError, ShapeError
+from pmvir.polarization.preview import srgb_encode
+
+#: Percentile of the foreground grey level mapped to white in the SIFT images.
+EXPOSURE_PERCENTILE = 99.5
+
+
+def sift_image(image: np.ndarray, mask: np.ndarray | None = None, *, equalize: bool = True) -> np.ndarray:
+    """The 8-bit grey image SIFT sees.
+
+    Args:
+        image: (H, W, C) or (H, W) float linear intensities (any positive scale).
+        mask: optional (H, W) bool foreground; the exposure is set on it.
+        equalize: apply CLAHE (clip limit 2, 8 x 8 tiles).
+
+    Returns:
+        (H, W) uint8: the channel mean scaled so its 99.5th percentile (over the mask)
+        is 1, sRGB-encoded, optionally equalized.
+    """
+    grey = image.mean(axis=2) if image.ndim == 3 else image
+    if grey.ndim != 2:
+        raise ShapeError(f"expected an (H, W) or (H, W, C) image, got shape {image.shape}")
+    grey = np.nan_to_num(grey.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    values = grey[mask] if mask is not None and mask.any() else grey.ravel()
+    level = float(np.percentile(values, EXPOSURE_PERCENTILE)) if values.size else 0.0
+    scale = 1.0 / level if level > 1e-12 else 1.0
+    out: np.ndarray = np.rint(srgb_encode(grey * np.float32(scale)) * 255.0).astype(np.uint8)
+    if equalize:
+        out = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(out)
+    return out
+
+
+def check_inputs(
+    images: Sequence[np.ndarray],
+    names: Sequence[str],
+    cameras: Sequence[Camera | None] | None,
+    intrinsics: Sequence[np.ndarray | None] | None,
+    masks: Sequence[np.ndarray | None] | None,
+) -> None:
+    """Raise InputError or ShapeError unless names are distinct and every per-view list, image,
+    mask, camera and K agrees with the images (at least 16 x 16, K without skew)."""
+    n = len(images)
+    if len(names) != n or len(set(names)) != n:
+        raise InputError(f"expected {n} distinct names, got {len(names)} ({len(set(names))} distinct)")
+    for label, seq in (("cameras", cameras), ("intrinsics", intrinsics), ("masks", masks)):
+        if seq is not None and len(seq) != n:
+            raise ShapeError(f"{label} has {len(seq)} entries for {n} images")
+    for i, im in enumerate(images):
+        if im.ndim not in (2, 3) or min(im.shape[:2]) < 16:
+            raise ShapeError(f"view {names[i]}: expected an (H, W, C) image of at least 16 x 16, got {im.shape}")
+        h, w = im.shape[:2]
+        mask = masks[i] if masks is not None else None
+        if mask is not None and mask.shape != (h, w):
+            raise ShapeError(f"view {names[i]}: mask {mask.shape} does not match the image {(h, w)}")
+        cam = cameras[i] if cameras is not None else None
+        if cam is not None and (cam.width, cam.height) != (w, h):
+            raise ShapeError(f"view {names[i]}: camera is {cam.width} x {cam.height}, the image {w} x {h}")
+        k = intrinsics[i] if intrinsics is not None else None
+        for K in (k, None if cam is None else cam.K):
+            if K is not None and (np.shape(K) != (3, 3) or abs(float(np.asarray(K)[0, 1])) > 1e-12):
+                raise InputError(f"view {names[i]}: intrinsics must be a 3 x 3 K without skew")
+
+
+def write_inputs(
+    workdir: Path, images: Sequence[np.ndarray], masks: Sequence[np.ndarray | None] | None, options: SfmOptions
+) -> tuple[Path, Path | None, list[str]]:
+    """SIFT images (and COLMAP masks: 0 = no features) under ``workdir``; returns dirs and file names."""
+    image_dir, mask_dir = workdir / "images", workdir / "masks"
+    for d in (image_dir, mask_dir, workdir / "sparse"):
+        shutil.rmtree(d, ignore_errors=True)
+    image_dir.mkdir(parents=True)
+    files = [f"{i:05d}.png" for i in range(len(images))]
+    has_masks = masks is not None and any(m is not None for m in masks)
+    if has_masks:
+        mask_dir.mkdir()
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * options.mask_erosion_px + 1,) * 2)
+    for i, (im, name) in enumerate(zip(images, files, strict=True)):
+        mask = None if masks is None else masks[i]
+        cv2.imwrite(str(image_dir / name), sift_image(im, mask, equalize=options.sift_equalize))
+        if has_masks:
+            m = np.full(im.shape[:2], 255, np.uint8) if mask is None else mask.astype(np.uint8) * 255
+            cv2.imwrite(str(mask_dir / f"{name}.png"), cv2.erode(m, kernel))
+    return image_dir, (mask_dir if has_masks else None), files
+
+
+def view_intrinsics(
+    i: int, cameras: Sequence[Camera | None] | None, intrinsics: Sequence[np.ndarray | None] | None
+) -> np.ndarray | None:
+    """View ``i``'s K: from ``intrinsics`` when given, else its camera's, else None (to estimate)."""
+    if intrinsics is not None and intrinsics[i] is not None:
+        return np.asarray(intrinsics[i], dtype=np.float64)
+    cam = cameras[i] if cameras is not None else None
+    return None if cam is None else cam.K

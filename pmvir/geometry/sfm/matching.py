@@ -1,0 +1,236 @@
+"""SfM's features and matches in COLMAP's database (:mod:`pmvir.geometry.sfm.colmap` runs them).
+
+* Features (:func:`extract_features`): SIFT per camera group (one extraction per known K, or per
+  image size when the intrinsics are estimated), masks restricting where features are detected.
+* Matching, SfM (:func:`match_images`): exhaustive up to ``exhaustive_matching_max_views`` views,
+  else sequential in capture order; RANSAC verification (COLMAP).
+* Matching, known poses (:func:`match_known_poses`): epipolar-guided; every feature's candidates
+  are the other view's features within ``_EPIPOLAR_MAX_ERROR_PX`` of its epipolar line, then
+  Lowe's ratio test and mutual nearest neighbours; no RANSAC, so wide baselines with a handful of
+  true matches still count.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from pmvir.camera import Camera
+from pmvir.config import SfmOptions
+
+#: Known poses: a candidate match lies within this distance of the known epipolar line, both ways (px).
+_EPIPOLAR_MAX_ERROR_PX = 2.0
+
+
+#: Known poses: a view pair is used when at least this many matches fit its epipolar geometry.
+KNOWN_POSE_MIN_MATCHES = 8
+
+
+#: Known poses: Lowe's ratio test among the candidates in the epipolar band (COLMAP's global test: 0.8).
+_KNOWN_POSE_MAX_RATIO = 0.8
+
+
+#: Known poses: largest descriptor distance of a match (unit descriptors; COLMAP: 0.7).
+_MAX_DESCRIPTOR_DISTANCE = 0.7
+
+
+#: Known poses: view pairs whose optical axes differ by more than this are not matched (degrees).
+_KNOWN_POSE_MAX_AXIS_DEG = 80.0
+
+
+def extract_features(
+    database: Path,
+    image_dir: Path,
+    mask_dir: Path | None,
+    files: list[str],
+    sizes: list[tuple[int, int]],
+    Ks: list[np.ndarray | None],
+    options: SfmOptions,
+    *,
+    focal_priors: Sequence[float | None] | None = None,
+) -> None:
+    """SIFT into the database, one extraction per camera group (same K, or same size and focal prior
+    when estimated: a prior is the estimated camera's starting focal length, refined by SfM)."""
+    groups: dict[tuple, list[int]] = {}
+    for i, (K, (h, w)) in enumerate(zip(Ks, sizes, strict=True)):
+        prior = None if focal_priors is None else focal_priors[i]
+        if K is not None:
+            key: tuple = ("known", w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+        elif options.shared_intrinsics:
+            key = ("estimated", w, h, prior)
+        else:
+            key = ("estimated", w, h, prior, i)
+        groups.setdefault(key, []).append(i)
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.max_num_features = options.sift_max_features
+    extraction.sift.peak_threshold = options.sift_peak_threshold
+    extraction.sift.estimate_affine_shape = options.sift_affine_shape
+    extraction.sift.first_octave = -1 if options.sift_upsample else 0
+    # COLMAP numbers images in the order its extraction threads finish them, which varies from run
+    # to run; the matching and the mapper visit views in image-id order, so importing the images
+    # first (one thread, group by group, in the views' order) makes SfM and the known-pose matches
+    # repeatable.
+    pycolmap.Database.open(str(database)).close()  # import_images needs the file
+    for key, members in groups.items():
+        reader = pycolmap.ImageReaderOptions()
+        if mask_dir is not None:
+            reader.mask_path = str(mask_dir)
+        if key[0] == "known":
+            reader.camera_model = "PINHOLE"
+            reader.camera_params = ",".join(repr(float(v)) for v in key[3:])
+        else:
+            reader.camera_model = "SIMPLE_PINHOLE"
+            if key[3] is not None:  # has_prior_focal_length: the mapper starts from it and refines it
+                reader.camera_params = f"{float(key[3])!r},{key[1] / 2.0!r},{key[2] / 2.0!r}"
+        names = [files[i] for i in members]
+        pycolmap.import_images(
+            database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, image_names=names, options=reader
+        )
+        pycolmap.extract_features(
+            database,
+            image_dir,
+            image_names=names,
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader,
+            extraction_options=extraction,
+        )
+
+
+def match_images(database: Path, n: int, options: SfmOptions) -> None:
+    """SIFT matching (exhaustive or sequential, module docstring) with RANSAC verification."""
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = options.seed
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.guided_matching = options.guided_matching
+    matching.sift.max_ratio = options.match_max_ratio
+    if n <= options.exhaustive_matching_max_views:
+        pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verification)
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = options.sequential_matching_overlap
+        pairing.quadratic_overlap = True
+        pycolmap.match_sequential(
+            database, matching_options=matching, pairing_options=pairing, verification_options=verification
+        )
+
+
+def match_known_poses(database: Path, files: list[str], cameras: Sequence[Camera | None]) -> None:
+    """Epipolar-guided matching with the known poses (replaces COLMAP's matching and RANSAC).
+
+    For every pair of views whose optical axes differ by at most ``_KNOWN_POSE_MAX_AXIS_DEG``,
+    a feature's candidates are the features of the other view within ``_EPIPOLAR_MAX_ERROR_PX``
+    of its epipolar line (both ways); among them the nearest descriptor must pass Lowe's ratio
+    test against the second nearest candidate and be nearest both ways. Restricting the
+    search to the epipolar band keeps matches that a global ratio test loses between views
+    30-70 degrees apart. The matches are written as CALIBRATED two-view geometries.
+    """
+    index = {name: i for i, name in enumerate(files)}
+    db = pycolmap.Database.open(str(database))
+    try:
+        view = {im.image_id: index[im.name] for im in db.read_all_images()}
+        posed: dict[int, Camera] = {k: c for k, i in view.items() if (c := cameras[i]) is not None}
+        ids = sorted(posed)
+        xy = {k: db.read_keypoints(k)[:, :2].astype(np.float64) for k in ids}
+        desc = {}
+        for k in ids:
+            d = db.read_descriptors(k).data.astype(np.float32)
+            desc[k] = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        axes = {k: posed[k].R[2] for k in ids}
+        min_cos = math.cos(math.radians(_KNOWN_POSE_MAX_AXIS_DEG))
+        for a_pos, id1 in enumerate(ids):
+            for id2 in ids[a_pos + 1:]:
+                if float(axes[id1] @ axes[id2]) < min_cos or not len(xy[id1]) or not len(xy[id2]):
+                    continue
+                F = fundamental_matrix(posed[id1], posed[id2])
+                m = _guided_matches(xy[id1], xy[id2], desc[id1], desc[id2], F)
+                if len(m) < KNOWN_POSE_MIN_MATCHES:
+                    continue
+                db.write_matches(id1, id2, m)
+                geometry = pycolmap.TwoViewGeometry()
+                geometry.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+                geometry.F = F
+                geometry.inlier_matches = m
+                db.write_two_view_geometry(id1, id2, geometry)
+    finally:
+        db.close()
+
+
+def _guided_matches(
+    x1: np.ndarray, x2: np.ndarray, d1: np.ndarray, d2: np.ndarray, F: np.ndarray
+) -> np.ndarray:
+    """Mutual nearest descriptors within the epipolar band, ratio-tested; (M, 2) uint32 indices.
+
+    Args:
+        x1, x2: (N1, 2), (N2, 2) keypoint pixel coordinates.
+        d1, d2: (N1, 128), (N2, 128) float32 unit descriptors.
+        F: (3, 3) fundamental matrix, ``x2^T F x1 = 0``.
+    """
+    if len(x1) < 2 or len(x2) < 2:
+        return np.zeros((0, 2), np.uint32)
+    h1 = np.concatenate([x1, np.ones((len(x1), 1))], axis=1)
+    h2 = np.concatenate([x2, np.ones((len(x2), 1))], axis=1)
+    l2 = h1 @ F.T  # epipolar lines in view 2 of the view-1 features, (N1, 3)
+    l1 = h2 @ F  # epipolar lines in view 1 of the view-2 features, (N2, 3)
+    l2 /= np.maximum(np.hypot(l2[:, :1], l2[:, 1:2]), 1e-12)
+    l1 /= np.maximum(np.hypot(l1[:, :1], l1[:, 1:2]), 1e-12)
+    band = np.abs(l2.astype(np.float32) @ h2.T.astype(np.float32)) < _EPIPOLAR_MAX_ERROR_PX
+    band &= np.abs(h1.astype(np.float32) @ l1.T.astype(np.float32)) < _EPIPOLAR_MAX_ERROR_PX
+    # Unit descriptors: distance^2 = 2 - 2 cos. The ratio test compares the nearest candidate in
+    # the band with the second nearest in the band, or (a lone candidate) with the nearest
+    # other feature anywhere in view 2.
+    full = d1 @ d2.T
+    cos = np.where(band, full, np.float32(-2.0))
+    best2 = np.argmax(cos, axis=1)
+    rows = np.arange(len(cos))
+    top = -np.partition(-cos, 1, axis=1)[:, :2]
+    full[rows, best2] = -2.0
+    second = np.where(top[:, 1] > -1.5, top[:, 1], full.max(axis=1))
+    dist = np.sqrt(np.maximum(2.0 - 2.0 * np.stack([top[:, 0], second], axis=1), 0.0))
+    ok = (top[:, 0] > -1.5) & (dist[:, 0] < _MAX_DESCRIPTOR_DISTANCE)
+    ok &= dist[:, 0] < _KNOWN_POSE_MAX_RATIO * dist[:, 1]
+    ok &= np.argmax(cos, axis=0)[best2] == rows  # mutual nearest
+    return np.stack([rows[ok], best2[ok]], axis=1).astype(np.uint32)
+
+
+def fundamental_matrix(camera1: Camera, camera2: Camera) -> np.ndarray:
+    """F with ``x2^T F x1 = 0`` for pixel coordinates (u, v, 1) of one point in two views, (3, 3)."""
+    R = camera2.R @ camera1.R.T
+    t = camera2.t - R @ camera1.t
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    return np.linalg.inv(camera2.K).T @ tx @ R @ np.linalg.inv(camera1.K)
+
+
+def sampson_error(x1: np.ndarray, x2: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Squared Sampson distances (pixels^2) of (M, 2) pixel correspondences to F, (M,) float64."""
+    h1 = np.concatenate([x1, np.ones((len(x1), 1))], axis=1)
+    h2 = np.concatenate([x2, np.ones((len(x2), 1))], axis=1)
+    Fx1 = h1 @ F.T
+    Ftx2 = h2 @ F
+    num = np.einsum("ij,ij->i", h2, Fx1) ** 2
+    den = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
+    return num / np.maximum(den, 1e-30)
+
+
+def database_stats(database: Path, files: list[str]) -> tuple[list[int], list[int]]:
+    """Per view: SIFT features, and the number of other views it has verified matches with."""
+    index = {name: i for i, name in enumerate(files)}
+    features, partners = [0] * len(files), [0] * len(files)
+    db = pycolmap.Database.open(str(database))
+    try:
+        by_id = {}
+        for im in db.read_all_images():
+            by_id[im.image_id] = index[im.name]
+            features[index[im.name]] = db.num_keypoints_for_image(im.image_id)
+        pair_ids, counts = db.read_two_view_geometry_num_inliers()
+        for pair_id, count in zip(pair_ids, counts, strict=True):
+            if count > 0:
+                a, b = pycolmap.pair_id_to_image_pair(pair_id)
+                partners[by_id[a]] += 1
+                partners[by_id[b]] += 1
+    finally:
+        db.close()
+    return features, partners
