@@ -29,6 +29,7 @@ import hashlib
 import time
 import uuid
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -265,16 +266,31 @@ class PmvirClient:
     def log(self, job_id: str, since: int = 0) -> dict[str, Any]:
         return self.request("GET", f"/v1/jobs/{job_id}/log", params={"since": since}).json()
 
-    def start(self, job_id: str) -> dict[str, Any]:
-        """Validate and queue. A retry that finds the job already queued (409) counts as done."""
+    def start(self, job_id: str, *, poll: float = 0.5, timeout: float | None = 3600.0) -> dict[str, Any]:
+        """Start the job and wait while the server validates its capture; returns the job once queued
+        (or further on). A retry that finds the job already started (409) counts as done.
+
+        Raises:
+            ServiceError: 422 when the capture was refused (``errors`` name each file's problem).
+        """
         try:
-            return self.request("POST", f"/v1/jobs/{job_id}/start", ok=(200, 202)).json()
+            job = self.request("POST", f"/v1/jobs/{job_id}/start", ok=(200, 202)).json()
         except ServiceError as exc:
-            if exc.status == 409:
-                job = self.job(job_id)
-                if job["status"] != "created":
-                    return job
-            raise
+            if exc.status != 409:
+                raise
+            job = self.job(job_id)
+            if job["status"] == "created":
+                raise
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while job["status"] == "validating":
+            if deadline is not None and time.monotonic() > deadline:
+                raise TimeoutError(f"job {job_id} still validating after {timeout} s")
+            time.sleep(poll)
+            job = self.job(job_id)
+        if job["status"] == "created" and job.get("problems"):
+            body = {"error": "invalid_capture", "message": job.get("error") or "", "errors": job["problems"]}
+            raise ServiceError(422, body, "POST", f"/v1/jobs/{job_id}/start")
+        return job
 
     def rerun(
         self,
@@ -366,6 +382,33 @@ class PmvirClient:
                 },
             )
         return out
+
+    def upload_missing(
+        self,
+        job_id: str,
+        files: dict[str, Path],
+        *,
+        parallel: int = 4,
+        on_bytes: BytesCallback | None = None,
+    ) -> list[str]:
+        """Upload the files the job does not hold yet (same sha256 on the server: skipped), ``parallel``
+        at a time; an interrupted large upload continues where the server's partial file ends.
+
+        Returns:
+            The paths uploaded now.
+        """
+        held = {f["path"]: f["sha256"] for f in self.job(job_id).get("files", [])}
+        todo = []
+        for rel, local in files.items():
+            if held.get(rel) == sha256_of(local):
+                if on_bytes:
+                    on_bytes(local.stat().st_size)
+            else:
+                todo.append(rel)
+        with ThreadPoolExecutor(max_workers=max(1, parallel)) as pool:
+            for done in [pool.submit(self.upload_file, job_id, rel, files[rel], on_bytes=on_bytes) for rel in todo]:
+                done.result()
+        return todo
 
     def _server_partial(self, job_id: str, path: str, size: int) -> int:
         """Where an earlier, interrupted upload of this file ended on the server (0: start over)."""

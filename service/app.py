@@ -13,14 +13,17 @@ from typing import Any
 
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, PlainTextResponse, Response
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 from starlette.concurrency import run_in_threadpool
 
 import pmvir
 from service import console, routes_files, routes_info, routes_jobs
 from service.deps import Services
 from service.errors import install_error_handlers
+from service.metrics import ServiceCollector
 from service.models import Health, JobCreate, JobRerun, Ready
+from service.observability import RequestIdMiddleware, configure_logging
 from service.queue import make_celery
 from service.settings import Settings, get_settings
 from service.storage_s3 import open_storage
@@ -41,6 +44,7 @@ Every endpoint under /v1 needs `Authorization: Bearer <API key>`. Errors are JSO
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The API, configured by ``settings`` (default: from the PMVIR_* environment)."""
     settings = settings or get_settings()
+    configure_logging(settings.log_format)
     app = FastAPI(
         title="pmvir capture-processing service",
         version=pmvir.__version__,
@@ -92,6 +96,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         ready = await run_in_threadpool(probe)
         return JSONResponse(status_code=200 if ready.status == "ok" else 503, content=ready.model_dump())
 
+    @app.get(
+        "/metrics",
+        tags=["health"],
+        summary="Prometheus metrics: jobs by state, queue, stage durations, failures, workers, storage",
+        response_class=PlainTextResponse,
+        responses={200: {"content": {CONTENT_TYPE_LATEST: {"schema": {"type": "string"}}}}},
+    )
+    def metrics() -> Response:
+        return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
+
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(ServiceCollector(app.state.services))
+    app.add_middleware(RequestIdMiddleware)
     app.openapi = lambda: openapi_document(app)  # type: ignore[method-assign]  # FastAPI's override
     return app
 

@@ -1,13 +1,12 @@
-"""API keys: ``Authorization: Bearer <key>``, compared in constant time.
+"""API keys: ``Authorization: Bearer <key>``, checked against their scrypt hashes (:mod:`service.keys`).
 
-A key's jobs belong to its *owner id*, a digest of the key, so the key itself
-is never stored; a job of another owner is answered 404, like a job that does
-not exist.
+A key's jobs belong to its tenant (the *owner id*): the name its hashed entry
+gives, or a digest of a plain key, so the key itself is never stored; a job of
+another owner is answered 404, like a job that does not exist.
 """
 
 from __future__ import annotations
 
-import hmac
 from typing import Annotated
 
 from fastapi import Depends, Request
@@ -16,16 +15,6 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from service.errors import ApiError
 
 bearer = HTTPBearer(auto_error=False, description="An API key from PMVIR_API_KEYS.")
-
-
-def owner_for_key(presented: str, key_owners: tuple[tuple[bytes, str], ...]) -> str | None:
-    """The owner id of ``presented``, or None. Every configured key is compared (constant time each)."""
-    candidate = presented.encode()
-    found = None
-    for key, owner in key_owners:
-        if hmac.compare_digest(candidate, key):
-            found = owner
-    return found
 
 
 def _unauthorized(message: str) -> ApiError:
@@ -38,7 +27,7 @@ def require_owner(
     """FastAPI dependency: the caller's owner id, or 401."""
     if creds is None or creds.scheme.lower() != "bearer" or not creds.credentials:
         raise _unauthorized("missing API key: send Authorization: Bearer <key>")
-    owner = owner_for_key(creds.credentials, request.app.state.settings.key_owners)
+    owner = request.app.state.settings.keyring.tenant(creds.credentials)
     if owner is None:
         raise _unauthorized("invalid API key")
     return owner

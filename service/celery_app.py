@@ -13,6 +13,7 @@ from celery import signals
 from celery.exceptions import TimeLimitExceeded
 
 from service import limits
+from service.observability import configure_logging
 from service.queue import RUN_JOB, make_celery
 from service.settings import get_settings
 
@@ -44,6 +45,14 @@ def run_job(self, job_id: str) -> None:
     from service.runner import run_job as run
 
     run(job_id, settings=settings, hostname=self.request.hostname or "")
+
+
+if settings.log_format == "json":
+
+    @signals.setup_logging.connect
+    def _json_logs(**_: object) -> None:
+        """JSON lines for the worker's own log (Celery's logging set-up is skipped)."""
+        configure_logging("json")
 
 
 @signals.worker_process_init.connect

@@ -30,6 +30,7 @@ import httpx
 
 import pmvir
 from pmvir.result import downloadable_names
+from service.jobs import interrupted_validations
 from service.settings import Settings
 from service.storage import JobFiles
 from service.storage_s3 import open_storage
@@ -129,6 +130,20 @@ def sweep_expired(store: JobStore, files: JobFiles, *, now: float | None = None)
     return deleted
 
 
+def sweep_abandoned(store: JobStore, files: JobFiles, *, ttl: float, now: float | None = None) -> list[str]:
+    """Delete created jobs nobody touched for ``ttl`` seconds (their uploads stopped, never started),
+    which frees their slots of the key's unfinished-jobs limit; returns their ids."""
+    if ttl <= 0:
+        return []
+    deleted = []
+    for job in store.abandoned(older_than=ttl, now=now):
+        store.delete(job)
+        files.delete(job.id)
+        log.info("job %s deleted: created and left untouched for %.0f s", job.id, ttl)
+        deleted.append(job.id)
+    return deleted
+
+
 def worker_info(name: str) -> dict[str, Any]:
     """What this worker says about itself in its heartbeat."""
     try:
@@ -171,6 +186,9 @@ def _janitor_loop(settings: Settings, stop: threading.Event, name: str) -> None:
             if time.monotonic() >= next_sweep:
                 next_sweep = time.monotonic() + settings.janitor_interval
                 sweep_expired(store, files)
+                sweep_abandoned(store, files, ttl=settings.upload_ttl)
+                for job_id in interrupted_validations(store):
+                    log.warning("job %s: its validation was interrupted; back to created", job_id)
         except Exception as exc:  # noqa: BLE001 - Redis or the disk away: keep trying
             log.warning("janitor: %s", exc)
         if stop.wait(beat):

@@ -10,6 +10,8 @@ request cannot go ahead.
 from __future__ import annotations
 
 import hashlib
+import json
+import logging
 import uuid
 import zipfile
 from typing import Any, BinaryIO
@@ -18,15 +20,18 @@ from urllib.parse import urlsplit
 from pydantic import ValidationError
 
 from pmvir.capture import open_capture, validate_capture
-from pmvir.config import PipelineConfig, nest_deprecated_geometry_keys
+from pmvir.config import PipelineConfig, merge_options
 from pmvir.errors import CaptureError
 from pmvir.stages import Stage
+from service import observability
 from service.deps import Services
 from service.errors import ApiError, ErrorItem, conflict, invalid, not_found
 from service.models import JobCreate
 from service.queue import RUN_JOB
-from service.store import Gate, Job, JobStatus
+from service.store import Gate, Job, JobStatus, JobStore
 from service.zipped import ignored_member, import_zip, save_upload
+
+log = logging.getLogger("pmvir.api")
 
 
 def fingerprint(spec: JobCreate, capture: BinaryIO | None = None) -> str:
@@ -168,12 +173,12 @@ def _discard(svc: Services, owner: str, job_id: str, key_hash: str | None) -> No
 
 
 def start_job(svc: Services, *, job: Job) -> None:
-    """Validate the whole capture and queue the job.
+    """Check the options and move the job to validating; :func:`validate_and_queue`, run after the
+    answer, checks the capture and queues the job (or puts it back to created with its problems).
 
     Raises:
         ApiError: 404 (gone), 409 (not created, uploads in progress, being started),
-            422 (the options name a stage this build lacks, or the capture is invalid:
-            each file's problem named), 503 (the queue is unreachable).
+            422 (the options name a stage this build lacks).
     """
     why = svc.store.start_lock(job.id)
     if why is Gate.GONE:
@@ -185,20 +190,83 @@ def start_job(svc: Services, *, job: Job) -> None:
     if why is not Gate.OK:
         raise conflict(f"the job is {why}; only a created job can be started")
     try:
-        items = stage_problems(job) or capture_problems(svc, job.id)
+        items = stage_problems(job)
         if items:
-            svc.store.log(job.id, f"start refused: {len(items)} problem(s) in the capture")
-            code = "invalid_options" if items[0].loc else "invalid_capture"
-            raise ApiError(422, code, f"the job cannot start: {len(items)} problem(s)", errors=items)
-        queue_job(svc, job=job)
-        svc.store.log(job.id, "capture valid; job queued")
+            svc.store.log(job.id, "start refused: the options name an unavailable stage")
+            raise ApiError(422, "invalid_options", f"the job cannot start: {len(items)} problem(s)", errors=items)
+        check_queue_room(svc)
+        ok, before = svc.store.transition(job, (JobStatus.CREATED,), JobStatus.VALIDATING, problems="[]", error="")
+        if not ok:
+            raise conflict(f"the job is {before or 'gone'}; only a created job can be started")
+        svc.store.validating_begin(job.id)
+        svc.store.log(job.id, "validating the capture")
     finally:
         svc.store.start_unlock(job.id)
 
 
-def queue_job(svc: Services, *, job: Job) -> None:
-    """Move a created job to queued and send its task (back to created when the broker is away)."""
-    ok, before = svc.store.transition(job, (JobStatus.CREATED,), JobStatus.QUEUED, cancel=False)
+def check_queue_room(svc: Services) -> None:
+    """503 with Retry-After when the queue holds PMVIR_MAX_QUEUED jobs already."""
+    cap = svc.settings.max_queued
+    if cap and (waiting := svc.store.queue_length(svc.settings.queue)) >= cap:
+        raise ApiError(
+            503,
+            "queue_full",
+            f"{waiting} jobs are waiting for a worker, the limit is {cap}; start this job later",
+            headers={"Retry-After": "30"},
+        )
+
+
+def validate_and_queue(svc: Services, job_id: str) -> JobStatus | None:
+    """Check a validating job's capture (each frame decoded) and queue it; a capture with problems
+    sends the job back to created with them (``problems``). Returns the job's status after."""
+    observability.job_id.set(job_id)
+    try:
+        return _validate_and_queue(svc, job_id)
+    finally:
+        svc.store.validating_end(job_id)
+
+
+def _validate_and_queue(svc: Services, job_id: str) -> JobStatus | None:
+    job = svc.store.get(job_id)
+    if job is None or job.status is not JobStatus.VALIDATING:
+        return job.status if job else None
+    try:
+        items = capture_problems(svc, job_id)
+    except Exception as exc:  # an unreadable capture is a problem of the capture, said as such
+        log.exception("job %s: validation failed", job_id)
+        items = [ErrorItem(msg=f"the capture could not be read ({type(exc).__name__})", type="internal")]
+    if items:
+        svc.store.log(job_id, f"start refused: {len(items)} problem(s) in the capture")
+        problems = json.dumps([i.model_dump(mode="json", exclude_none=True) for i in items])
+        error = f"the capture is invalid: {len(items)} problem(s); fix them and start again"
+        svc.store.transition(job, (JobStatus.VALIDATING,), JobStatus.CREATED, problems=problems, error=error)
+        return JobStatus.CREATED
+    try:
+        queue_job(svc, job=job, current=JobStatus.VALIDATING)
+    except ApiError as exc:
+        svc.store.transition(job, (JobStatus.VALIDATING,), JobStatus.CREATED, error=str(exc))
+        return JobStatus.CREATED
+    svc.store.log(job_id, "capture valid; job queued")
+    return JobStatus.QUEUED
+
+
+def interrupted_validations(store: JobStore, *, older_than: float = 900.0) -> list[str]:
+    """Send jobs whose validation never ended (its API process died) back to created; returns their ids."""
+    back = []
+    for job_id in store.stale_validating(older_than=older_than):
+        job = store.get(job_id)
+        error = "the capture's validation was interrupted; start the job again"
+        if job is not None and store.transition(job, (JobStatus.VALIDATING,), JobStatus.CREATED, error=error)[0]:
+            store.log(job_id, error)
+            back.append(job_id)
+        store.validating_end(job_id)
+    return back
+
+
+def queue_job(svc: Services, *, job: Job, current: JobStatus = JobStatus.CREATED) -> None:
+    """Move a created (or validating) job to queued and send its task (back to created when the
+    broker is away)."""
+    ok, before = svc.store.transition(job, (current,), JobStatus.QUEUED, cancel=False)
     if not ok:
         raise conflict(f"the job is {before or 'gone'}; only a created job can be started")
     try:
@@ -237,16 +305,7 @@ def rerun_job(
             f"the source job is {source.status}; a rerun needs a job that was started and finished"
         )
     try:
-        merged = merge_options(_nested(source.options), _nested(changes))
-    except ValueError as exc:  # an old flat key and its new place both given
-        raise ApiError(
-            422,
-            "validation_error",
-            f"the options are invalid: {exc}",
-            errors=[ErrorItem(loc=["body", "options", "geometry"], msg=str(exc), type="value_error")],
-        ) from exc
-    try:
-        config = PipelineConfig.model_validate(merged)
+        config = PipelineConfig.model_validate(merge_options(source.options, changes))
     except ValidationError as exc:
         raise invalid(exc, ("body", "options"), "the merged options are invalid") from exc
     if from_stage.position > Stage(config.stop_after).position:
@@ -262,6 +321,7 @@ def rerun_job(
                 f"the source job has no cached {stage} output made with these options (it did not run "
                 f"{stage}, or options for {stage} or an earlier stage changed); rerun from {stage}"
             )
+    check_queue_room(svc)
     spec = JobCreate(
         options=config, label=label or source.label, callback_url=source.callback_url, result_ttl=source.ttl
     )
@@ -277,27 +337,6 @@ def rerun_job(
         _discard(svc, owner, job.id, None)
         raise
     return _get(svc, job.id)
-
-
-def _nested(options: dict[str, Any]) -> dict[str, Any]:
-    """Options with deprecated flat geometry keys moved into their groups, so a merge sees one key each."""
-    geometry = options.get("geometry")
-    return {**options, "geometry": nest_deprecated_geometry_keys(geometry)} if isinstance(geometry, dict) else options
-
-
-def merge_options(base: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
-    """``base`` with ``changes`` applied: nested dicts merged key by key, anything else replaced.
-
-    >>> merge_options({"refine": {"pol_k": 0.5, "dop_min": 0.1}}, {"refine": {"pol_k": 0.7}})
-    {'refine': {'pol_k': 0.7, 'dop_min': 0.1}}
-    """
-    out = dict(base)
-    for key, value in changes.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = merge_options(out[key], value)
-        else:
-            out[key] = value
-    return out
 
 
 def cancel_job(svc: Services, *, job: Job) -> None:

@@ -11,6 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from pmvir.config import PipelineConfig
 from pmvir.result import downloadable_names
 from pmvir.stages import Stage
+from service.errors import ErrorItem
 from service.store import FileInfo, Job, JobStatus
 
 #: The result files served by name (pmvir.result's table: single files, folders as .zip, result.zip).
@@ -118,7 +119,10 @@ class JobOut(BaseModel):
     """A job: its state, progress and files."""
 
     id: str
-    status: JobStatus = Field(description="created, queued, running, succeeded, failed or canceled.")
+    status: JobStatus = Field(
+        description="created, validating (the capture is being checked), queued, running, succeeded, "
+        "failed or canceled."
+    )
     stage: str | None = Field(default=None, description="The pipeline stage running or last run.")
     progress: float = Field(ge=0.0, le=1.0, description="Overall fraction done, 0..1; never goes backwards.")
     label: str | None = None
@@ -129,7 +133,14 @@ class JobOut(BaseModel):
     started_at: datetime | None = None
     finished_at: datetime | None = None
     stage_timings: dict[str, float] = Field(default_factory=dict, description="Seconds spent per stage.")
-    error: str | None = Field(default=None, description="Why the job failed.")
+    error: str | None = Field(
+        default=None, description="Why the job failed, or why its capture was refused (back to created)."
+    )
+    problems: list[ErrorItem] = Field(
+        default_factory=list,
+        description="What the last validation found wrong in the capture, each naming its file; the job "
+        "went back to created (fix the files, start again).",
+    )
     cancel_requested: bool = False
     deliveries: int = Field(ge=0, description="How many times a worker started the job.")
     files: list[FileOut] = Field(default_factory=list, description="Complete capture files.")
@@ -175,6 +186,7 @@ class JobOut(BaseModel):
             finished_at=_dt(job.finished_at),
             stage_timings=job.stage_timings,
             error=job.error,
+            problems=[ErrorItem.model_validate(p) for p in job.problems],
             cancel_requested=job.cancel_requested,
             deliveries=job.deliveries,
             files=[FileOut.of(f) for f in files],
@@ -265,12 +277,13 @@ class InfoOut(BaseModel):
     stages: list[str] = Field(description="The pipeline's stages, in order.")
     limits: dict[str, float] = Field(description="Size, count, time and retention limits (PMVIR_* settings).")
     queue: str = Field(description="The Celery queue jobs go to.")
-    queue_length: int = Field(ge=0, description="Jobs waiting in the queue for a worker.")
-    workers_online: int = Field(ge=0)
-    workers: list[WorkerOut]
-    cuda_available: bool = Field(description="At least one online worker has CUDA.")
     webhooks_enabled: bool = Field(description="Callback URLs are accepted (PMVIR_WEBHOOK_HOSTS is set).")
-    disk: DiskOut
+    admin: bool = Field(default=False, description="The key has the admin role; the figures below are for it alone.")
+    queue_length: int | None = Field(default=None, ge=0, description="Jobs waiting in the queue for a worker (admin).")
+    workers_online: int | None = Field(default=None, ge=0, description="Workers with a live heartbeat (admin).")
+    workers: list[WorkerOut] | None = Field(default=None, description="The live workers (admin).")
+    cuda_available: bool | None = Field(default=None, description="At least one online worker has CUDA (admin).")
+    disk: DiskOut | None = Field(default=None, description="The storage's use (admin).")
 
 
 class Health(BaseModel):

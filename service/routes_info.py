@@ -35,7 +35,7 @@ LIMITS = (
 
 @router.get(
     "/info",
-    summary="Version, limits, queue length, workers online, CUDA, disk use",
+    summary="Version, stages and limits; for an admin key also the queue, workers, CUDA and storage use",
     response_model=InfoOut,
     responses=_COMMON,
 )
@@ -45,19 +45,26 @@ def info(
     from pmvir.stages import STAGES
 
     s = svc.settings
-    workers = [WorkerOut.model_validate(w) for w in svc.store.workers()]
     limits: dict[str, float] = {name: getattr(s, name) for name in LIMITS}
     limits["max_frame_pixels"] = MAX_FRAME_PIXELS
     limits["option_magnitude"] = OPTION_MAGNITUDE_LIMIT
-    return InfoOut(
+    out = InfoOut(
         version=pmvir.__version__,
         stages=[str(st) for st in STAGES],
         limits=limits,
         queue=s.queue,
-        queue_length=svc.store.queue_length(s.queue),
-        workers_online=len(workers),
-        workers=workers,
-        cuda_available=any(w.cuda for w in workers),
         webhooks_enabled=bool(s.webhook_hosts),
-        disk=DiskOut(**svc.files.usage()),
+    )
+    if owner not in s.keyring.admins:  # the service-wide figures are the operator's
+        return out
+    workers = [WorkerOut.model_validate(w) for w in svc.store.workers()]
+    return out.model_copy(
+        update={
+            "admin": True,
+            "queue_length": svc.store.queue_length(s.queue),
+            "workers_online": len(workers),
+            "workers": workers,
+            "cuda_available": any(w.cuda for w in workers),
+            "disk": DiskOut(**svc.files.usage()),
+        }
     )

@@ -5,7 +5,7 @@ from __future__ import annotations
 from functools import partial
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
+from fastapi import APIRouter, BackgroundTasks, Depends, Header, Path, Query, Request, Response
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
@@ -243,18 +243,23 @@ def get_job(job_id: JobId, owner: Owner, svc: Svc) -> JobOut:
 
 @router.post(
     "/{job_id}/start",
-    summary="Validate the whole capture and queue the job",
+    summary="Start the job: its capture is validated, then the job is queued",
+    description="Answers at once with the job in status validating. Every file is then checked (each "
+    "frame decoded): a valid capture moves the job to queued; a capture with problems sends it back to "
+    "created with error and problems naming each file (fix them, start again).",
     response_model=JobOut,
     status_code=202,
     responses={
         **_JOB_ERRORS,
-        202: {"description": "Queued."},
+        202: {"description": "Validating (the job moves on to queued, or back to created with problems)."},
         409: {**_E, "description": "Not in status created, or uploads still in progress."},
-        422: {**_E, "description": "The capture is invalid; errors name each file."},
+        422: {**_E, "description": "The options name a stage this build lacks."},
     },
 )
-def start_job(job_id: JobId, owner: Owner, svc: Svc) -> JobOut:
-    jobs.start_job(svc, job=owned_job(svc, job_id, owner))
+def start_job(job_id: JobId, owner: Owner, svc: Svc, background: BackgroundTasks) -> JobOut:
+    job = owned_job(svc, job_id, owner)
+    jobs.start_job(svc, job=job)
+    background.add_task(jobs.validate_and_queue, svc, job.id)
     return job_out(svc, owned_job(svc, job_id, owner))
 
 

@@ -33,7 +33,7 @@ from celery.exceptions import SoftTimeLimitExceeded
 
 from pmvir.config import PipelineConfig
 from pmvir.errors import CanceledError, PmvirError
-from service import limits
+from service import limits, metrics, observability
 from service.queue import RUN_JOB
 from service.settings import Settings
 from service.storage import JobFiles
@@ -152,6 +152,7 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
 
     store = store or JobStore.from_url(settings.redis_url, prefix=settings.key_prefix)
     files = open_storage(settings)
+    observability.job_id.set(job_id)
     run_id = uuid.uuid4().hex
     what, n = store.claim(
         job_id, run_id, lease_seconds=settings.lease_seconds, max_deliveries=settings.max_deliveries
@@ -160,6 +161,7 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
         log.info("job %s: nothing to run (%s)", job_id, what)
         if what is Claim.EXHAUSTED:
             store.log(job_id, f"failed: started {n - 1} times, its worker died each time")
+            _record(store, JobStatus.FAILED, {}, "the job was started too often")
         return what
     job = store.get(job_id)
     if job is None:
@@ -229,7 +231,15 @@ def _end(
         log.info("job %s: run %s was superseded; its outcome (%s) is dropped", job.id, run_id, status)
         return "superseded"
     store.log(job.id, status if error is None else f"{status}: {error}")
+    _record(store, status, timings, error)
     return status
+
+
+def _record(store: JobStore, status: JobStatus, timings: dict[str, float], error: str | None) -> None:
+    try:
+        metrics.record_end(store, status, timings, error)
+    except Exception as exc:  # noqa: BLE001 - metrics are best effort; the job's outcome is recorded
+        log.warning("metrics not recorded: %s", exc)
 
 
 def _end_canceled(store: JobStore, files: JobFiles, job: Job, run_id: str, timings: dict[str, float]) -> str:
@@ -249,6 +259,7 @@ def fail_now(job_id: str, settings: Settings, error: str) -> bool:
         return False
     if store.finish(job, job.run_id, JobStatus.FAILED, error=error):
         store.log(job_id, f"failed: {error}")
+        _record(store, JobStatus.FAILED, {}, error)
         log.error("job %s: %s", job_id, error)
         return True
     return False

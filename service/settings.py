@@ -8,13 +8,14 @@ plain integers. The README's "Service" section lists them.
 
 from __future__ import annotations
 
-import hashlib
 from functools import cached_property
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+from service.keys import KeyRing
 
 MiB = 1024**2
 GiB = 1024**3
@@ -53,7 +54,8 @@ class Settings(BaseSettings):
     )
     api_keys: Annotated[tuple[str, ...], NoDecode] = Field(
         default=(),
-        description="Comma-separated API keys (Authorization: Bearer <key>). Empty: every request is 401.",
+        description="Comma-separated API keys (Authorization: Bearer <key>): tenant=scrypt:<salt>:<hash> "
+        "entries (python -m service.keys TENANT), or plain keys. Empty: every request is 401.",
     )
     key_prefix: str = Field(default="pmvir", min_length=1, description="Prefix of the service's Redis keys.")
     queue: str = Field(default="pmvir", min_length=1, description="Celery queue the jobs go to.")
@@ -124,6 +126,16 @@ class Settings(BaseSettings):
         ge=0,
         description="Bytes of address space one job may use (RLIMIT_AS of its process); 0: no limit.",
     )
+    log_format: Literal["text", "json"] = Field(
+        default="text",
+        description="text, or json: one JSON object per log line with time, level, logger, message, "
+        "request_id and job_id.",
+    )
+    admin_keys: Annotated[tuple[str, ...], NoDecode] = Field(
+        default=(),
+        description="Comma-separated keys with the admin role (entries as in api_keys): GET /v1/info "
+        "shows them the service-wide figures (queue, workers, storage use). They are API keys too.",
+    )
     max_log_lines: int = Field(default=10_000, gt=0, description="Most log lines kept per job.")
 
     # -- retention
@@ -133,6 +145,18 @@ class Settings(BaseSettings):
         le=10 * 365 * 86400,
         description="Seconds after it finished that a job (record, capture, result) is deleted; 0 keeps "
         "jobs until deleted by hand. A job's own result_ttl option overrides it.",
+    )
+    upload_ttl: int = Field(
+        default=24 * 3600,
+        ge=0,
+        description="Seconds a created job may sit without uploads or a start before it is deleted "
+        "(its slot freed); 0: never.",
+    )
+    max_queued: int = Field(
+        default=0,
+        ge=0,
+        description="Most jobs waiting in the queue; a start beyond it is answered 503 with Retry-After. "
+        "0: no cap.",
     )
     janitor_interval: float = Field(
         default=60.0, gt=0.0, le=86400.0, description="Seconds between a worker's retention sweeps."
@@ -160,7 +184,7 @@ class Settings(BaseSettings):
     )
     webhook_timeout: float = Field(default=10.0, gt=0.0, le=120.0, description="Seconds per delivery attempt.")
 
-    @field_validator("api_keys", "webhook_hosts", mode="before")
+    @field_validator("api_keys", "admin_keys", "webhook_hosts", mode="before")
     @classmethod
     def _split_keys(cls, value: object) -> object:
         if isinstance(value, str):
@@ -178,9 +202,9 @@ class Settings(BaseSettings):
         return self
 
     @cached_property
-    def key_owners(self) -> tuple[tuple[bytes, str], ...]:
-        """(key bytes, owner id) per API key; the owner id is a digest, never the key itself."""
-        return tuple((k.encode(), hashlib.sha256(k.encode()).hexdigest()[:24]) for k in self.api_keys)
+    def keyring(self) -> KeyRing:
+        """The API and admin keys: which tenant a presented key belongs to (service.keys)."""
+        return KeyRing(self.api_keys, self.admin_keys)
 
 
 def get_settings() -> Settings:

@@ -10,13 +10,14 @@ Keys (``P`` is ``Settings.key_prefix``)::
     P:job:<id>:lease       string with a TTL: the run id of the worker running the job (heartbeat)
     P:job:<id>:log         list of JSON lines {"t", "msg"}
     P:owner:<owner>:jobs   zset: the owner's job ids by creation time
-    P:owner:<owner>:open   set: the owner's unfinished jobs (created, queued, running)
+    P:owner:<owner>:open   set: the owner's unfinished jobs (created, validating, queued, running)
     P:running              set: jobs in status running (scanned for lapsed leases)
     P:idem:<owner>:<hash>  string with a TTL: Idempotency-Key -> job id
     P:job:<id>:webhook     list of JSON delivery attempts of the job's webhook
     P:expiry               zset: finished jobs with a ttl, scored by when they are to be deleted
     P:webhooks             zset: jobs whose webhook event is due, scored by the next attempt's time
     P:worker:<name>        string with a TTL: a live worker's JSON self-description (heartbeat)
+    P:validating           zset: jobs whose capture is being validated, scored by when it began
 
 Every state change that depends on the current state is one Lua script
 (:mod:`service.store_scripts`), so
@@ -30,131 +31,16 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import dataclass, field
-from enum import StrEnum
 from typing import Any
 
 import redis
 import redis.lock
 
 from service import store_scripts as scripts
+from service.store_types import TERMINAL, Claim, FileInfo, Gate, IdempotentJob, Job, JobStatus
+from service.store_types import gate as _gate
 
-
-class JobStatus(StrEnum):
-    """Where a job is in its life: created -> queued -> running -> one of the terminal states."""
-
-    CREATED = "created"
-    QUEUED = "queued"
-    RUNNING = "running"
-    SUCCEEDED = "succeeded"
-    FAILED = "failed"
-    CANCELED = "canceled"
-
-    @property
-    def terminal(self) -> bool:
-        """The job has ended (succeeded, failed or canceled) and never changes again."""
-        return self in TERMINAL
-
-
-TERMINAL = frozenset({JobStatus.SUCCEEDED, JobStatus.FAILED, JobStatus.CANCELED})
-
-
-class Gate(StrEnum):
-    """The store's answer when an upload or a start asks to go ahead (else the job's status)."""
-
-    OK = "ok"
-    GONE = "gone"
-    UPLOADING = "uploading"
-    STARTING = "starting"
-
-
-class Claim(StrEnum):
-    """What a delivery of a job's task found (:meth:`JobStore.claim`)."""
-
-    OK = "ok"
-    GONE = "gone"
-    DONE = "done"
-    NOT_QUEUED = "not_queued"
-    BUSY = "busy"
-    EXHAUSTED = "exhausted"
-
-
-def _gate(answer: str) -> Gate | JobStatus:
-    return Gate(answer) if answer in Gate.__members__.values() else JobStatus(answer)
-
-
-@dataclass(frozen=True)
-class IdempotentJob:
-    """The job an Idempotency-Key was already bound to, and the fingerprint of the request that made it."""
-
-    job_id: str
-    fingerprint: str
-
-
-@dataclass(frozen=True)
-class FileInfo:
-    """A complete capture file of a job."""
-
-    path: str
-    size: int
-    sha256: str
-
-
-@dataclass
-class Job:
-    """A job as stored (times are Unix seconds)."""
-
-    id: str
-    owner: str
-    status: JobStatus
-    options: dict[str, Any]
-    created_at: float
-    updated_at: float
-    label: str | None = None
-    stage: str | None = None
-    progress: float = 0.0
-    queued_at: float | None = None
-    started_at: float | None = None
-    finished_at: float | None = None
-    error: str | None = None
-    cancel_requested: bool = False
-    deliveries: int = 0
-    run_id: str = ""
-    stage_timings: dict[str, float] = field(default_factory=dict)
-    source_job: str | None = None
-    resume_from: str | None = None
-    ttl: int = 0
-    callback_url: str | None = None
-
-    @classmethod
-    def from_hash(cls, h: dict[str, str]) -> Job:
-        def opt_float(name: str) -> float | None:
-            v = h.get(name)
-            return float(v) if v not in (None, "") else None
-
-        return cls(
-            id=h["id"],
-            owner=h["owner"],
-            status=JobStatus(h["status"]),
-            options=json.loads(h.get("options") or "{}"),
-            created_at=float(h["created_at"]),
-            updated_at=float(h.get("updated_at") or h["created_at"]),
-            label=h.get("label") or None,
-            stage=h.get("stage") or None,
-            progress=float(h.get("progress") or 0.0),
-            queued_at=opt_float("queued_at"),
-            started_at=opt_float("started_at"),
-            finished_at=opt_float("finished_at"),
-            error=h.get("error") or None,
-            cancel_requested=h.get("cancel") == "1",
-            deliveries=int(h.get("deliveries") or 0),
-            run_id=h.get("run_id") or "",
-            stage_timings=json.loads(h.get("stage_timings") or "{}"),
-            source_job=h.get("source_job") or None,
-            resume_from=h.get("resume_from") or None,
-            ttl=int(h.get("ttl") or 0),
-            callback_url=h.get("callback_url") or None,
-        )
+__all__ = ["TERMINAL", "Claim", "FileInfo", "Gate", "IdempotentJob", "Job", "JobStatus", "JobStore"]
 
 
 class JobStore:
@@ -423,7 +309,7 @@ class JobStore:
                     self.key(job_id, "uploads"),
                     self.key(job_id, "partial"),
                 ],
-                args=[token, info.path, json.dumps({"size": info.size, "sha256": info.sha256})],
+                args=[token, info.path, json.dumps({"size": info.size, "sha256": info.sha256}), repr(time.time())],
             )
         )
 
@@ -569,6 +455,36 @@ class JobStore:
         for n in names:
             pipe.llen(n)
         return int(sum(pipe.execute()))
+
+    def abandoned(self, *, older_than: float, now: float | None = None) -> list[Job]:
+        """Created jobs untouched for ``older_than`` seconds with no upload in progress."""
+        cutoff = (time.time() if now is None else now) - older_than
+        found = []
+        for open_key in self.r.scan_iter(match=f"{self.p}:owner:*:open", count=500):
+            for job_id in self.r.smembers(open_key):
+                job = self.get(job_id)
+                if (
+                    job is not None
+                    and job.status is JobStatus.CREATED
+                    and job.updated_at < cutoff
+                    and not self.r.zcount(self.key(job_id, "uploads"), now or time.time(), "+inf")
+                ):
+                    found.append(job)
+        return found
+
+    # -- validation (off the request path)
+
+    def validating_begin(self, job_id: str) -> None:
+        """Note that ``job_id``'s capture is being validated (its validation's start time)."""
+        self.r.zadd(f"{self.p}:validating", {job_id: time.time()})
+
+    def validating_end(self, job_id: str) -> None:
+        self.r.zrem(f"{self.p}:validating", job_id)
+
+    def stale_validating(self, *, older_than: float, now: float | None = None) -> list[str]:
+        """Jobs whose validation started more than ``older_than`` seconds ago (its API process died)."""
+        cutoff = (time.time() if now is None else now) - older_than
+        return list(self.r.zrangebyscore(f"{self.p}:validating", "-inf", cutoff, start=0, num=100))
 
     # -- log
 

@@ -54,7 +54,7 @@ CLAIM = _ENDED + """
 local st = redis.call('HGET', KEYS[1], 'status')
 if not st then return {'gone', 0} end
 if st == 'succeeded' or st == 'failed' or st == 'canceled' then return {'done', 0} end
-if st == 'created' then return {'not_queued', 0} end
+if st == 'created' or st == 'validating' then return {'not_queued', 0} end
 if st == 'running' and redis.call('EXISTS', KEYS[3]) == 1 then return {'busy', 0} end
 local n = redis.call('HINCRBY', KEYS[1], 'deliveries', 1)
 if n > tonumber(ARGV[5]) then
@@ -111,11 +111,12 @@ return 'ok'
 """
 
 UPLOAD_COMMIT = """
--- KEYS: job, files, uploads, partial; ARGV: token, path, info json
+-- KEYS: job, files, uploads, partial; ARGV: token, path, info json, now
 redis.call('ZREM', KEYS[3], ARGV[1])
 local st = redis.call('HGET', KEYS[1], 'status')
 if st ~= 'created' then return st or 'gone' end
 redis.call('HSET', KEYS[2], ARGV[2], ARGV[3])
+redis.call('HSET', KEYS[1], 'updated_at', ARGV[4])
 redis.call('HDEL', KEYS[4], ARGV[2])
 return 'ok'
 """
@@ -135,7 +136,7 @@ CANCEL = _ENDED + """
 -- KEYS: job, owner open, running, lease, expiry, webhooks; ARGV: id, now
 local st = redis.call('HGET', KEYS[1], 'status')
 if not st then return '' end
-if st == 'created' or st == 'queued' then
+if st == 'created' or st == 'validating' or st == 'queued' then
   redis.call('HSET', KEYS[1], 'status', 'canceled', 'cancel', '1',
     'finished_at', ARGV[2], 'updated_at', ARGV[2])
   redis.call('SREM', KEYS[2], ARGV[1]); redis.call('SREM', KEYS[3], ARGV[1]); redis.call('DEL', KEYS[4])

@@ -14,6 +14,8 @@ problem with the capture, the options or the service.
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
 import os
 import sys
 import uuid
@@ -51,7 +53,40 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="a .zip capture up to this many bytes is sent in one request (default 64 MiB)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue this capture's last interrupted submission to this server: the same job, files "
+        "already there (same sha256) skipped, a partial upload continued",
+    )
+    p.add_argument("--parallel", type=int, default=4, help="files uploaded at once (default 4)")
     p.set_defaults(func=run)
+
+
+def _state_path(server: str, capture: Path) -> Path:
+    """Where a submission's state is kept: one JSON file per (server, capture folder or zip)."""
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "pmvir" / "submit"
+    digest = hashlib.sha256(f"{server.rstrip('/')}\0{capture.resolve()}".encode()).hexdigest()[:32]
+    return base / f"{digest}.json"
+
+
+def _load_state(path: Path, resume: bool) -> dict[str, Any]:
+    """The state to resume from (its idempotency key and job id), or a fresh one."""
+    if resume:
+        try:
+            state = json.loads(path.read_text())
+            if isinstance(state, dict) and isinstance(state.get("idempotency_key"), str):
+                return state
+        except (OSError, ValueError):
+            pass
+    return {"idempotency_key": uuid.uuid4().hex}
+
+
+def _save_state(path: Path, state: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(state))
+    tmp.replace(path)
 
 
 def _bar(total: float | None, desc: str, unit: str, quiet: bool, **kw: Any):
@@ -60,11 +95,11 @@ def _bar(total: float | None, desc: str, unit: str, quiet: bool, **kw: Any):
     return tqdm(total=total, desc=desc, unit=unit, disable=quiet, file=sys.stderr, dynamic_ncols=True, **kw)
 
 
-def _upload(client: Any, job_id: str, files: dict[str, Path], quiet: bool) -> None:
+def _upload(client: Any, job_id: str, files: dict[str, Path], quiet: bool, parallel: int) -> list[str]:
+    """Upload what the job lacks (files it holds with the same sha256 are skipped)."""
     total = sum(local.stat().st_size for local in files.values())
     with _bar(total, "upload", "B", quiet, unit_scale=True, unit_divisor=1024) as bar:
-        for rel, local in files.items():
-            client.upload_file(job_id, rel, local, on_bytes=bar.update)
+        return list(client.upload_missing(job_id, files, parallel=parallel, on_bytes=bar.update))
 
 
 def _files_of(capture: Path) -> dict[str, Path]:
@@ -135,19 +170,30 @@ def run(args: argparse.Namespace) -> int:
     _check_locally(args.capture)
     out = args.out or args.capture.with_name(args.capture.stem + "-result")
     label = args.label or args.capture.stem
+    one_request = args.capture.suffix.lower() == ".zip" and args.capture.stat().st_size <= args.zip_limit
+    state_path = _state_path(args.server, args.capture)
+    state = _load_state(state_path, args.resume)
     with PmvirClient(args.server, key, retries=args.retries) as client:
-        if args.capture.suffix.lower() == ".zip" and args.capture.stat().st_size <= args.zip_limit:
-            job = client.create_job_from_zip(args.capture, options, label=label)
+        if one_request:
+            job = client.create_job_from_zip(
+                args.capture, options, label=label, idempotency_key=state["idempotency_key"]
+            )
         else:
-            job = client.create_job(options, label=label, idempotency_key=uuid.uuid4().hex)
-            _upload(client, job["id"], _files_of(args.capture), args.quiet)
+            job = client.create_job(options, label=label, idempotency_key=state["idempotency_key"])
         job_id = job["id"]
+        _save_state(state_path, {**state, "job_id": job_id, "server": args.server})
+        if job["status"] == "created" and not one_request:
+            if job.get("files"):
+                print(f"pmvir submit: resuming job {job_id}", file=sys.stderr)
+            _upload(client, job_id, _files_of(args.capture), args.quiet, args.parallel)
         print(f"pmvir submit: job {job_id}", file=sys.stderr)
-        client.start(job_id)
+        if job["status"] == "created":
+            client.start(job_id)
         if args.no_wait:
             print(job_id)
             return 0
         job = _wait(client, job_id, args)
+        state_path.unlink(missing_ok=True)  # the job ended: nothing to resume
         if job["status"] != "succeeded":
             print(
                 f"pmvir submit: job {job_id} {job['status']}: {job.get('error') or ''}".rstrip(": "),

@@ -12,6 +12,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from service.store import JobStore
 from service.testing import ServiceStack, write_noise_capture
 
 from svc_helpers import FLIGHT_KEY, FUZZ_KEY, KEY, LIMITS, OTHER_KEY, client_for, require_redis
@@ -39,6 +40,18 @@ def fresh_stack(tmp_path: Path) -> Iterator[ServiceStack]:
     try:
         st.start(worker=False)
         yield st
+    finally:
+        st.stop()
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory: pytest.TempPathFactory) -> Iterator[JobStore]:
+    """A job store on a redis-server of its own (no API, no worker), shared by a test module."""
+    require_redis()
+    st = ServiceStack(tmp_path_factory.mktemp("redis"))
+    try:
+        st.start_redis()
+        yield JobStore.from_url(st.redis_url, prefix="t")
     finally:
         st.stop()
 

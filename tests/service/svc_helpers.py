@@ -81,5 +81,15 @@ def wait_for(c: httpx.Client, job_id: str, pred, timeout: float = 60.0, what: st
     raise AssertionError(f"job {job_id}: {what or 'condition'} not met in {timeout} s; last state {job}")
 
 
+def start_refused(c: httpx.Client, job_id: str, timeout: float = 60.0) -> dict:
+    """POST /start, wait for the validation, and return the refusal as an error body
+    (``error``, ``message``, ``errors``): the job went back to created with its problems."""
+    r = c.post(f"/v1/jobs/{job_id}/start")
+    assert r.status_code == 202 and r.json()["status"] == "validating", r.text
+    job = wait_for(c, job_id, lambda j: j["status"] != "validating", timeout=timeout, what="validated")
+    assert job["status"] == "created" and job["problems"], job
+    return {"error": "invalid_capture", "message": job["error"], "errors": job["problems"]}
+
+
 def finished(job: dict) -> bool:
     return job["status"] in ("succeeded", "failed", "canceled")

@@ -15,7 +15,17 @@ import pytest
 from pmvir.io.frames import write_frame
 from service.testing import ServiceStack, write_noise_capture
 
-from svc_helpers import DECODE_ONLY, KEY, OTHER_KEY, client_for, finished, new_job, upload, wait_for
+from svc_helpers import (
+    DECODE_ONLY,
+    KEY,
+    OTHER_KEY,
+    client_for,
+    finished,
+    new_job,
+    start_refused,
+    upload,
+    wait_for,
+)
 
 
 def sha(data: bytes) -> str:
@@ -40,7 +50,8 @@ def test_job_runs_end_to_end_and_its_result_parses(
     for rel, answer in done_job["uploads"].items():
         assert answer["sha256"] == sha((small_capture / rel).read_bytes()), rel
         assert answer["complete"] is True
-    assert done_job["start"].status_code == 202 and done_job["start"].json()["status"] == "queued"
+    assert done_job["start"].status_code == 202 and done_job["start"].json()["status"] == "validating"
+    assert [j["status"] for j in done_job["seen"]][-1] == "succeeded"
     job = done_job["job"]
     assert job["status"] == "succeeded", job
     assert job["progress"] == 1.0 and job["stage"] == "decode"
@@ -258,12 +269,11 @@ def test_start_answers_422_with_per_file_errors(
         ).status_code
         == 200
     )
-    r = api.post(f"/v1/jobs/{job_id}/start")
-    assert r.status_code == 422 and r.json()["error"] == "invalid_capture"
-    files = {e["file"] for e in r.json()["errors"]}
+    refused = start_refused(api, job_id)
+    files = {e["file"] for e in refused["errors"]}
     # the mask of frame 002 no longer matches its frame's size: named too
-    assert files == {"frames/001.png", "frames/002.png", "masks/002.png"}, r.json()
-    assert api.get(f"/v1/jobs/{job_id}").json()["status"] == "created"
+    assert files == {"frames/001.png", "frames/002.png", "masks/002.png"}, refused
+    assert "3 problem(s)" in refused["message"]
     # re-uploading replaces the bad files; then the job starts
     for rel in ("frames/001.png", "frames/002.png"):
         fixed = api.put(f"/v1/jobs/{job_id}/files/{rel}", content=(small_capture / rel).read_bytes())
@@ -273,10 +283,9 @@ def test_start_answers_422_with_per_file_errors(
 
 def test_start_without_a_manifest_is_422_naming_capture_json(api: httpx.Client) -> None:
     job_id = new_job(api)
-    r = api.post(f"/v1/jobs/{job_id}/start")
-    assert r.status_code == 422
-    assert [e["file"] for e in r.json()["errors"]] == ["capture.json"]
-    assert "/jobs/" not in r.text  # no storage paths in answers
+    refused = start_refused(api, job_id)
+    assert [e["file"] for e in refused["errors"]] == ["capture.json"]
+    assert "/jobs/" not in str(refused)  # no storage paths in answers
 
 
 def test_invalid_manifest_upload_is_422(api: httpx.Client) -> None:
@@ -405,7 +414,7 @@ def test_oversize_json_body_is_413(api: httpx.Client) -> None:
 
 
 def test_unknown_result_name_is_422(api: httpx.Client, done_job: dict) -> None:
-    r = api.get(f"/v1/jobs/{done_job['id']}/result/capture.json")
+    r = api.get(f"/v1/jobs/{done_job['id']}/result/notes.txt")
     assert r.status_code == 422 and r.json()["errors"][0]["loc"] == ["path", "name"]
 
 

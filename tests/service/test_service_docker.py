@@ -23,9 +23,9 @@ def test_compose_runs_api_worker_and_redis_sharing_the_storage_volume() -> None:
         env = svc["environment"]
         assert env["PMVIR_STORAGE"] == "/data"
         assert env["PMVIR_REDIS_URL"].startswith("redis://redis:")
-        assert "PMVIR_API_KEYS" in env
         assert {"PMVIR_STORAGE_URL", "PMVIR_S3_ENDPOINT_URL", "AWS_ACCESS_KEY_ID"} <= set(env)
         assert svc["depends_on"]["redis"]["condition"] == "service_healthy"
+    assert "PMVIR_API_KEYS" in api["environment"] and "PMVIR_API_KEYS" not in worker["environment"]
     assert api["build"]["dockerfile"] == "docker/Dockerfile"
     assert set(doc["volumes"]) == {"storage", "redis-data", "minio-data"}
 

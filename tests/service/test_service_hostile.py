@@ -25,7 +25,7 @@ from hypothesis import strategies as st
 
 from service.testing import ServiceStack
 
-from svc_helpers import KEY, new_job
+from svc_helpers import KEY, new_job, start_refused
 
 HUGE_INT = "1" * 5000
 DEEP = "[" * 50_000 + "]" * 50_000
@@ -138,7 +138,7 @@ def test_png_declaring_a_huge_image_is_refused_from_its_header_with_the_other_er
     job = new_job(api, small_capture)
     api.put(f"/v1/jobs/{job}/files/frames/001.png", content=_png(1_000_000, 1_000_000))
     api.put(f"/v1/jobs/{job}/files/frames/002.png", content=b"\x89PNG\r\n\x1a\n" + b"x" * 40)
-    err = _error(api.post(f"/v1/jobs/{job}/start"), 422)
+    err = start_refused(api, job)
     by_file = {e["file"]: e["msg"] for e in err["errors"]}
     assert "1000000x1000000" in by_file["frames/001.png"] and "limit" in by_file["frames/001.png"]
     assert "frames/002.png" in by_file  # the other file's problem is reported too

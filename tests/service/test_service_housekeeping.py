@@ -20,6 +20,7 @@ from service.testing import ServiceStack
 from svc_helpers import KEY, LIMITS, client_for, finished, require_redis, wait_for
 
 SECRET = "webhook-secret-for-tests"
+ADMIN = "key-operator"
 
 
 class _Receiver(http.server.BaseHTTPRequestHandler):
@@ -63,7 +64,7 @@ def hk_stack(
         "PMVIR_WEBHOOK_BACKOFF": "0.3",
         "PMVIR_JANITOR_INTERVAL": "0.3",
     }
-    st = ServiceStack(tmp_path_factory.mktemp("hk"), api_keys=(KEY,), env=env)
+    st = ServiceStack(tmp_path_factory.mktemp("hk"), api_keys=(KEY,), env={**env, "PMVIR_ADMIN_KEYS": ADMIN})
     try:
         st.start()
         yield st
@@ -94,9 +95,14 @@ def test_info_reports_version_limits_queue_workers_cuda_and_disk(
     hk: httpx.Client, small_capture: Path
 ) -> None:
     _run(hk, small_capture)  # something on disk
+    tenant = hk.get("/v1/info").json()  # a tenant's key: what the service is, not what it holds
+    assert tenant["admin"] is False and tenant["limits"]["max_frames"] == int(LIMITS["PMVIR_MAX_FRAMES"])
+    assert all(tenant[k] is None for k in ("queue_length", "workers_online", "workers", "cuda_available", "disk"))
+    admin = {"Authorization": f"Bearer {ADMIN}"}
     deadline = time.monotonic() + 20
-    while (info := hk.get("/v1/info").json())["workers_online"] < 1 and time.monotonic() < deadline:
+    while (info := hk.get("/v1/info", headers=admin).json())["workers_online"] < 1 and time.monotonic() < deadline:
         time.sleep(0.2)
+    assert info["admin"] is True
     assert info["version"] == __version__ and info["stages"] == ["decode", "geometry", "refine"]
     assert info["limits"]["max_frames"] == int(LIMITS["PMVIR_MAX_FRAMES"])
     assert info["limits"]["max_frame_pixels"] > 0 and info["limits"]["result_ttl"] == 0

@@ -40,7 +40,11 @@ def hosts(tmp_path: Path) -> Iterator[ServiceStack]:
         for n in (1, 2):
             host = tmp_path / f"host{n}"
             st.start_worker(
-                env={"PMVIR_STORAGE": str(host / "storage"), "PMVIR_SCRATCH": str(host / "scratch")}
+                env={
+                    "PMVIR_STORAGE": str(host / "storage"),
+                    "PMVIR_SCRATCH": str(host / "scratch"),
+                    "PMVIR_API_KEYS": "",  # workers hold no API keys
+                }
             )
         yield st
     finally:

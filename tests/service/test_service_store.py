@@ -3,26 +3,9 @@
 from __future__ import annotations
 
 import uuid
-from collections.abc import Iterator
 from pathlib import Path
 
-import pytest
-
 from service.store import FileInfo, JobStore
-from service.testing import ServiceStack
-
-from svc_helpers import require_redis
-
-
-@pytest.fixture(scope="module")
-def store(tmp_path_factory: pytest.TempPathFactory) -> Iterator[JobStore]:
-    require_redis()
-    st = ServiceStack(tmp_path_factory.mktemp("redis"))
-    try:
-        st.start_redis()
-        yield JobStore.from_url(st.redis_url, prefix="t")
-    finally:
-        st.stop()
 
 
 def queued_job(store: JobStore, owner: str = "o1") -> str:

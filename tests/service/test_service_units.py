@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from service.auth import owner_for_key
 from service.errors import ApiError
+from service.keys import hash_entry, parse_entry, plain_tenant
 from service.ranges import parse_range
 from service.routes_files import CAPTURE_PATH_PATTERN
 from service.settings import Settings
@@ -97,15 +97,22 @@ def test_content_range_parsing() -> None:
         assert err.value.status == 400
 
 
-def test_owner_for_key() -> None:
-    s = Settings(api_keys="alpha, beta ,,gamma")
-    assert s.api_keys == ("alpha", "beta", "gamma")
-    owners = {k.decode(): o for k, o in s.key_owners}
-    assert owner_for_key("beta", s.key_owners) == owners["beta"]
-    assert len(set(owners.values())) == 3 and "beta" not in owners["beta"]
-    for wrong in ("", "bet", "betaa", "BETA", " beta"):
-        assert owner_for_key(wrong, s.key_owners) is None
-    assert owner_for_key("beta", ()) is None
+def test_keys_plain_and_hashed_several_per_tenant_and_admins() -> None:
+    rotated, current = "lab-a-key-2025-old", "lab-a-key-2026-new"
+    s = Settings(
+        api_keys=f"alpha, {hash_entry('lab-a', rotated)} ,,{hash_entry('lab-a', current)}",
+        admin_keys=hash_entry("ops", "operator-key-0001"),
+    )
+    ring = s.keyring
+    assert ring.tenant("alpha") == plain_tenant("alpha") and "alpha" not in ring.tenant("alpha")
+    assert ring.tenant(rotated) == ring.tenant(current) == "lab-a"  # rotation keeps the tenant's jobs
+    assert ring.tenant("operator-key-0001") == "ops" and ring.admins == {"ops"}
+    for wrong in ("", "alph", "alphaa", "ALPHA", " alpha", rotated + "x"):
+        assert ring.tenant(wrong) is None
+    assert ring.tenant(current) == "lab-a"  # answered from the cache the second time
+    assert all(current not in e and rotated not in e for e in s.api_keys)  # only hashes are configured
+    with pytest.raises(ValueError, match="tenant"):
+        parse_entry("bad tenant=scrypt:" + "00" * 16 + ":" + "ab" * 32)
 
 
 def test_settings_from_environment(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
