@@ -33,7 +33,7 @@ from pmvir.geometry.visibility import vertex_visibility
 from pmvir.progress import Progress
 from pmvir.refine import observation_from_decoded, refine_surface
 from pmvir.refine.forward import render_decoded
-from pmvir.refine.schedule import make_visibility_fn
+from pmvir.refine.state import make_visibility_fn
 from pmvir.synth.shapes import geodesic_sphere
 
 

@@ -43,7 +43,7 @@ from pmvir.polarization.stokes import PolarizationImages
 from pmvir.progress import Progress
 from pmvir.refine import RefineResult, make_visibility_fn, observation_from_decoded, refine_surface
 from pmvir.refine.sampling import Observation
-from pmvir.refine.schedule import StageLog
+from pmvir.refine.state import StageLog
 from pmvir.result import ResultFolder
 from pmvir.stages import STAGES, Stage
 from pmvir.working import (

@@ -117,13 +117,14 @@ def scene_inputs():
 
 def _first_stage_solved(scene_inputs, **options):
     """Stage 1 of the test scene solved from the paper's start: (unknowns after it, the stage)."""
-    from pmvir.refine.schedule import _initial_unknowns, _setup, prepare_stage, solve_stage
+    from pmvir.refine.solve import solve_stage
+    from pmvir.refine.stage_setup import initial_unknowns, make_setup, prepare_stage
 
     scene, obs, vis = scene_inputs
     opts = RefineOptions(views={"silhouette_margin_px": 0}, **options)
     faces = scene.faces.astype(np.int64)
-    setup = _setup(faces, len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None)
-    state = _initial_unknowns(
+    setup = make_setup(faces, len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None)
+    state = initial_unknowns(
         scene.vertices, len(scene.cameras), sh_order=opts.lighting.sh_order, device=setup.device, dtype=setup.dtype
     )
     stage, state = prepare_stage(setup, state, vis, 0)

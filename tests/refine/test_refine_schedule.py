@@ -14,7 +14,7 @@ from pmvir.config import PipelineConfig, RefineOptions, merge_options
 from pmvir.errors import CanceledError, ConfigError, MeshError, ReconstructionError
 from pmvir.progress import Progress
 from pmvir.refine import Observation, make_visibility_fn, observation_from_decoded, refine_surface
-from pmvir.refine.schedule import rim_fit_margin
+from pmvir.refine.surface_moves import rim_fit_margin
 from pmvir.sh import sh9_shading
 
 #: The tests run the default options (three stages of at most 80 L-BFGS iterations).
@@ -373,7 +373,7 @@ def test_median_intensity_scale_makes_the_result_independent_of_the_exposure(pla
 
 
 def test_median_intensity_units_follow_the_observations() -> None:
-    from pmvir.refine.schedule import intensity_units
+    from pmvir.refine.stage_setup import intensity_units
 
     valid = np.ones((2, 3), bool)
     grey = np.zeros((2, 3, 3), np.float32)
@@ -393,14 +393,15 @@ def test_median_intensity_units_follow_the_observations() -> None:
 
 def test_lighting_prefit_holds_the_geometry_and_fits_the_lighting(plastic) -> None:
     """The pre-fit moves no vertex and lowers E_pho from the uniform-lighting start."""
-    from pmvir.refine.schedule import _initial_unknowns, _setup, prefit_lighting, prepare_stage
+    from pmvir.refine.lighting_fit import prefit_lighting
+    from pmvir.refine.stage_setup import initial_unknowns, make_setup, prepare_stage
 
     scene, obs, _, vis = plastic
     opts = RefineOptions(lighting={"prefit_iterations": 15}, pho={"robust_first_stage": True})
-    setup = _setup(
+    setup = make_setup(
         scene.faces.astype(np.int64), len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None
     )
-    state = _initial_unknowns(
+    state = initial_unknowns(
         scene.vertices,
         len(scene.cameras),
         sh_order=opts.lighting.sh_order,
@@ -419,13 +420,13 @@ def test_lighting_prefit_holds_the_geometry_and_fits_the_lighting(plastic) -> No
 
 def _first_stage(plastic, opts: RefineOptions):
     """The refinement's set-up, start and first stage on the plastic scene (no visibility refresh)."""
-    from pmvir.refine.schedule import _initial_unknowns, _setup, prepare_stage
+    from pmvir.refine.stage_setup import initial_unknowns, make_setup, prepare_stage
 
     scene, obs, _, vis = plastic
-    setup = _setup(
+    setup = make_setup(
         scene.faces.astype(np.int64), len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None
     )
-    state = _initial_unknowns(
+    state = initial_unknowns(
         scene.vertices,
         len(scene.cameras),
         sh_order=opts.lighting.sh_order,
@@ -441,14 +442,14 @@ def test_specular_robust_weights_spare_pairs_darker_than_rendered(plastic) -> No
     light); 'cauchy' down-weights both signs."""
     from pmvir.refine.energy import pair_light
     from pmvir.refine.mesh_ops import vertex_normals
-    from pmvir.refine.schedule import _robust_pho_weights, _stage_observations
+    from pmvir.refine.stage_setup import robust_pho_weights, stage_observations
 
     weights = {}
     for mode in ("cauchy", "specular"):
         opts = RefineOptions(pho={"robust": mode})
         setup, state, stage = _first_stage(plastic, opts)
-        _, _, samples = _stage_observations(state.vertices, setup.topo.faces, setup.views, stage.pairs)
-        weights[mode] = _robust_pho_weights(setup, state, stage.pairs, samples).numpy()
+        _, _, samples = stage_observations(state.vertices, setup.topo.faces, setup.views, stage.pairs)
+        weights[mode] = robust_pho_weights(setup, state, stage.pairs, samples).numpy()
     light = pair_light(
         vertex_normals(state.vertices, setup.topo.faces), state.sh, state.rgb_scale, stage.pairs
     )
@@ -466,8 +467,8 @@ def test_shot_noise_dop_floor_rises_only_below_the_median_intensity() -> None:
     median, recovering I_int from I_min = (1 - rho) I_int; 'fixed' keeps dop_min everywhere."""
     import torch
 
+    from pmvir.refine.floors import dop_floor
     from pmvir.refine.sampling import PairSamples
-    from pmvir.refine.schedule import dop_floor
 
     i_int = torch.tensor([0.4, 0.1, 0.025, 0.8, 0.4], dtype=torch.float64)
     dop = torch.tensor([0.2, 0.1, 0.0, 0.5, 0.3], dtype=torch.float64)
@@ -491,7 +492,7 @@ def test_shot_noise_dop_floor_rises_only_below_the_median_intensity() -> None:
 def test_silhouette_margin_invalidates_pixels_near_the_mask_edge_only() -> None:
     """silhouette_margin_px shrinks each observation's valid region away from invalid pixels (the
     mask's outside), not away from the image border, and keeps the images themselves."""
-    from pmvir.refine.schedule import with_valid_margin
+    from pmvir.refine.stage_setup import with_valid_margin
 
     valid = np.zeros((10, 12), bool)
     valid[2:10, 3:12] = True  # touches the bottom and right borders
@@ -512,11 +513,11 @@ def test_silhouette_margin_invalidates_pixels_near_the_mask_edge_only() -> None:
 def test_refinement_setup_applies_the_silhouette_margin_to_every_view(plastic) -> None:
     """refine_surface's set-up erodes each observation's valid region by silhouette_margin_px (and by
     nothing at 0), and the intensities it samples stay the same."""
-    from pmvir.refine.schedule import _setup
+    from pmvir.refine.stage_setup import make_setup
 
     scene, obs, vis_fn, _ = plastic
     sets = {
-        m: _setup(
+        m: make_setup(
             scene.faces,
             len(scene.vertices),
             scene.cameras,
@@ -537,7 +538,7 @@ def test_stokes_smoothing_cancels_noise_and_keeps_the_mask_outside_out() -> None
     """stokes_smoothing_px averages the normalized Stokes over valid pixels: a noisy field of AoP 30
     degrees and DoP 0.1 comes out closer to both, and invalid pixels (AoP 120 degrees, DoP 1) do not
     leak into the valid ones beside them; invalid pixels and intensities are left as they were."""
-    from pmvir.refine.schedule import with_smoothed_stokes
+    from pmvir.refine.stage_setup import with_smoothed_stokes
 
     rng = np.random.default_rng(3)
     h, w = 40, 50
@@ -597,7 +598,8 @@ def test_degree_4_lighting_fits_a_view_dependent_shading_that_sh9_cannot() -> No
     from refine_scene import RGB_SCALE, SH, bumpy_sphere, ring_cameras
 
     from pmvir.refine.forward import render_decoded
-    from pmvir.refine.schedule import _initial_unknowns, _setup, prepare_stage, solve_stage
+    from pmvir.refine.solve import solve_stage
+    from pmvir.refine.stage_setup import initial_unknowns, make_setup, prepare_stage
 
     tv, tf = bumpy_sphere(16, 1.0)
     cams = ring_cameras(6, 64)
@@ -609,8 +611,8 @@ def test_degree_4_lighting_fits_a_view_dependent_shading_that_sh9_cannot() -> No
     misfit = {}
     for order in (2, 4):
         opts = RefineOptions(lighting={"sh_order": order}, **NO_MOSAIC)
-        setup = _setup(tf.astype(np.int64), len(tv), cams, obs, opts=opts, visibility_fn=None)
-        state = _initial_unknowns(tv, len(cams), sh_order=order, device=setup.device, dtype=setup.dtype)
+        setup = make_setup(tf.astype(np.int64), len(tv), cams, obs, opts=opts, visibility_fn=None)
+        state = initial_unknowns(tv, len(cams), sh_order=order, device=setup.device, dtype=setup.dtype)
         assert state.sh.shape == (len(cams), (order + 1) ** 2)
         stage, state = prepare_stage(setup, state, vis, 0)
         _, log = solve_stage(
@@ -664,7 +666,7 @@ def test_evidence_dop_floor_is_where_the_aop_stops_agreeing_with_the_surface() -
     """dop_min_noise='evidence': the floor is the DoP below which the AoP no longer agrees with the
     surface's azimuth candidates better than chance (within one bin of pairs), never below dop_min;
     an AoP that agrees nowhere turns E_pol off (inf); one that agrees everywhere keeps dop_min."""
-    from pmvir.refine.schedule import dop_floor
+    from pmvir.refine.floors import dop_floor
 
     opts = RefineOptions(pol={"dop_min": 0.05})
     assert opts.pol.dop_min_noise == "evidence"
@@ -687,7 +689,7 @@ def test_pol_evidence_is_the_dop_over_each_pairs_own_noise() -> None:
     quarter of the median."""
     import torch
 
-    from pmvir.refine.schedule import pol_evidence
+    from pmvir.refine.floors import pol_evidence
 
     base = _evidence_samples(8, 0.0)
     assert pol_evidence(base) is base.dop
@@ -705,7 +707,7 @@ def test_evidence_floor_ranks_pairs_by_their_aop_signal_to_noise() -> None:
     pairs come first, the floor keeps nearly all of them and few noisy ones."""
     import torch
 
-    from pmvir.refine.schedule import _above_floor, dop_floor, pol_evidence
+    from pmvir.refine.floors import above_floor, dop_floor, pol_evidence
 
     n = 40000
     clean = np.random.default_rng(3).random(n) < 0.15
@@ -719,7 +721,7 @@ def test_evidence_floor_ranks_pairs_by_their_aop_signal_to_noise() -> None:
     with_noise = replace(samples, aop_noise=noise)
     floor = dop_floor(with_noise, opts)
     assert np.isfinite(floor)
-    kept = _above_floor(with_noise.dop, pol_evidence(with_noise), floor, opts).numpy()
+    kept = above_floor(with_noise.dop, pol_evidence(with_noise), floor, opts).numpy()
     usable = aligned.dop.numpy() >= 0.05
     assert kept[clean & usable].mean() > 0.75  # those below DoP 0.1 compete with noisy pairs of DoP 0.2-0.5
     assert kept[~clean].mean() < 0.1, kept[~clean].mean()
@@ -738,9 +740,10 @@ def test_shadow_factors_are_each_pairs_at_the_stage_start_and_after_the_lighting
     """refine.pho.shadowing='cast': the stage's per-pair factor is shadow_factors' value of the pair's
     vertex under the pair's view's lighting, taken again under the pre-fitted lighting."""
     from pmvir.io.ply import vertex_normals
+    from pmvir.refine.lighting_fit import prefit_lighting
     from pmvir.refine.mesh_ops import mean_edge_length
-    from pmvir.refine.schedule import _initial_unknowns, _setup, prefit_lighting, prepare_stage
     from pmvir.refine.shadowing import shadow_factors
+    from pmvir.refine.stage_setup import initial_unknowns, make_setup, prepare_stage
 
     scene, obs, _, vis = plastic
     faces = scene.faces.astype(np.int64)
@@ -748,8 +751,8 @@ def test_shadow_factors_are_each_pairs_at_the_stage_start_and_after_the_lighting
         opts = RefineOptions(
             pho={"shadowing": shadowing, "shadow_directions": 64}, lighting={"prefit_iterations": 5}
         )
-        setup = _setup(faces, len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None)
-        state = _initial_unknowns(
+        setup = make_setup(faces, len(scene.vertices), scene.cameras, obs, opts=opts, visibility_fn=None)
+        state = initial_unknowns(
             scene.vertices,
             len(scene.cameras),
             sh_order=opts.lighting.sh_order,
