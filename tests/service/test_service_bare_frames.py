@@ -39,6 +39,8 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceStack]:
         "PMVIR_MAX_ZIP_BYTES": str(16 * MiB),
         "PMVIR_MAX_JOB_BYTES": str(32 * MiB),
         "PMVIR_MAX_FRAME_BYTES": str(1 * MiB),
+        # the default lease: COLMAP's mapping can keep the heartbeat from running for seconds
+        "PMVIR_LEASE_SECONDS": "30",
     }
     st = ServiceStack(tmp_path_factory.mktemp("stack"), api_keys=(KEY,), env=env)
     try:
