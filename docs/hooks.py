@@ -3,8 +3,9 @@
 - ``options.md``: the ``<!-- options-table -->`` marker becomes the reference of every option,
   from :func:`pmvir.config.option_catalog` (name, type, default, unit, range, level, description):
   the basic options first, then every option, one table per group of the tree.
-- ``layout.md``: the ``<!-- module-table -->`` marker becomes the modules of ``pmvir/`` with the
-  first line of each module's docstring, read with :mod:`ast` (nothing is imported).
+- ``layout.md``: the ``<!-- module-table -->`` and ``<!-- service-module-table -->`` markers become
+  the modules of ``pmvir/`` and ``service/`` with the first line of each module's docstring, read
+  with :mod:`ast` (nothing is imported).
 - ``service.md``: the ``<!-- settings-table -->`` marker becomes the service's environment
   variables, from the fields of :class:`service.settings.Settings`.
 """
@@ -13,12 +14,14 @@ from __future__ import annotations
 
 import ast
 import json
+import re
 from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 OPTIONS_MARKER = "<!-- options-table -->"
 MODULES_MARKER = "<!-- module-table -->"
+SERVICE_MODULES_MARKER = "<!-- service-module-table -->"
 SETTINGS_MARKER = "<!-- settings-table -->"
 
 
@@ -67,10 +70,15 @@ def options_markdown() -> str:
     return "\n".join(out)
 
 
+#: A Sphinx cross-reference in a docstring, :mod:`x` or :class:`~a.b`: written as code here.
+_SPHINX_ROLE = re.compile(r":[a-z]+:`~?([^`]+)`")
+
+
 def _summary(path: Path) -> str:
-    """The first line of a module's docstring ('' when it has none)."""
+    """The first line of a module's docstring ('' when it has none), reST markup as Markdown."""
     doc = ast.get_docstring(ast.parse(path.read_text(encoding="utf-8")))
-    return doc.strip().splitlines()[0] if doc else ""
+    line = doc.strip().splitlines()[0] if doc else ""
+    return _SPHINX_ROLE.sub(r"`\1`", line).replace("``", "`")
 
 
 def modules_markdown(package: Path = ROOT / "pmvir") -> str:
@@ -81,7 +89,8 @@ def modules_markdown(package: Path = ROOT / "pmvir") -> str:
             continue
         rel = path.relative_to(package.parent)
         name = str(rel.parent) + "/" if path.name == "__init__.py" else str(rel)
-        rows.append(f"| `{name}` | {_cell(_summary(path)) if _summary(path) else ''} |")
+        summary = _summary(path)
+        rows.append(f"| `{name}` | {_cell(summary) if summary else ''} |")
     return "\n".join(rows)
 
 
@@ -113,6 +122,7 @@ def on_page_markdown(markdown: str, page: Any, **_: Any) -> str:
     if src == "options.md" and OPTIONS_MARKER in markdown:
         return markdown.replace(OPTIONS_MARKER, options_markdown())
     if src == "layout.md" and MODULES_MARKER in markdown:
+        markdown = markdown.replace(SERVICE_MODULES_MARKER, modules_markdown(ROOT / "service"))
         return markdown.replace(MODULES_MARKER, modules_markdown())
     if src == "service.md" and SETTINGS_MARKER in markdown:
         return markdown.replace(SETTINGS_MARKER, settings_markdown())
