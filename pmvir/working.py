@@ -97,7 +97,7 @@ def bin_images(images: PolarizationImages, f: int) -> PolarizationImages:
         i_min=_block_mean(images.i_min, f),
         aop=aop,
         dop=dop,
-        valid=valid_blocks.all(axis=(1, 3)),
+        valid=np.asarray(valid_blocks.all(axis=(1, 3)), dtype=bool),
     )
 
 
