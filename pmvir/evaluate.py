@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from pmvir.errors import ConfigError, MeshError, PmvirError, ShapeError
+from pmvir.geometry.mesh_ops import face_normals, raycasting_scene, vertex_normals
 from pmvir.geometry.sfm.align import (
     CameraAlignment,
     align_by_cameras,
@@ -36,7 +37,7 @@ from pmvir.geometry.sfm.align import (
     true_camera_centres,
 )
 from pmvir.io.illumination import Illumination, read_illumination
-from pmvir.io.ply import Mesh, read_mesh, vertex_normals
+from pmvir.io.ply import Mesh, read_mesh
 from pmvir.sh import fibonacci_sphere, sh9_shading
 
 #: Ground-truth surface samples for completeness (spec section 5: at least 1,000,000).
@@ -197,11 +198,7 @@ class SurfaceQuery:
         self._o3d = o3d
         v = np.asarray(vertices, dtype=np.float64)
         self.origin = 0.5 * (v.min(0) + v.max(0))
-        self._scene = o3d.t.geometry.RaycastingScene()
-        self._scene.add_triangles(
-            o3d.core.Tensor(np.ascontiguousarray(v - self.origin, dtype=np.float32)),
-            o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)),
-        )
+        self._scene = raycasting_scene(v, faces, origin=self.origin).scene
 
     def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Closest surface points of (N, 3) query points.
@@ -397,7 +394,7 @@ def normal_angles(
     n_est = vertex_normals(vertices, faces)
     t = np.asarray(true_vertices, dtype=np.float64)
     tf = np.asarray(true_faces, dtype=np.int64)
-    n_true = np.cross(t[tf[:, 1]] - t[tf[:, 0]], t[tf[:, 2]] - t[tf[:, 0]])
+    n_true = face_normals(t, tf, normalize=False)
     len_true = np.linalg.norm(n_true, axis=1)
     n_true = n_true / np.maximum(len_true, 1e-300)[:, None]
     cos = np.clip(np.einsum("ij,ij->i", n_est, n_true), -1.0, 1.0)
@@ -418,9 +415,7 @@ def outward_sign(offsets: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -
         (N,) float64 sign of ``offset . n``, n by the face's winding (counter-clockwise seen from
         its front): +1 in front, -1 behind, 0 on the surface.
     """
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    n = face_normals(vertices, faces, normalize=False)
     return np.sign(np.einsum("ij,ij->i", np.asarray(offsets, dtype=np.float64), n))
 
 

@@ -25,7 +25,8 @@ from pmvir.config import PipelineConfig
 from pmvir.export.glb import conversion_extras, to_gltf_frame, write_glb
 from pmvir.export.textured import bake_textured_in_child, encode_png, mtl_text, obj_text
 from pmvir.export.views import write_residuals, write_view_previews
-from pmvir.io.ply import Mesh, vertex_normals
+from pmvir.geometry.mesh_ops import vertex_normals
+from pmvir.io.ply import Mesh
 from pmvir.polarization.stokes import PolarizationImages
 from pmvir.progress import Progress
 from pmvir.result import ResultFolder

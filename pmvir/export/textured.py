@@ -26,8 +26,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pmvir.geometry.mesh_ops import barycentric
-from pmvir.io.ply import Mesh, linear_to_srgb, vertex_normals
+from pmvir.geometry.mesh_ops import barycentric, raycasting_scene, vertex_normals
+from pmvir.io.ply import Mesh, linear_to_srgb
 
 #: Sub-pixel bits of the rasterizer (OpenCV's ``shift``).
 _SHIFT = 4
@@ -130,17 +130,12 @@ def sample_albedo(mesh: Mesh, points: np.ndarray) -> np.ndarray:
 
     if mesh.albedo is None:
         raise ValueError("the mesh has no albedo")
-    origin = mesh.vertices.mean(axis=0)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor.from_numpy((mesh.vertices - origin).astype(np.float32)),
-        o3d.core.Tensor.from_numpy(mesh.faces.astype(np.uint32)),
-    )
+    local = raycasting_scene(mesh.vertices, mesh.faces)
     albedo = mesh.albedo
     out = np.empty((len(points), 3), np.float32)
     for s in range(0, len(points), 1 << 20):
-        q = (points[s : s + (1 << 20)] - origin).astype(np.float32)
-        ans = scene.compute_closest_points(o3d.core.Tensor.from_numpy(q))
+        q = local.local(points[s : s + (1 << 20)])
+        ans = local.scene.compute_closest_points(o3d.core.Tensor.from_numpy(q))
         prim = ans["primitive_ids"].numpy().astype(np.int64)
         uv = ans["primitive_uvs"].numpy().astype(np.float64)
         bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)

@@ -1,4 +1,9 @@
-"""Edge topology and small measurements of triangle meshes (vectorized numpy).
+"""Triangle-mesh helpers (vectorized numpy): normals, edge topology, small measurements, ray casting.
+
+* Normals: :func:`face_normals` and :func:`vertex_normals` (area-weighted).
+* Ray casting: :func:`raycasting_scene`, the one way an Open3D ``RaycastingScene`` is built:
+  the vertices are shifted to a local origin (by default their mean) before Open3D's float32
+  cast, so precision follows the mesh's size, not its distance from the world origin.
 
 Conventions: ``faces`` is (F, 3) int64, counter-clockwise seen from outside;
 half-edge ``k`` of face ``f`` runs from ``faces[f, k]`` to ``faces[f, (k + 1) % 3]``.
@@ -7,6 +12,7 @@ half-edge ``k`` of face ``f`` runs from ``faces[f, k]`` to ``faces[f, (k + 1) % 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -127,17 +133,74 @@ def edge_topology(faces: np.ndarray, n_vertices: int) -> EdgeTopology:
     )
 
 
-def face_normals(vertices: np.ndarray, faces: np.ndarray, *, normalize: bool = True) -> np.ndarray:
+def face_normals(
+    vertices: np.ndarray, faces: np.ndarray, *, normalize: bool = True, eps: float = 1e-30
+) -> np.ndarray:
     """(F, 3) float64 face normals (right-hand rule over the face's vertex order).
 
-    With ``normalize=False`` the length is twice the triangle's area.
+    With ``normalize=False`` the length is twice the triangle's area; normalized, lengths below
+    ``eps`` are divided by ``eps`` (a degenerate face keeps a zero normal).
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     if normalize:
-        n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+        n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), eps)
     return n
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals (the sum of adjacent face cross products), (N, 3) float64, unit."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    fn = face_normals(v, f, normalize=False)
+    n = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(n, f[:, k], fn)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)
+
+
+@dataclass(frozen=True)
+class RaycastScene:
+    """An Open3D ``RaycastingScene`` of a mesh held in coordinates relative to ``origin``.
+
+    Attributes:
+        scene: the ``open3d.t.geometry.RaycastingScene`` (float32, Embree).
+        origin: (3,) the world point at the scene's zero; rays and query points go in through
+            :meth:`local`, and hits come back relative to it.
+    """
+
+    scene: Any
+    origin: np.ndarray
+
+    def local(self, points: np.ndarray) -> np.ndarray:
+        """``points - origin`` as contiguous float32, the scene's coordinates (same shape)."""
+        return np.ascontiguousarray(np.asarray(points) - self.origin, dtype=np.float32)
+
+
+def raycasting_scene(vertices: np.ndarray, faces: np.ndarray, *, origin: np.ndarray | None = None) -> RaycastScene:
+    """Open3D's ray-casting scene of a triangle mesh, built from vertices shifted to a local origin.
+
+    Args:
+        vertices: (N, 3) float positions (their dtype is kept until the float32 cast).
+        faces: (F, 3) integer indices; F = 0 gives an empty scene (every ray misses).
+        origin: (3,) the local origin; None: the vertices' mean. The world origin (zeros) keeps
+            world coordinates, as the offset scan and the synthetic renderer use.
+
+    Returns:
+        the scene and its origin.
+    """
+    import open3d as o3d
+
+    v = np.asarray(vertices)
+    centre = v.mean(axis=0) if origin is None else np.asarray(origin)
+    scene = o3d.t.geometry.RaycastingScene()
+    if len(faces):
+        scene.add_triangles(
+            o3d.core.Tensor(np.ascontiguousarray(v - centre, dtype=np.float32)),
+            o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)),
+        )
+    return RaycastScene(scene, centre)
 
 
 def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -242,17 +305,11 @@ class ReferenceSurface:
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
-        import open3d as o3d
-
         self.vertices = np.asarray(vertices, dtype=np.float64)
         self.faces = check_faces(faces, len(self.vertices))
         if len(self.faces) == 0:
             raise MeshError("a reference surface needs at least one face")
-        self._origin = self.vertices.mean(axis=0)
-        self._scene = o3d.t.geometry.RaycastingScene()
-        self._scene.add_triangles(
-            (self.vertices - self._origin).astype(np.float32), self.faces.astype(np.uint32)
-        )
+        self._scene = raycasting_scene(self.vertices, self.faces)
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Closest points on the surface.
@@ -269,8 +326,8 @@ class ReferenceSurface:
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         if len(p) == 0:
             return p.copy(), np.zeros(0, dtype=np.int64)
-        query = o3d.core.Tensor((p - self._origin).astype(np.float32))
-        ids = self._scene.compute_closest_points(query)["primitive_ids"].numpy().astype(np.int64)
+        query = o3d.core.Tensor(self._scene.local(p))
+        ids = self._scene.scene.compute_closest_points(query)["primitive_ids"].numpy().astype(np.int64)
         tri = self.faces[ids]
         v = self.vertices
         return closest_points_on_triangles(p, v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]), ids

@@ -50,6 +50,7 @@ from pmvir.geometry.export import (
     write_images,
     write_points_ply,
 )
+from pmvir.geometry.mesh_ops import vertex_normals
 from pmvir.geometry.mvs.dense import DenseResult, dense_stereo
 from pmvir.geometry.sfm.poses import SparseModel, estimate_poses
 from pmvir.geometry.silhouette.hull_fit import HullFit, fit_inside_hull
@@ -63,7 +64,7 @@ from pmvir.geometry.silhouette.isolate import (
 from pmvir.geometry.subdivision import subdivide_until
 from pmvir.geometry.surface.initial import SurfaceResult, initial_surface
 from pmvir.geometry.visibility import vertex_visibility
-from pmvir.io.ply import Mesh, vertex_normals
+from pmvir.io.ply import Mesh
 from pmvir.polarization.stokes import PolarizationImages
 from pmvir.progress import Progress
 from pmvir.result import ResultFolder

@@ -7,7 +7,7 @@ A vertex ``p`` is visible in a view when all of these hold:
 2. if the view has a mask, the mask is true at the pixel holding it, i.e. at
    array index ``[floor(v), floor(u)]``;
 3. it faces the camera: ``n . (c - p) / |c - p| > min_cos`` with ``n`` the
-   area-weighted vertex normal (:func:`pmvir.io.ply.vertex_normals`) and ``c``
+   area-weighted vertex normal (:func:`pmvir.geometry.mesh_ops.vertex_normals`) and ``c``
    the camera centre;
 4. no triangle of the mesh crosses the segment from ``c`` to ``p`` before
    ``c + (1 - rel_tol) (p - c)``. Triangles that contain ``p`` meet the line
@@ -27,9 +27,8 @@ import numpy as np
 
 from pmvir.camera import Camera
 from pmvir.errors import ConfigError, ShapeError
-from pmvir.geometry.mesh_ops import check_faces, check_vertices
+from pmvir.geometry.mesh_ops import check_faces, check_vertices, raycasting_scene, vertex_normals
 from pmvir.geometry.projection import project_columns
-from pmvir.io.ply import vertex_normals
 
 
 def vertex_visibility(
@@ -84,11 +83,8 @@ def vertex_visibility(
     vis = np.zeros((len(v), len(cameras)), dtype=bool)
     if len(v) == 0 or len(cameras) == 0:
         return vis
-    origin = v.mean(axis=0)
-    v_local = (v - origin).astype(np.float32)
-    scene = o3d.t.geometry.RaycastingScene()
-    if len(f):
-        scene.add_triangles(v_local, f.astype(np.uint32))
+    scene = raycasting_scene(v, f)
+    v_local = scene.local(v)
     v_t, n_t = np.ascontiguousarray(v.T), np.ascontiguousarray(n.T)
     for j, cam in enumerate(cameras):
         cand = _view_candidates(v_t, n_t, cam, masks[j], min_cos=min_cos)
@@ -96,11 +92,11 @@ def vertex_visibility(
         if len(idx) == 0 or len(f) == 0:
             vis[idx, j] = True
             continue
-        c_local = (cam.center - origin).astype(np.float32)
+        c_local = scene.local(cam.center)
         rays = np.empty((len(idx), 6), dtype=np.float32)
         rays[:, :3] = c_local
         rays[:, 3:] = v_local[idx] - c_local
-        occluded = scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1.0 - rel_tol).numpy()
+        occluded = scene.scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1.0 - rel_tol).numpy()
         vis[idx[~occluded], j] = True
     return vis
 

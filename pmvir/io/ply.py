@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from pmvir.errors import MeshError
+from pmvir.geometry.mesh_ops import vertex_normals
 
 
 @dataclass
@@ -47,15 +48,6 @@ class Mesh:
             raise MeshError("face indices out of range")
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals (the sum of adjacent face cross products), (N, 3) float64, unit."""
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)
 
 
 def linear_to_srgb(x: np.ndarray) -> np.ndarray:

@@ -26,7 +26,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from pmvir.camera import Camera
-from pmvir.io.ply import vertex_normals
+from pmvir.geometry.mesh_ops import raycasting_scene, vertex_normals
 from pmvir.polarization.azimuth import perspective_azimuth
 from pmvir.sh import sh_basis, sh_order_of
 
@@ -99,9 +99,8 @@ def render_decoded(
     rgb_scale = np.broadcast_to(np.asarray(rgb_scale, dtype=np.float64), (n_views, 3))
     vn = vertex_normals(v, f)
     rng = np.random.default_rng(seed)
-    origin = v.mean(axis=0)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles((v - origin).astype(np.float32), f.astype(np.uint32))
+    local = raycasting_scene(v, f)
+    scene, origin = local.scene, local.origin
     out = []
     for c, cam in enumerate(cameras):
         o, d = cam.pixel_rays()

@@ -31,8 +31,7 @@ from scipy.ndimage import uniform_filter
 
 from pmvir.camera import Camera, sample_bilinear
 from pmvir.errors import ConfigError
-from pmvir.geometry.mesh_ops import face_normals
-from pmvir.io.ply import vertex_normals
+from pmvir.geometry.mesh_ops import face_normals, raycasting_scene, vertex_normals
 from pmvir.refine.sampling import Observation
 
 
@@ -164,10 +163,8 @@ def _pairs(
     greys: Sequence[np.ndarray],
     window: int,
 ) -> list[_Pair]:
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32))
-    )
+    # World coordinates (origin 0): the camera rays below are cast as they are.
+    scene = raycasting_scene(vertices, faces, origin=np.zeros(3)).scene
     fn = face_normals(vertices, faces)
     pairs = []
     for i, cam in enumerate(cameras):

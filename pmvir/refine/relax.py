@@ -23,8 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pmvir.errors import ConfigError
-from pmvir.geometry.mesh_ops import ReferenceSurface, barycentric, edge_topology
-from pmvir.io.ply import vertex_normals
+from pmvir.geometry.mesh_ops import ReferenceSurface, barycentric, edge_topology, vertex_normals
 
 #: Fraction of the tangential umbrella step taken per iteration (0.5: stable for any valence).
 RELAX_STEP = 0.5

@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from pmvir.errors import ShapeError
+from pmvir.geometry.mesh_ops import raycasting_scene
 from pmvir.sh import fibonacci_sphere, radiance_from_shading, sh9_basis
 
 #: Vertices per ray-casting batch (times the directions: rays per call).
@@ -53,11 +54,7 @@ def open_directions(
     if v.ndim != 2 or v.shape[1] != 3 or np.shape(normals) != v.shape:
         raise ShapeError(f"expected (N, 3) vertices and normals, got {v.shape} and {np.shape(normals)}")
     centre = 0.5 * (v.min(0) + v.max(0)) if len(v) else np.zeros(3)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(np.ascontiguousarray(v - centre, np.float32)),
-        o3d.core.Tensor(np.ascontiguousarray(faces, np.uint32)),
-    )
+    scene = raycasting_scene(v, faces, origin=centre).scene
     d = np.asarray(directions, np.float32)
     k = len(d)
     out = np.ones((len(v), k), dtype=bool)

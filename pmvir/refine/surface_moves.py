@@ -9,8 +9,8 @@ import numpy as np
 import torch
 
 from pmvir.config import RefineOptions
+from pmvir.geometry.mesh_ops import vertex_normals as vertex_normals_np
 from pmvir.geometry.silhouette.hull_fit import HullFit, RimFit, fit_inside_hull, fit_to_rims
-from pmvir.io.ply import vertex_normals as vertex_normals_np
 from pmvir.progress import Progress
 from pmvir.refine.offset import OffsetScan, photo_consistent_offset
 from pmvir.refine.state import RefineSetup, Unknowns

@@ -21,6 +21,7 @@ import open3d as o3d
 
 from pmvir.camera import Camera
 from pmvir.errors import InputError
+from pmvir.geometry.mesh_ops import face_normals, raycasting_scene
 from pmvir.io.ply import Mesh
 
 
@@ -45,16 +46,9 @@ class MeshScene:
     _albedo32: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        self._scene = o3d.t.geometry.RaycastingScene()
-        self._scene.add_triangles(
-            o3d.core.Tensor(np.ascontiguousarray(self.vertices, dtype=np.float32)),
-            o3d.core.Tensor(np.ascontiguousarray(self.faces, dtype=np.uint32)),
-        )
-        v = self.vertices
-        fn = np.cross(v[self.faces[:, 1]] - v[self.faces[:, 0]], v[self.faces[:, 2]] - v[self.faces[:, 0]])
-        self._face_normals = (fn / np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-20)).astype(
-            np.float32
-        )
+        # World coordinates (origin 0): the renderer casts its camera rays as they are.
+        self._scene = raycasting_scene(self.vertices, self.faces, origin=np.zeros(3)).scene
+        self._face_normals = face_normals(self.vertices, self.faces, eps=1e-20).astype(np.float32)
         self._normals32 = np.asarray(self.normals, dtype=np.float32)
         self._albedo32 = np.asarray(self.albedo, dtype=np.float32)
 

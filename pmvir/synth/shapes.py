@@ -34,7 +34,8 @@ from typing import Literal
 import numpy as np
 
 from pmvir.errors import ConfigError, MeshError
-from pmvir.io.ply import Mesh, read_mesh, vertex_normals
+from pmvir.geometry.mesh_ops import vertex_normals
+from pmvir.io.ply import Mesh, read_mesh
 
 SHAPES: tuple[str, ...] = ("sphere", "blob", "dented", "knot", "gear", "mug", "spring", "rock", "panel", "cloth")
 UpAxis = Literal["x", "y", "z"]

@@ -28,7 +28,7 @@ import open3d as o3d
 
 from pmvir.camera import Camera, sample_bilinear
 from pmvir.errors import ConfigError, ShapeError
-from pmvir.io.ply import vertex_normals
+from pmvir.geometry.mesh_ops import raycasting_scene, vertex_normals
 
 
 @dataclass(frozen=True)
@@ -362,9 +362,8 @@ def fit_to_rims(
     if not views or n == 0 or gain == 0.0:
         return RimFit(v0.copy(), 0, 0, 0.0, 0.0, gain, tolerance_px, given_margin, False)
     normals = vertex_normals(v0, f).astype(np.float64)
-    origin = v0.mean(axis=0)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor((v0 - origin).astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    local = raycasting_scene(v0, f)
+    scene, origin = local.scene, local.origin
     found_v, found_d, found_g = [], [], []
     for cam, mask in views:
         idx, inside, gsd = _rim_distances(v0, normals, scene, origin, cam, mask, rim_cos, reach_px)
