@@ -43,10 +43,6 @@ LIGHTINGS: tuple[str, ...] = ("sh", "envmap")
 _BASE_COLOUR = np.array([1.0, 0.96, 0.9])
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
 def _direction(elev_deg: float, az_deg: float) -> np.ndarray:
     e, a = np.radians(elev_deg), np.radians(az_deg)
     return np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])

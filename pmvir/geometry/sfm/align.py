@@ -40,10 +40,6 @@ class Similarity:
         """Transform (N, 3) points; returns (N, 3) float64."""
         return self.scale * (np.asarray(points, dtype=np.float64) @ self.R.T) + self.t
 
-    def apply_directions(self, directions: np.ndarray) -> np.ndarray:
-        """Rotate (N, 3) directions (normals); returns (N, 3) float64."""
-        return np.asarray(directions, dtype=np.float64) @ self.R.T
-
     def inverse(self) -> Similarity:
         """The similarity that undoes this one."""
         return Similarity(1.0 / self.scale, self.R.T, -(self.R.T @ self.t) / self.scale)
