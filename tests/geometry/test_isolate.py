@@ -134,7 +134,10 @@ def test_isolate_object_draws_masks_of_the_ball(scene):
     assert iso.masks[-1] is None and iso.method == "cluster"
     for cam, m in zip(cams, iso.masks, strict=False):
         t = _disc_mask(cam)
-        assert m is not None and (m & t).sum() / (m | t).sum() > 0.9
+        # IoU 0.9 of a 23-px disc: its hard painted edge comes out a pixel wide, as the masks are grown
+        # by a pixel for the demosaiced previews' soft edges (pmvir.geometry.silhouette.isolate._GROW)
+        assert m is not None and (m & t).sum() / (m | t).sum() > 0.85
+        assert (t & ~m).sum() < 0.02 * t.sum()  # nothing of the ball left out
     assert iso.keep[labels == 1].mean() > 0.9 and not iso.keep[labels != 1].any()
     assert iso.to_dict()["counts"]["kept"] == iso.keep.sum()
 
