@@ -32,7 +32,7 @@ def test_results_are_listed_and_served_by_path_and_nothing_else(
     assert r.status_code == 200 and r.content[:8] == b"\x89PNG\r\n\x1a\n" and len(r.content) == png["size"]
     part = api.get(f"/v1/jobs/{job_id}/results/report.json", headers={"Range": "bytes=0-9"})
     assert part.status_code == 206 and len(part.content) == 10
-    for bad in ("../capture/capture.json", "previews/../../capture/capture.json", "capture.json", "nope.png"):
+    for bad in ("../capture/capture.json", "previews/../../capture/capture.json", "frames/000.png", "nope.png"):
         assert api.get(f"/v1/jobs/{job_id}/results/{bad}").status_code == 404, bad
     with client_for(stack, OTHER_KEY) as other:  # another key's job is not found
         assert other.get(f"/v1/jobs/{job_id}/results").status_code == 404

@@ -108,6 +108,11 @@ def test_two_hosts_share_only_redis_and_s3_and_survive_a_killed_worker(
     for job_id in ids:
         assert f"jobs-root/jobs/{job_id}/result/result.zip" in keys
         assert f"jobs-root/jobs/{job_id}/capture/capture.json" in keys
+        # the stage cache went up signed (PMVIR_CACHE_KEY)
+        assert {
+            f"jobs-root/jobs/{job_id}/cache/decode.pkl",
+            f"jobs-root/jobs/{job_id}/cache/decode.pkl.sig",
+        } <= set(keys)
     # results live in the bucket alone: no local folder holds one (the killed host may keep its
     # unfinished run's scratch folder, never a result)
     for root in (st.root, tmp_path / "host1", tmp_path / "host2"):
@@ -117,3 +122,20 @@ def test_two_hosts_share_only_redis_and_s3_and_survive_a_killed_worker(
             if (p.name in ("result.zip", "report.json") or p.suffix == ".npz") and "runs" not in p.parts
         ]
         assert stray == [], stray
+
+
+def test_a_rerun_on_s3_copies_the_capture_in_the_bucket(hosts: ServiceStack, tmp_path: Path) -> None:
+    st = hosts
+    cap = write_noise_capture(tmp_path / "cap", frames=8, width=96, height=96, seed=5)
+    with PmvirClient(st.url, KEY, timeout=30) as client:
+        job = client.create_job(DECODE_ONLY)
+        client.upload_capture(job["id"], cap)
+        client.start(job["id"])
+        assert client.wait(job["id"], poll=0.2, timeout=120)["status"] == "succeeded"
+        rerun = client.rerun(job["id"], {"decode": {"noise_floor": 0.02}}, from_stage="decode")
+        done = client.wait(rerun["id"], poll=0.2, timeout=120)
+        assert done["status"] == "succeeded" and done["options"]["decode"]["noise_floor"] == 0.02
+        assert len(done["files"]) == 9  # the source's capture, copied inside the bucket
+    keys = {o["Key"] for o in st.s3_client().list_objects_v2(Bucket="pmvir-test").get("Contents", [])}
+    assert f"jobs-root/jobs/{rerun['id']}/capture/frames/007.png" in keys
+    assert f"jobs-root/jobs/{rerun['id']}/result/report.json" in keys
