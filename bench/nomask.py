@@ -1,0 +1,160 @@
+"""The object found without masks: table and turntable scenes, with and without masks, both renderers.
+
+Usage: .venv/bin/python bench/nomask.py [--shape blob] [--views 24] [--size 320x256]
+       [--renderers builtin,mitsuba] [--scenes table,turntable] [--spp 32] [--stop-after geometry]
+       [--work /tmp/nomask] [--append]
+
+Per scene and renderer one capture is rendered with ``pmvir synth --scene S --no-masks``; a copy
+names its true masks (gt/masks/) in capture.json. Both are reconstructed with ``pmvir reconstruct``
+(by default the geometric stage only) and the initial (or refined) mesh compared with the object
+alone: accuracy and completeness (pmvir.evaluate, GT diagonals), the largest vertex distance and
+the share of vertices farther than 2 % of the diagonal (the table left in the mesh), the masks'
+IoU against the true ones (no-mask runs) and the time. Prints a table and writes
+bench/results/nomask.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from _results import RESULTS, table, write_results
+
+from pmvir.evaluate import SurfaceQuery, bbox_diagonal, evaluate
+from pmvir.io.ply import Mesh, read_mesh
+
+PMVIR = str(Path(sys.executable).with_name("pmvir"))
+
+
+def _with_true_masks(capture: Path, out: Path) -> Path:
+    """A copy of a no-mask capture whose capture.json names its true masks (gt/masks/)."""
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(capture, out)
+    shutil.copytree(out / "gt" / "masks", out / "masks")
+    manifest = json.loads((out / "capture.json").read_text())
+    for frame in manifest["frames"]:
+        frame["mask"] = "masks/" + Path(frame["file"]).stem + ".png"
+    (out / "capture.json").write_text(json.dumps(manifest, indent=1))
+    return out
+
+
+def _mask_iou(result: Path, capture: Path) -> float | None:
+    found = sorted((result / "masks").glob("*.png")) if (result / "masks").is_dir() else []
+    if not found:
+        return None
+    ious = []
+    for path in found:
+        m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 0
+        t = cv2.imread(str(capture / "gt" / "masks" / path.name), cv2.IMREAD_GRAYSCALE) > 0
+        if m.shape != t.shape:
+            m = cv2.resize(m.astype(np.uint8), t.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0
+        ious.append((m & t).sum() / max((m | t).sum(), 1))
+    return float(np.mean(ious))
+
+
+def _measure(capture: Path, result: Path, stop_after: str) -> dict:
+    t0 = time.perf_counter()
+    proc = subprocess.run(
+        [PMVIR, "reconstruct", str(capture), "--out", str(result), "--stop-after", stop_after, "--quiet"],
+        capture_output=True, text=True, check=False,
+    )
+    seconds = time.perf_counter() - t0
+    if proc.returncode != 0:
+        return {"error": proc.stderr.strip().splitlines()[-1:] or ["failed"], "seconds": seconds}
+    mesh = read_mesh(result / ("mesh.ply" if stop_after == "refine" else "initial.ply"))
+    gt = read_mesh(capture / "gt" / "mesh.ply")
+    r = evaluate(Mesh(mesh.vertices, mesh.faces), gt, n_samples=200_000)
+    diag = bbox_diagonal(gt.vertices)
+    closest, _, _ = SurfaceQuery(gt.vertices, gt.faces).closest(mesh.vertices)
+    far = np.linalg.norm(mesh.vertices - closest, axis=1) / diag
+    report = json.loads((result / "report.json").read_text())
+    return {
+        "accuracy": r.accuracy,
+        "completeness": r.completeness,
+        "max_vertex_distance": float(far.max()),
+        "share_beyond_2pct": float((far > 0.02).mean()),
+        "vertices": len(mesh.vertices),
+        "mask_iou": _mask_iou(result, capture),
+        "isolation": report.get("geometry", {}).get("isolation"),
+        "seconds": seconds,
+    }
+
+
+def _write(runs: list[dict], args: argparse.Namespace) -> Path:
+    """Print the table of the runs so far and write bench/results/nomask.json."""
+    columns = ["scene", "renderer", "masks", "accuracy (1e-2)", "completeness (1e-2)", "max dist (diag)",
+               "> 2 % diag", "mask IoU", "time (s)"]
+    rows = []
+    for r in runs:
+        if "error" in r:
+            rows.append([r["scene"], r["renderer"], r["masks"], None, None, None, None, None, round(r["seconds"], 1)])
+            continue
+        rows.append([
+            r["scene"], r["renderer"], r["masks"], round(100 * r["accuracy"], 3), round(100 * r["completeness"], 3),
+            round(r["max_vertex_distance"], 4), f"{100 * r['share_beyond_2pct']:.2f} %",
+            None if r["mask_iou"] is None else round(r["mask_iou"], 3), round(r["seconds"], 1),
+        ])
+    print(" | ".join(columns))
+    for row in rows:
+        print(" | ".join("-" if v is None else str(v) for v in row))
+    out = write_results(
+        "nomask",
+        title=f"Object isolation without masks ({args.shape}, {args.views} views of {args.size}, "
+        f"stop after {args.stop_after})",
+        tables=[table("With the true masks and without masks", columns, rows,
+                      note="masks 'none': pmvir finds the object itself (geometry.isolate); distances in "
+                      "GT bounding-box diagonals")],
+        data={"options": vars(args) | {"work": str(args.work)}, "runs": runs},
+    )
+    print(f"wrote {out}")
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--shape", default="blob")
+    ap.add_argument("--views", type=int, default=24)
+    ap.add_argument("--size", default="320x256")
+    ap.add_argument("--renderers", default="builtin,mitsuba")
+    ap.add_argument("--scenes", default="table,turntable")
+    ap.add_argument("--spp", type=int, default=32)
+    ap.add_argument("--stop-after", choices=["geometry", "refine"], default="geometry")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/nomask"))
+    ap.add_argument("--append", action="store_true", help="keep the runs already in bench/results/nomask.json")
+    args = ap.parse_args()
+
+    earlier = RESULTS / "nomask.json"
+    runs = json.loads(earlier.read_text())["runs"] if args.append and earlier.exists() else []
+    for scene in args.scenes.split(","):
+        for renderer in args.renderers.split(","):
+            cap = args.work / f"{scene}-{renderer}"
+            synth = [PMVIR, "synth", "--shape", args.shape, "--scene", scene, "--no-masks", "--views",
+                     str(args.views), "--size", args.size, "--renderer", renderer, "--spp", str(args.spp),
+                     "--out", str(cap), "--force", "--quiet"]
+            t0 = time.perf_counter()
+            subprocess.run(synth, check=True)
+            synth_s = time.perf_counter() - t0
+            masked = _with_true_masks(cap, args.work / f"{scene}-{renderer}-masks")
+            for masks, capture in (("true", masked), ("none", cap)):
+                row = {"scene": scene, "renderer": renderer, "masks": masks, "synth_seconds": synth_s}
+                row |= _measure(capture, args.work / f"result-{scene}-{renderer}-{masks}", args.stop_after)
+                runs.append(row)
+                print(json.dumps(row), flush=True)
+                _write(runs, args)  # after every run: an interrupted benchmark keeps what it measured
+
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
