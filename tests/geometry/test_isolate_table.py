@@ -23,6 +23,8 @@ from pmvir.io.frames import read_frame
 from pmvir.io.ply import Mesh, read_mesh
 from pmvir.synth.generate import synthesize
 
+pytestmark = pytest.mark.slow  # two geometric stages: about 2 minutes on 2 cores
+
 
 def with_true_masks(capture: Path, out: Path) -> Path:
     """A copy of a no-mask capture whose capture.json names its true masks (gt/masks/)."""
