@@ -279,8 +279,12 @@ def test_not_a_zip_is_422(stack: ServiceStack, zc) -> None:
     assert_nothing_kept(c, stack, jobs, files)
 
 
-def test_zip_without_manifest_is_422(stack: ServiceStack, zc) -> None:
+def test_zip_without_manifest_is_422_when_its_frames_are_not_frames(stack: ServiceStack, zc) -> None:
+    """A zip without capture.json is inferred from its frames: an unreadable frame is named, and a
+    zip with no frame at all names the missing manifest."""
     c, jobs, files = zc
     r = post_zip(c, zip_bytes({"frames/000.png": b"x"}))
+    assert r.status_code == 422 and r.json()["errors"][0]["file"] == "frames/000.png"
+    r = post_zip(c, zip_bytes({"notes.txt": b"x"}))
     assert r.status_code == 422 and r.json()["errors"][0]["file"] == "capture.json"
     assert_nothing_kept(c, stack, jobs, files)
