@@ -1,7 +1,8 @@
 """A run's memory, estimated before it starts, so that a capture too large for its limit fails at once.
 
 The estimate is a linear model of the peak resident memory of :func:`pmvir.pipeline.run` with
-the default options, fitted on ``bench/fullsize.py``'s measurements (the benchmarks page):
+the default options, from the sizes of the arrays a run holds per working pixel and per frame
+pixel (``bench/fullsize.py`` measures the true peaks; the benchmarks page shows them):
 
     peak = BASE_BYTES + PER_VIEW_PIXEL_BYTES * views * working pixels + PER_FRAME_PIXEL_BYTES * frame pixels
 
