@@ -28,25 +28,8 @@ import numpy as np
 from pmvir.camera import Camera
 from pmvir.geometry.mesh_ops import raycasting_scene, vertex_normals
 from pmvir.polarization.azimuth import perspective_azimuth
+from pmvir.polarization.fresnel import diffuse_dop, specular_dop
 from pmvir.sh import sh_basis, sh_order_of
-
-
-def diffuse_dop(cos_zenith: np.ndarray, eta: float) -> np.ndarray:
-    """DoP of diffuse reflection (Atkinson & Hancock 2006) at zenith angle acos(cos_zenith)."""
-    c = np.clip(cos_zenith, 0.0, 1.0)
-    s2 = 1.0 - c * c
-    num = (eta - 1.0 / eta) ** 2 * s2
-    den = 2.0 + 2.0 * eta**2 - (eta + 1.0 / eta) ** 2 * s2 + 4.0 * c * np.sqrt(eta**2 - s2)
-    return num / den
-
-
-def specular_dop(cos_zenith: np.ndarray, eta: float) -> np.ndarray:
-    """DoP of specular reflection (Fresnel) at zenith angle acos(cos_zenith)."""
-    c = np.clip(cos_zenith, 0.0, 1.0)
-    s2 = 1.0 - c * c
-    num = 2.0 * s2 * c * np.sqrt(eta**2 - s2)
-    den = eta**2 - s2 - eta**2 * s2 + 2.0 * s2 * s2
-    return num / den
 
 
 def render_decoded(

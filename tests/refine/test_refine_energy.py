@@ -454,7 +454,7 @@ def test_dop_weighting_is_switchable(small_problem) -> None:
 def test_fresnel_transmittance_against_brewster_and_the_synth_fresnel_code() -> None:
     """1 at normal emission; at Brewster's angle R_p = 0 and R_s = ((n^2 - 1) / (n^2 + 1))^2 (closed
     form); elsewhere equal to 1 - (R_s + R_p) / 2 from pmvir.synth.materials (complex-index code)."""
-    from pmvir.synth.materials import fresnel_reflectance
+    from pmvir.polarization.fresnel import fresnel_reflectance
 
     n = 1.5
     assert float(fresnel_transmittance(torch.tensor(1.0, dtype=F64), n)) == pytest.approx(1.0, abs=1e-12)
@@ -472,7 +472,7 @@ def test_fresnel_transmittance_against_brewster_and_the_synth_fresnel_code() -> 
 def test_diffuse_min_fraction_is_one_minus_the_synth_diffuse_dop_and_with_fresnel_t_s() -> None:
     """1 - rho_d from pmvir.synth.materials' diffuse DoP (the renderer's), and times the unpolarized
     transmittance it is T_s / T_s(0): the s-polarized transmittance alone is what I_min keeps."""
-    from pmvir.synth.materials import diffuse_dop, fresnel_reflectance
+    from pmvir.polarization.fresnel import diffuse_dop, fresnel_reflectance
 
     n = 1.5
     cos = np.linspace(0.05, 1.0, 50)

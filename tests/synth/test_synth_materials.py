@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pmvir.synth.materials import diffuse_dop, fresnel_reflectance, material_stokes, specular_dop
+from pmvir.polarization.fresnel import diffuse_dop, fresnel_reflectance, specular_dop
+from pmvir.synth.materials import material_stokes
 
 
 def _atkinson_diffuse_dop(theta: np.ndarray, n: float) -> np.ndarray:
