@@ -208,6 +208,9 @@ def run_geometry(
             )
             masks = isolation.masks
             dense = replace(dense, points=kept_points(dense.points, isolation.keep))
+    else:  # masks given, or isolation off: the step's share of the bar passes at once
+        with progress.step("isolation", _STEP_WEIGHTS["isolation"]):
+            pass
 
     with progress.step("surface", _STEP_WEIGHTS["surface"]):
         surface = initial_surface(
