@@ -51,7 +51,7 @@ def hosts(tmp_path: Path) -> Iterator[ServiceStack]:
         st.stop()
 
 
-def _running_on(client: PmvirClient, job_ids: list[str], timeout: float = 90.0) -> tuple[str, int]:
+def _running_on(client: PmvirClient, job_ids: list[str], timeout: float = 300.0) -> tuple[str, int]:
     """A job that is running mid-way, and the number of the worker (1 or 2) running it."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
