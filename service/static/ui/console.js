@@ -57,6 +57,21 @@ async function api(path, { method = "GET", body, headers = {}, raw = false, key 
   return r.json();
 }
 
+// Start a job and wait while the server validates its capture (202, status "validating"); a refused
+// capture comes back to "created" with its problems, shown as the 422 the start would have answered.
+async function startAndValidate(id) {
+  let job = await api(`/v1/jobs/${id}/start`, { method: "POST" });
+  const deadline = Date.now() + 600_000;
+  while (job && job.status === "validating" && Date.now() < deadline) {
+    await new Promise((resolve) => setTimeout(resolve, 500));
+    job = await api(`/v1/jobs/${id}`);
+  }
+  if (job && job.status === "created" && job.problems && job.problems.length) {
+    throw new ApiError(422, { error: "invalid_capture", message: job.error || "The capture was refused.", errors: job.problems });
+  }
+  return job;
+}
+
 function errorBox(err) {
   const body = err.body || {};
   const box = h("div", { class: "error", role: "alert" }, body.message || String(err.message || err));
@@ -232,7 +247,7 @@ function renderUpload() {
       if (xhr.status !== 201 && xhr.status !== 200) { status.replaceChildren(errorBox(new ApiError(xhr.status, body))); return; }
       line.textContent = `Uploaded; starting job ${body.id.slice(0, 12)}…`;
       try {
-        await api(`/v1/jobs/${body.id}/start`, { method: "POST" });
+        await startAndValidate(body.id);
         status.replaceChildren(h("div", {}, "Job started: ", h("a", { href: `/ui/jobs/${body.id}`, "data-nav": true }, body.id)));
       } catch (e) {
         status.replaceChildren(h("div", {}, "The capture was uploaded but the job could not start (job ",
