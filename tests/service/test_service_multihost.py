@@ -27,6 +27,8 @@ pytest.importorskip("moto")
 
 #: (frames, width, height) of the three captures: each job's result tells which capture it came from.
 CAPTURES = ((24, 192, 192), (20, 160, 128), (16, 128, 160))
+#: Decode-only jobs with the slowest demosaicing, long enough (seconds each) to be caught mid-way.
+SLOW_DECODE = {**DECODE_ONLY, "decode": {"demosaic": "eari"}}
 
 
 @pytest.fixture()
@@ -54,16 +56,18 @@ def hosts(tmp_path: Path) -> Iterator[ServiceStack]:
 def _running_on(client: PmvirClient, job_ids: list[str], timeout: float = 300.0) -> tuple[str, int]:
     """A job that is running mid-way, and the number of the worker (1 or 2) running it."""
     deadline = time.monotonic() + timeout
+    seen: dict[str, tuple[str, float]] = {}
     while time.monotonic() < deadline:
         for job_id in job_ids:
             job = client.job(job_id)
+            seen[job_id] = (job["status"], job["progress"])
             if job["status"] == "running" and 0.05 < job["progress"] < 0.9:
                 lines = [ln["message"] for ln in client.log(job_id)["lines"]]
                 starts = [m for m in lines if " started on w" in m]
                 if starts:
                     return job_id, int(starts[-1].split(" started on w")[1].split("@")[0])
         time.sleep(0.05)
-    raise AssertionError("no job was seen running mid-way")
+    raise AssertionError(f"no job was seen running mid-way; last seen: {seen}")
 
 
 def _local_files(root: Path) -> list[Path]:
@@ -78,10 +82,11 @@ def test_two_hosts_share_only_redis_and_s3_and_survive_a_killed_worker(
     with PmvirClient(st.url, KEY, timeout=30) as client:
         for i, (frames, width, height) in enumerate(CAPTURES):
             cap = write_noise_capture(tmp_path / f"cap{i}", frames=frames, width=width, height=height, seed=i)
-            job = client.create_job(DECODE_ONLY, label=f"capture {i}")
+            job = client.create_job(SLOW_DECODE, label=f"capture {i}")
             client.upload_capture(job["id"], cap)
-            client.start(job["id"])
             ids.append(job["id"])
+        for job_id in ids:  # started together, so that the third is still queued when the watch begins
+            client.start(job_id)
         victim_job, n = _running_on(client, ids)
         st.workers[n - 1].kill()  # the whole host is gone: worker and pool process, SIGKILL
         assert not st.workers[n - 1].alive()
