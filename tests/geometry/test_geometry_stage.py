@@ -98,7 +98,7 @@ def test_outputs_and_report(blob_geometry, blob_capture: Path, tmp_path: Path):
     assert int((least < -0.5).sum()) == fit["outside_after"]
 
 
-def test_progress_rises_to_one(blob_progress):
+def test_progress_rises_to_one(blob_geometry, blob_progress):  # the run fills blob_progress
     fractions = [f for f, _ in blob_progress]
     assert fractions and all(0.0 <= f <= 1.0 for f in fractions)
     assert all(b >= a - 1e-12 for a, b in itertools.pairwise(fractions))
