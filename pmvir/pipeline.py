@@ -50,10 +50,11 @@ from pmvir.working import (
     BinnedCapture,
     bin_images,
     bin_noise,
+    binning_factor,
+    frame_extent,
     resolution_report,
     unbin_mask,
     working_capture,
-    working_factor,
 )
 
 #: Above this median DoP inside the masks (the median over views of each view's median) the object is
@@ -298,12 +299,12 @@ def run(
             "manifest": "given" if cap.inferred is None else "inferred",
             "inferred": list(cap.inferred or ()),
         }
-        factor = 1 if config.stop_after == Stage.DECODE else working_factor(cap, config.decode.max_working_size_px)
+        extent = frame_extent(cap)
+        factor = 1 if config.stop_after == Stage.DECODE else binning_factor(*extent, config.decode.max_working_size_px)
         work_cap = working_capture(cap, factor)
         limit, source = memory_limit(max_memory)
-        h0, w0 = cap.frame_size(0)
-        check_memory(str(capture), (w0, h0), len(cap.frames), factor, limit, source)
-        sections["resolution"] = resolution_report(cap, factor)
+        check_memory(str(capture), extent, len(cap.frames), factor, limit, source)
+        sections["resolution"] = resolution_report(extent, factor)
         with progress.step(Stage.DECODE, weight[Stage.DECODE]) as p:
             if cache is not None and resume.position > Stage.DECODE.position:  # resuming needs a cache
                 views = stage_cache.load_stage(cache, Stage.DECODE, config)

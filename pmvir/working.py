@@ -82,12 +82,11 @@ def bin_images(images: PolarizationImages, f: int) -> PolarizationImages:
     u = _block_mean(weight * images.dop * np.sin(two_phi), f)
     total = _block_mean(weight, f)
     dark = total <= 0.0
-    # Blocks without light: the unweighted average of the normalized Stokes vectors.
-    q_plain = _block_mean(images.dop * np.cos(two_phi), f)
-    u_plain = _block_mean(images.dop * np.sin(two_phi), f)
     safe = np.where(dark, 1.0, total).astype(np.float32)
-    q = np.where(dark, q_plain, q / safe)
-    u = np.where(dark, u_plain, u / safe)
+    q, u = q / safe, u / safe
+    if dark.any():  # blocks without light: the unweighted average of the normalized Stokes vectors
+        q = np.where(dark, _block_mean(images.dop * np.cos(two_phi), f), q)
+        u = np.where(dark, _block_mean(images.dop * np.sin(two_phi), f), u)
     dop = np.clip(np.hypot(q, u), 0.0, 1.0).astype(np.float32)
     aop = np.mod(0.5 * np.arctan2(u, q), np.pi).astype(np.float32)
     aop[aop >= np.float32(np.pi)] = 0.0
@@ -187,16 +186,14 @@ def unbin_mask(mask: np.ndarray, f: int, shape: tuple[int, ...]) -> np.ndarray:
     return full
 
 
-def working_factor(cap: Capture, max_size_px: int) -> int:
-    """The binning factor of a capture: its largest frame (from the headers) brought to ``max_size_px``."""
+def frame_extent(cap: Capture) -> tuple[int, int]:
+    """(width, height): the largest frame width and height of a capture, from the headers."""
     sizes = [cap.frame_size(i) for i in range(len(cap.frames))]
-    height = max(h for h, _ in sizes)
-    width = max(w for _, w in sizes)
-    return binning_factor(width, height, max_size_px)
+    return max(w for _, w in sizes), max(h for h, _ in sizes)
 
 
-def resolution_report(cap: Capture, factor: int) -> dict[str, object]:
+def resolution_report(extent: tuple[int, int], factor: int) -> dict[str, object]:
     """What report.json says of the resolutions: the frames', the binning factor and the working size."""
-    h, w = cap.frame_size(0)
+    w, h = extent
     working = f"{w // factor}x{h // factor}"
     return {"frames": f"{w}x{h}", "binning": factor, "decode": f"{w}x{h}", "geometry": working, "refine": working}
