@@ -7,7 +7,7 @@
 * :mod:`service.store`     job state in Redis (the service's own keys)
 * :mod:`service.storage`   job folders on disk, the capture layout, atomic publishing
 * :mod:`service.uploads`, :mod:`service.zipped`   streamed, bounded, resumable uploads; zipped captures
-* :mod:`service.queue`, :mod:`service.celery_app`, :mod:`service.runner`   Celery and the job runs
+* :mod:`service.queue`, :mod:`service.celery_app`, :mod:`service.runner`, :mod:`service.lease_keeper`   Celery and the job runs
 * :mod:`service.openapi`   the committed OpenAPI document
 * :mod:`service.testing`   the real stack as local processes, for tests and benchmarks
 """

@@ -44,7 +44,7 @@ def run_job(self, job_id: str) -> None:
     """Run one job's pipeline (thin: everything is in service.runner)."""
     from service.runner import run_job as run
 
-    run(job_id, settings=settings, hostname=self.request.hostname or "")
+    run(job_id, settings=settings, hostname=self.request.hostname or "", task_id=self.request.id or "")
 
 
 if settings.log_format == "json":
@@ -63,13 +63,13 @@ def _bound_the_job_process(**_: object) -> None:
 
 
 @signals.task_failure.connect
-def _hard_time_limit(sender=None, task_id=None, exception=None, args=None, **_: object) -> None:
+def _hard_time_limit(sender=None, task_id=None, exception=None, **_: object) -> None:
     """A job whose process Celery killed at the hard time limit fails now (its lease would requeue it)."""
-    if isinstance(exception, TimeLimitExceeded) and args:
+    if isinstance(exception, TimeLimitExceeded) and task_id:
         from service.runner import fail_now
 
         fail_now(
-            str(args[0]),
+            str(task_id),
             settings,
             f"hard time limit exceeded ({settings.job_hard_time_limit} s): the job's process was killed",
         )

@@ -2,8 +2,10 @@
 
 The Celery task stays thin and calls :func:`run_job`, which
 
-1. *claims* the job (:meth:`JobStore.claim`): a fresh run id becomes the job's
-   owner, its delivery counter goes up (a job started more than
+1. *claims* a job (:meth:`JobStore.claim_next`): the message only wakes the
+   worker, which takes the next job in fair order across tenants (the oldest
+   ready job of the tenant served least recently); a fresh run id becomes the
+   job's owner, its delivery counter goes up (a job started more than
    ``max_deliveries`` times - its worker keeps dying - is failed instead of
    looping), and a heartbeat lease starts;
 2. calls ``pmvir.pipeline.run(config, capture, out, progress=Progress(...))``
@@ -16,14 +18,18 @@ per-stage timings and log; its ``should_cancel`` answers True when the job is
 canceled, deleted, or taken over by another run, and the pipeline raises
 :class:`pmvir.errors.CanceledError` at its next stage or iteration boundary.
 
-A *reaper* thread in every worker requeues running jobs whose lease lapsed
-(their worker was killed), so a job survives a ``kill -9`` of its worker
-within about ``lease_seconds``, not only after Redis's visibility timeout.
+The lease is extended by a thread of the job's process and by a keeper process
+of its own (:mod:`service.lease_keeper`), which a native call holding the GIL
+for longer than the lease cannot starve. A *reaper* thread in every worker
+requeues running jobs whose lease lapsed (their worker was killed), so a job
+survives a ``kill -9`` of its worker within about ``lease_seconds``, not only
+after Redis's visibility timeout.
 """
 
 from __future__ import annotations
 
 import logging
+import subprocess
 import threading
 import time
 import uuid
@@ -33,7 +39,7 @@ from celery.exceptions import SoftTimeLimitExceeded
 
 from pmvir.config import PipelineConfig
 from pmvir.errors import CanceledError, PmvirError
-from service import limits, metrics, observability
+from service import lease_keeper, limits, metrics, observability
 from service.queue import RUN_JOB
 from service.settings import Settings
 from service.storage import JobFiles
@@ -62,6 +68,7 @@ class _Run:
         self._stop_cached = False
         self._beat_stop = threading.Event()
         self._beat = threading.Thread(target=self._heartbeat, name=f"lease-{job.id[:8]}", daemon=True)
+        self._keeper: subprocess.Popen | None = None
 
     # -- lease
 
@@ -79,9 +86,13 @@ class _Run:
 
     def __enter__(self) -> _Run:
         self._beat.start()
+        self._keeper = lease_keeper.start(
+            self.settings.redis_url, self.settings.key_prefix, self.job.id, self.run_id, self.settings.lease_seconds
+        )
         return self
 
     def __exit__(self, *exc: object) -> None:
+        lease_keeper.stop(self._keeper)
         self._beat_stop.set()
         self._beat.join(timeout=5)
 
@@ -140,8 +151,11 @@ class _Run:
         return self.timings
 
 
-def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobStore | None = None) -> str:
-    """Run a job's pipeline once (one delivery of its task).
+def run_job(
+    job_id: str, *, settings: Settings, hostname: str = "", store: JobStore | None = None, task_id: str = ""
+) -> str:
+    """Run the next job's pipeline once (one delivery of a task; ``job_id`` is the message's job,
+    run when no job is ready in fair order).
 
     Returns:
         What happened: 'succeeded', 'failed', 'canceled', 'superseded', or why nothing ran
@@ -152,11 +166,15 @@ def run_job(job_id: str, *, settings: Settings, hostname: str = "", store: JobSt
 
     store = store or JobStore.from_url(settings.redis_url, prefix=settings.key_prefix)
     files = open_storage(settings)
-    observability.job_id.set(job_id)
     run_id = uuid.uuid4().hex
-    what, n = store.claim(
-        job_id, run_id, lease_seconds=settings.lease_seconds, max_deliveries=settings.max_deliveries
+    what, job_id, n = store.claim_next(
+        job_id,
+        run_id,
+        lease_seconds=settings.lease_seconds,
+        max_deliveries=settings.max_deliveries,
+        task_id=task_id,
     )
+    observability.job_id.set(job_id)
     if what is not Claim.OK:
         log.info("job %s: nothing to run (%s)", job_id, what)
         if what is Claim.EXHAUSTED:
@@ -251,16 +269,18 @@ def _end_canceled(store: JobStore, files: JobFiles, job: Job, run_id: str, timin
     return _end(store, job, run_id, JobStatus.CANCELED, timings, None)
 
 
-def fail_now(job_id: str, settings: Settings, error: str) -> bool:
-    """Fail a running job whose process is gone for good (hard time limit), so it is not requeued."""
+def fail_now(task_id: str, settings: Settings, error: str) -> bool:
+    """Fail the running job of Celery task ``task_id`` whose process is gone for good (hard time
+    limit), so it is not requeued."""
     store = JobStore.from_url(settings.redis_url, prefix=settings.key_prefix)
-    job = store.get(job_id)
+    job_id = store.running_task(task_id)
+    job = store.get(job_id) if job_id else None
     if job is None or job.status is not JobStatus.RUNNING:
         return False
     if store.finish(job, job.run_id, JobStatus.FAILED, error=error):
-        store.log(job_id, f"failed: {error}")
+        store.log(job.id, f"failed: {error}")
         _record(store, JobStatus.FAILED, {}, error)
-        log.error("job %s: %s", job_id, error)
+        log.error("job %s: %s", job.id, error)
         return True
     return False
 

@@ -6,6 +6,7 @@ Keys (``P`` is ``Settings.key_prefix``)::
     P:job:<id>:files       hash: capture path -> {"size", "sha256"} of every complete upload
     P:job:<id>:partial     hash: capture path -> total size declared by Content-Range
     P:job:<id>:uploads     zset: upload tokens in progress, scored by their expiry time
+    P:job:<id>:offers      hash: presigned upload id -> {"path", "size", "sha256", "expires_at"}
     P:job:<id>:starting    string with a TTL: held while POST /start validates the capture
     P:job:<id>:lease       string with a TTL: the run id of the worker running the job (heartbeat)
     P:job:<id>:log         list of JSON lines {"t", "msg"}
@@ -18,6 +19,18 @@ Keys (``P`` is ``Settings.key_prefix``)::
     P:webhooks             zset: jobs whose webhook event is due, scored by the next attempt's time
     P:worker:<name>        string with a TTL: a live worker's JSON self-description (heartbeat)
     P:validating           zset: jobs whose capture is being validated, scored by when it began
+    P:ready:<owner>        list: the owner's queued jobs in dispatch order (fair dispatch)
+    P:ready                zset: owners with ready jobs, scored by when each was last served
+    P:served               hash: owner -> the dispatch counter's value when it was last served
+    P:dispatch             counter: one tick per job dispatched
+
+Fair dispatch: the Celery message of a job only wakes a worker. Whatever job it
+names, the worker takes the next job of the tenant served least recently
+(:meth:`JobStore.claim_next`, one Lua script), so a tenant with many queued jobs
+does not hold back another's: with several workers on several hosts alike, as
+every claim is one atomic step in Redis. There is a message per queued job, so
+no ready job waits for a wake-up; a message that finds nothing ready falls back
+to its own job (a running job whose lease lapsed, claimed again at once).
 
 Every state change that depends on the current state is one Lua script
 (:mod:`service.store_scripts`), so
@@ -58,6 +71,7 @@ class JobStore:
         self._create = client.register_script(scripts.CREATE)
         self._transition = client.register_script(scripts.TRANSITION)
         self._claim = client.register_script(scripts.CLAIM)
+        self._claim_next = client.register_script(scripts.CLAIM_NEXT)
         self._heartbeat = client.register_script(scripts.HEARTBEAT)
         self._progress = client.register_script(scripts.PROGRESS)
         self._requeue = client.register_script(scripts.REQUEUE)
@@ -97,8 +111,13 @@ class JobStore:
     def _webhooks(self) -> str:
         return f"{self.p}:webhooks"
 
+    def _ready_keys(self, owner: str) -> list[str]:
+        """KEYS of the scripts that make a job ready: the owner's ready list, ready owners, served."""
+        return [f"{self.p}:ready:{owner}", f"{self.p}:ready", f"{self.p}:served"]
+
     def _ending_keys(self, job_id: str, owner: str) -> list[str]:
-        """KEYS of the scripts that may end a job: job, owner open, running, lease, expiry, webhooks."""
+        """KEYS of the scripts that may end or queue a job: job, owner open, running, lease, expiry,
+        webhooks, and the :meth:`_ready_keys`."""
         return [
             self.key(job_id),
             self._owner_open(owner),
@@ -106,6 +125,7 @@ class JobStore:
             self.key(job_id, "lease"),
             self._expiry,
             self._webhooks,
+            *self._ready_keys(owner),
         ]
 
     def ping(self) -> bool:
@@ -337,28 +357,59 @@ class JobStore:
     # -- worker side
 
     def claim(
-        self, job_id: str, run_id: str, *, lease_seconds: float, max_deliveries: int
+        self, job_id: str, run_id: str, *, lease_seconds: float, max_deliveries: int, task_id: str = ""
     ) -> tuple[Claim, int]:
-        """A delivery of the job's task starts a run.
+        """A delivery of the job's task starts a run of that job.
 
         Returns:
             (Claim.OK, delivery number) when this run now owns the job; (GONE | DONE |
             NOT_QUEUED | BUSY, 0) when there is nothing to do; (EXHAUSTED, n) when the job
             was just failed for having killed its worker too often.
         """
-        job = self.r.hget(self.key(job_id), "owner") or ""
-        what, n = self._claim(
+        owner = self.r.hget(self.key(job_id), "owner") or ""
+        what, n, _ = self._claim(
             keys=[
                 self.key(job_id),
                 self._running,
                 self.key(job_id, "lease"),
-                self._owner_open(job),
+                self._owner_open(owner),
                 self._expiry,
                 self._webhooks,
             ],
-            args=[job_id, run_id, repr(time.time()), int(lease_seconds * 1000), max_deliveries],
+            args=[job_id, run_id, repr(time.time()), int(lease_seconds * 1000), max_deliveries, task_id],
         )
         return Claim(what), int(n)
+
+    def claim_next(
+        self, hint: str, run_id: str, *, lease_seconds: float, max_deliveries: int, task_id: str = ""
+    ) -> tuple[Claim, str, int]:
+        """A delivery of any job's task starts a run of the next job in fair order.
+
+        The next job is the oldest ready job of the tenant served least recently; when no job
+        is ready, the message's own job ``hint`` is claimed as by :meth:`claim` (a running job
+        whose lease lapsed is taken over at once).
+
+        Returns:
+            (what, the job id, n) with what and n as :meth:`claim` answers them.
+        """
+        what, n, job_id = self._claim_next(
+            keys=[f"{self.p}:ready", f"{self.p}:served", f"{self.p}:dispatch", self._running, self._expiry,
+                  self._webhooks],
+            args=[self.p, run_id, repr(time.time()), int(lease_seconds * 1000), max_deliveries, task_id],
+        )
+        if what == "empty":
+            c, n = self.claim(
+                hint, run_id, lease_seconds=lease_seconds, max_deliveries=max_deliveries, task_id=task_id
+            )
+            return c, hint, n
+        return Claim(what), str(job_id), int(n)
+
+    def running_task(self, task_id: str) -> str | None:
+        """The running job that the Celery task ``task_id`` claimed, if any."""
+        for job_id in self.r.smembers(self._running):
+            if task_id and self.r.hget(self.key(job_id), "task_id") == task_id:
+                return str(job_id)
+        return None
 
     def heartbeat(self, job_id: str, run_id: str, *, lease_seconds: float) -> bool:
         """Extend the run's lease; False when the run no longer owns the job."""
@@ -403,10 +454,11 @@ class JobStore:
         return [i for i, alive in zip(ids, pipe.execute(), strict=True) if not alive]
 
     def requeue_lapsed(self, job_id: str) -> bool:
-        """Put a running job whose lease lapsed back to queued (one caller wins)."""
+        """Put a running job whose lease lapsed back to queued, first of its tenant's (one caller wins)."""
+        owner = self.r.hget(self.key(job_id), "owner") or ""
         return bool(
             self._requeue(
-                keys=[self.key(job_id), self._running, self.key(job_id, "lease")],
+                keys=[self.key(job_id), self._running, self.key(job_id, "lease"), *self._ready_keys(owner)],
                 args=[job_id, repr(time.time())],
             )
         )
