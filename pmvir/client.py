@@ -141,9 +141,14 @@ class PmvirClient:
             transport=transport,
             headers={"Authorization": f"Bearer {api_key}"},
         )
+        #: Whether the server offers presigned uploads (asked once, at the first upload).
+        self._presigned: bool | None = None
+        #: A client without the API key, for presigned URLs of the bucket.
+        self._bucket = httpx.Client(timeout=timeout)
 
     def close(self) -> None:
         self.http.close()
+        self._bucket.close()
 
     def __enter__(self) -> PmvirClient:
         return self
@@ -346,12 +351,22 @@ class PmvirClient:
     def upload_file(
         self, job_id: str, path: str, local: str | Path, *, on_bytes: BytesCallback | None = None
     ) -> dict[str, Any]:
-        """Upload one capture file (resumable above ``chunk_size``); checks the returned sha256."""
+        """Upload one capture file (resumable above ``chunk_size``); checks the returned sha256.
+
+        When the server offers presigned uploads (``GET /v1/info``'s ``presigned_uploads``), the
+        bytes go to the bucket and the server checks them there; a bucket this client cannot
+        reach (or that refuses the URL) falls back to sending them to the API.
+        """
         local = Path(local)
         size = local.stat().st_size
         digest = sha256_of(local)
         url = f"/v1/jobs/{job_id}/files/{path}"
-        if size <= self.chunk_size:
+        presigned = self._upload_presigned(job_id, path, local, size, digest) if self._offers_presigned() else None
+        if presigned is not None:
+            out = presigned
+            if on_bytes:
+                on_bytes(size)
+        elif size <= self.chunk_size:
             r = self.request(
                 "PUT",
                 url,
@@ -382,6 +397,35 @@ class PmvirClient:
                 },
             )
         return out
+
+    def _offers_presigned(self) -> bool:
+        if self._presigned is None:
+            try:
+                self._presigned = bool(self.info().get("presigned_uploads"))
+            except ServiceError:
+                self._presigned = False
+        return self._presigned
+
+    def _upload_presigned(
+        self, job_id: str, path: str, local: Path, size: int, digest: str
+    ) -> dict[str, Any] | None:
+        """Upload through a presigned PUT of the bucket; None when the bucket cannot be reached
+        or refuses the URL (the caller sends the bytes to the API instead)."""
+        offer = self.request(
+            "POST", f"/v1/jobs/{job_id}/uploads", ok=(201,), json={"path": path, "size": size, "sha256": digest}
+        ).json()
+        try:
+            r = self._bucket.request(
+                offer["method"],
+                offer["url"],
+                content=_read_range(local, 0, size, None),
+                headers={**offer["headers"], "Content-Length": str(size)},
+            )
+        except httpx.TransportError:
+            return None
+        if r.status_code >= 300:
+            return None
+        return dict(self.request("POST", offer["complete"]).json())
 
     def upload_missing(
         self,
@@ -483,7 +527,10 @@ class PmvirClient:
             if have and etag:
                 headers["If-Range"] = etag
             try:
-                with self.http.stream("GET", f"/v1/jobs/{job_id}/result/{name}", headers=headers) as r:
+                # a redirect to a presigned URL of the bucket is followed without the API key
+                with self.http.stream(
+                    "GET", f"/v1/jobs/{job_id}/result/{name}", headers=headers, follow_redirects=True
+                ) as r:
                     if r.status_code == 416:  # the part is complete already
                         part.replace(dest)
                         return dest

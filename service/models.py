@@ -94,6 +94,31 @@ class UploadOut(BaseModel):
     )
 
 
+class UploadOfferIn(BaseModel):
+    """POST /v1/jobs/{id}/uploads: the file a presigned upload is asked for."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    path: str = Field(max_length=300, description="Path inside the capture, as for PUT /files/{path}.")
+    size: int = Field(ge=0, le=1 << 40, description="The file's size in bytes; what lands must have it.")
+    sha256: str | None = Field(
+        default=None,
+        pattern=r"^[0-9a-f]{64}$",
+        description="The file's SHA-256 (hex); when given, what lands must have it.",
+    )
+
+
+class UploadOfferOut(BaseModel):
+    """A presigned upload: PUT the file's bytes to ``url`` with ``headers``, then POST ``complete``."""
+
+    id: str = Field(description="The upload's id.")
+    url: str = Field(description="Presigned URL of the bucket; send no Authorization header to it.")
+    method: Literal["PUT"] = "PUT"
+    headers: dict[str, str] = Field(description="Headers the PUT must carry (they are signed).")
+    complete: str = Field(description="Where to POST when the bytes are up (a path of this API).")
+    expires_at: datetime = Field(description="When the URL and the offer expire.")
+
+
 def _dt(t: float | None) -> datetime | None:
     return None if t is None else datetime.fromtimestamp(t, tz=UTC)
 
@@ -278,6 +303,12 @@ class InfoOut(BaseModel):
     limits: dict[str, float] = Field(description="Size, count, time and retention limits (PMVIR_* settings).")
     queue: str = Field(description="The Celery queue jobs go to.")
     webhooks_enabled: bool = Field(description="Callback URLs are accepted (PMVIR_WEBHOOK_HOSTS is set).")
+    presigned_uploads: bool = Field(
+        default=False, description="POST /v1/jobs/{id}/uploads offers presigned PUTs of the bucket."
+    )
+    presigned_downloads: bool = Field(
+        default=False, description="Result downloads answer 307 to a presigned GET of the bucket."
+    )
     admin: bool = Field(default=False, description="The key has the admin role; the figures below are for it alone.")
     queue_length: int | None = Field(default=None, ge=0, description="Jobs waiting in the queue for a worker (admin).")
     workers_online: int | None = Field(default=None, ge=0, description="Workers with a live heartbeat (admin).")

@@ -4,15 +4,16 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Header, Path, Request, Response
-from fastapi.responses import JSONResponse
+from fastapi import APIRouter, Body, Depends, Header, Path, Request, Response
+from fastapi.responses import JSONResponse, RedirectResponse
 from starlette.concurrency import run_in_threadpool
 
 from pmvir.result import RESULT_ZIP, downloadable_names, result_file
 from service.auth import require_owner
 from service.deps import Services, owned_job, reject_unknown_query, services
 from service.errors import ApiError
-from service.models import ResultName, UploadOut
+from service.models import ResultName, UploadOfferIn, UploadOfferOut, UploadOut
+from service.presigned import complete_upload, offer_upload, result_redirect
 from service.ranges import file_response
 from service.routes_jobs import _E, _JOB_ERRORS, JobId
 from service.uploads import receive_file
@@ -82,6 +83,47 @@ async def upload_file(
     return JSONResponse(status_code=status, content=body.model_dump(mode="json"))
 
 
+@router.post(
+    "/{job_id}/uploads",
+    status_code=201,
+    summary="Ask for a presigned PUT of the bucket for one capture file (S3 storage, when offered)",
+    description="The body names the file's path, size and (optionally) sha256; they are checked as a "
+    "PUT of the file would be checked first. The answer's url takes the bytes (PUT, with the answer's "
+    "headers and without this API's Authorization); then POST the answer's complete path. "
+    "GET /v1/info says whether this server offers it (presigned_uploads); 409 not_offered when not.",
+    response_model=UploadOfferOut,
+    responses={
+        **_JOB_ERRORS,
+        409: {**_E, "description": "Not offered by this server, or the job takes no uploads now."},
+        413: {**_E, "description": "The file or the job would be over a size or count limit."},
+    },
+)
+def offer(job_id: JobId, spec: Annotated[UploadOfferIn, Body()], owner: Owner, svc: Svc) -> UploadOfferOut:
+    return offer_upload(svc, owned_job(svc, job_id, owner), spec)
+
+
+@router.post(
+    "/{job_id}/uploads/{upload_id}/complete",
+    summary="Check a presigned upload's bytes and put them in the capture",
+    description="The file that landed at the offer's URL must have the size (and sha256) the offer "
+    "named, and capture.json must be a valid manifest; then it is the job's file as after a PUT. "
+    "404 for an unknown or expired offer (ask again), 409 while nothing landed.",
+    response_model=UploadOut,
+    responses={
+        **_JOB_ERRORS,
+        409: {**_E, "description": "Nothing landed yet, it changed while checked, or the job takes no uploads now."},
+        413: {**_E, "description": "The job would be over a size or count limit."},
+    },
+)
+def complete(
+    job_id: JobId,
+    upload_id: Annotated[str, Path(description="The offer's id.", pattern=r"^[0-9a-f]{32}$")],
+    owner: Owner,
+    svc: Svc,
+) -> UploadOut:
+    return complete_upload(svc, owned_job(svc, job_id, owner), upload_id)
+
+
 @router.get(
     "/{job_id}/result/{name}",
     summary="Download a result file (HTTP Range supported)",
@@ -96,6 +138,10 @@ async def upload_file(
             "description": "The requested byte range (Content-Range says which); a JSON file's "
             "range is a fragment, not a JSON document.",
             "content": _RESULT_CONTENT,
+        },
+        307: {
+            "description": "With PMVIR_S3_PRESIGN_DOWNLOADS: Location is a presigned GET of the file in "
+            "the bucket (send Range there, not the Authorization header)."
         },
         416: {**_E, "description": "The range starts past the end of the file."},
     },
@@ -117,8 +163,11 @@ def get_result(
     ] = None,
 ):
     job = owned_job(svc, job_id, owner)
+    media = "application/zip" if name == RESULT_ZIP else result_file(name).media_type
+    url = result_redirect(svc, job, str(name), media_type=media)
+    if url is not None:
+        return RedirectResponse(url, status_code=307)
     blob = svc.files.result_blob(job.id, name)
     if blob is None:
         raise ApiError(404, "not_found", f"{name} is not available (job {job.status})")
-    media = "application/zip" if name == RESULT_ZIP else result_file(name).media_type
     return file_response(request, blob, media_type=media, filename=str(name))

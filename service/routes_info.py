@@ -12,6 +12,7 @@ from pmvir.io.frames import MAX_FRAME_PIXELS
 from service.auth import require_owner
 from service.deps import Services, reject_unknown_query, services
 from service.models import DiskOut, InfoOut, WorkerOut
+from service.presigned import downloads_redirected, uploads_offered
 from service.routes_jobs import _COMMON
 
 router = APIRouter(prefix="/v1", tags=["info"], dependencies=[Depends(reject_unknown_query)])
@@ -54,6 +55,8 @@ def info(
         limits=limits,
         queue=s.queue,
         webhooks_enabled=bool(s.webhook_hosts),
+        presigned_uploads=uploads_offered(svc),
+        presigned_downloads=downloads_redirected(svc),
     )
     if owner not in s.keyring.admins:  # the service-wide figures are the operator's
         return out

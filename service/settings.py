@@ -42,6 +42,24 @@ class Settings(BaseSettings):
     s3_endpoint_url: str = Field(
         default="", description="Endpoint of the S3-compatible store (MinIO, Ceph RGW); empty: AWS."
     )
+    s3_public_endpoint_url: str = Field(
+        default="",
+        description="Endpoint of the bucket as clients reach it, for presigned URLs; empty: "
+        "PMVIR_S3_ENDPOINT_URL.",
+    )
+    s3_presign_downloads: bool = Field(
+        default=False,
+        description="With a bucket: a result download answers 307 to a presigned GET of the bucket, "
+        "so the bytes bypass the API (clients must reach the bucket).",
+    )
+    s3_presign_uploads: bool = Field(
+        default=False,
+        description="With a bucket: POST /v1/jobs/{id}/uploads offers a presigned PUT of the bucket, "
+        "so the bytes bypass the API; the API checks what landed when the upload is completed.",
+    )
+    s3_presign_ttl: int = Field(
+        default=900, ge=60, le=7 * 24 * 3600, description="Seconds a presigned URL is valid."
+    )
     scratch: Path | None = Field(
         default=None,
         description="This process's local working folder with a bucket (uploads, a run's inputs and "

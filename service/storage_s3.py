@@ -5,6 +5,7 @@ Layout in the bucket, under ``s3://<bucket>/<prefix>/``::
     jobs/<id>/capture/<path>     the uploaded capture (capture.json, frames/, masks/, gt/)
     jobs/<id>/result/<path>      the finished result (result.zip and every file the run wrote)
     jobs/<id>/cache/<file>       stage outputs a rerun resumes from, each with its HMAC ``.sig``
+    jobs/<id>/incoming/<upload>  a presigned upload as the client PUT it, until the API checks it
 
 Nothing else is shared: the API receives an upload into its scratch folder and
 puts it in the bucket (multipart above 16 MiB); a worker copies the capture and
@@ -51,7 +52,15 @@ class S3JobFiles(JobFiles):
 
     backend = "s3"
 
-    def __init__(self, url: str, *, scratch: str | Path, endpoint_url: str = "", cache_key: bytes = b""):
+    def __init__(
+        self,
+        url: str,
+        *,
+        scratch: str | Path,
+        endpoint_url: str = "",
+        cache_key: bytes = b"",
+        public_endpoint_url: str = "",
+    ):
         import boto3
         from boto3.s3.transfer import TransferConfig
         from botocore.config import Config
@@ -62,6 +71,10 @@ class S3JobFiles(JobFiles):
             "s3",
             endpoint_url=endpoint_url or None,
             config=Config(retries={"max_attempts": 5, "mode": "standard"}, max_pool_connections=32),
+        )
+        #: Signs URLs for clients, with the endpoint they reach the bucket at.
+        self.presigner = (
+            boto3.client("s3", endpoint_url=public_endpoint_url) if public_endpoint_url else self.s3
         )
         self.transfer = TransferConfig(
             multipart_threshold=_PART, multipart_chunksize=_PART, max_concurrency=4
@@ -211,6 +224,76 @@ class S3JobFiles(JobFiles):
             return False
         return super().writable()
 
+    # -- presigned URLs: the bytes go between the client and the bucket
+
+    def result_url(self, job_id: str, path: str, *, filename: str, media_type: str, ttl: int) -> str | None:
+        """A presigned GET of a result file (None when the job has no such file)."""
+        key = self.key(job_id, "result", path)
+        try:
+            self.s3.head_object(Bucket=self.bucket, Key=key)
+        except self.s3.exceptions.ClientError:
+            return None
+        params = {
+            "Bucket": self.bucket,
+            "Key": key,
+            "ResponseContentDisposition": f'attachment; filename="{filename}"',
+            "ResponseContentType": media_type,
+        }
+        return str(self.presigner.generate_presigned_url("get_object", Params=params, ExpiresIn=ttl))
+
+    def upload_url(self, job_id: str, upload_id: str, *, ttl: int) -> str:
+        """A presigned PUT to the job's ``incoming/<upload_id>`` (Content-Type application/octet-stream)."""
+        params = {
+            "Bucket": self.bucket,
+            "Key": self.key(job_id, "incoming", upload_id),
+            "ContentType": "application/octet-stream",
+        }
+        return str(self.presigner.generate_presigned_url("put_object", Params=params, ExpiresIn=ttl))
+
+    def landed(self, job_id: str, upload_id: str) -> tuple[int, str] | None:
+        """(size, ETag) of what the client PUT to an upload URL; None when nothing is there."""
+        try:
+            head = self.s3.head_object(Bucket=self.bucket, Key=self.key(job_id, "incoming", upload_id))
+        except self.s3.exceptions.ClientError:
+            return None
+        return int(head["ContentLength"]), str(head.get("ETag", ""))
+
+    def landed_bytes(self, job_id: str, upload_id: str, etag: str) -> Iterator[bytes]:
+        """The bytes that landed, as long as they are the version ``etag`` names."""
+        key = self.key(job_id, "incoming", upload_id)
+        body = self.s3.get_object(Bucket=self.bucket, Key=key, IfMatch=etag)["Body"]
+        try:
+            yield from body.iter_chunks(CHUNK)
+        finally:
+            body.close()
+
+    def freeze_landed(self, job_id: str, upload_id: str, etag: str) -> None:
+        """Keep the checked version (``etag``) of an upload where its URL cannot write; raises
+        ``ClientError`` when the upload changed since it was checked."""
+        key = self.key(job_id, "incoming", upload_id)
+        self.s3.copy_object(
+            Bucket=self.bucket,
+            Key=key + ".checked",
+            CopySource={"Bucket": self.bucket, "Key": key},
+            CopySourceIfMatch=etag,
+        )
+
+    def place_landed(self, job_id: str, upload_id: str, path: str) -> None:
+        """Move a frozen upload into the capture (server-side copy)."""
+        key = self.key(job_id, "incoming", upload_id)
+        self.s3.copy_object(
+            Bucket=self.bucket,
+            Key=self.key(job_id, "capture", path),
+            CopySource={"Bucket": self.bucket, "Key": key + ".checked"},
+        )
+        self.drop_landed(job_id, upload_id)
+
+    def drop_landed(self, job_id: str, upload_id: str) -> None:
+        key = self.key(job_id, "incoming", upload_id)
+        self.s3.delete_objects(
+            Bucket=self.bucket, Delete={"Objects": [{"Key": key}, {"Key": key + ".checked"}], "Quiet": True}
+        )
+
     # -- a worker's side
 
     def checkout(self, job_id: str) -> tuple[Path, Path]:
@@ -256,5 +339,6 @@ def open_storage(settings: Any) -> JobFiles:
             scratch=settings.scratch or settings.storage,
             endpoint_url=settings.s3_endpoint_url,
             cache_key=key,
+            public_endpoint_url=settings.s3_public_endpoint_url,
         )
     return JobFiles(settings.storage, cache_key=key)

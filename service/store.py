@@ -231,7 +231,9 @@ class JobStore:
         pipe.delete(
             *(
                 self.key(job.id, part)
-                for part in (None, "files", "partial", "uploads", "starting", "lease", "log", "webhook")
+                for part in (
+                    None, "files", "partial", "uploads", "offers", "starting", "lease", "log", "webhook"
+                )
             )
         )
         pipe.zrem(self._expiry, job.id)
@@ -341,6 +343,24 @@ class JobStore:
     def remove_files(self, job_id: str, paths: list[str]) -> None:
         if paths:
             self.r.hdel(self.key(job_id, "files"), *paths)
+
+    def offer_upload(self, job_id: str, upload_id: str, spec: dict[str, Any]) -> None:
+        """Remember a presigned upload offered for the job (``spec`` has its ``expires_at``)."""
+        self.r.hset(self.key(job_id, "offers"), upload_id, json.dumps(spec))
+
+    def offer(self, job_id: str, upload_id: str, *, now: float | None = None) -> dict[str, Any] | None:
+        """A presigned upload offered for the job, unless unknown or expired (then forgotten)."""
+        raw = self.r.hget(self.key(job_id, "offers"), upload_id)
+        if raw is None:
+            return None
+        spec: dict[str, Any] = json.loads(raw)
+        if float(spec["expires_at"]) < (time.time() if now is None else now):
+            self.drop_offer(job_id, upload_id)
+            return None
+        return spec
+
+    def drop_offer(self, job_id: str, upload_id: str) -> None:
+        self.r.hdel(self.key(job_id, "offers"), upload_id)
 
     def start_lock(self, job_id: str, *, ttl: int = 900) -> Gate | JobStatus:
         """Hold the job while its capture is validated; Gate.OK or why not (UPLOADING, STARTING, status)."""

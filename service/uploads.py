@@ -172,7 +172,8 @@ def _job_room(svc: Services, job_id: str, path: str) -> int:
     return svc.settings.max_job_bytes - sum(f.size for p, f in files.items() if p != path)
 
 
-def _begin(svc: Services, job: Job, token: str) -> None:
+def begin_upload(svc: Services, job: Job, token: str) -> None:
+    """Register an upload in progress (the job cannot start meanwhile); 404 or 409 when it takes none."""
     why = svc.store.upload_begin(job.id, token)
     if why is Gate.OK:
         return
@@ -183,9 +184,10 @@ def _begin(svc: Services, job: Job, token: str) -> None:
     raise conflict(f"the job is {why}; files can only be uploaded while it is created")
 
 
-def _check_manifest(path: Path) -> None:
+def check_manifest(data: bytes | Path) -> None:
+    """422 naming the problem when capture.json (its bytes, or the file holding them) is invalid."""
     try:
-        parse_manifest(path.read_bytes())
+        parse_manifest(data.read_bytes() if isinstance(data, Path) else data)
     except ManifestError as exc:
         raise ApiError(
             422,
@@ -237,7 +239,7 @@ async def receive_file(
         await run_in_threadpool(check_job_limits, svc, job, path, declared or 0)
 
     token = uuid.uuid4().hex
-    await run_in_threadpool(_begin, svc, job, token)
+    await run_in_threadpool(begin_upload, svc, job, token)
     try:
         if rng is None:
             return 200, await _whole(request, svc, job, path, limit, token)
@@ -256,7 +258,7 @@ async def _whole(request: Request, svc: Services, job: Job, path: str, limit: in
         await _pump(request, sink, limit=limit, job_room=room, path=path, svc=svc, job_id=job.id, token=token)
         await sink.close(sync=True)
         if path == "capture.json":
-            await run_in_threadpool(_check_manifest, tmp)
+            await run_in_threadpool(check_manifest, tmp)
         info = FileInfo(path=path, size=sink.n, sha256=sink.hexdigest())
         await run_in_threadpool(_commit, svc, job, token, tmp, info)
         await run_in_threadpool(svc.store.clear_partial, job.id, path)
@@ -320,7 +322,7 @@ async def _part(
     if size < rng.total:
         return 202, UploadOut(path=path, size=size, complete=False)
     if path == "capture.json":
-        await run_in_threadpool(_check_manifest, part)
+        await run_in_threadpool(check_manifest, part)
     digest = await run_in_threadpool(sha256_file, part)
     tmp = await run_in_threadpool(svc.files.incoming_path, job.id)
     await run_in_threadpool(part.replace, tmp)
