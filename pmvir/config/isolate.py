@@ -48,6 +48,14 @@ class IsolateOptions(_Options):
         "removed with it, [0, 100].",
         json_schema_extra=advanced(),
     )
+    still_tolerance: float = Field(
+        default=4.0,
+        ge=0.0,
+        le=64.0,
+        description="Dense points on pixels whose colour stays within this many 8-bit levels in most views "
+        "(a still camera's backdrop behind a turntable) are not the object (0: kept), [0, 64].",
+        json_schema_extra=advanced(),
+    )
     cluster_eps: float = Field(
         default=4.0,
         gt=0.0,

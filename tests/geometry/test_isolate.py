@@ -16,6 +16,7 @@ from pmvir.geometry.silhouette.isolate import (
     isolate_object,
     object_points,
     refine_mask,
+    still_points,
     support_plane,
 )
 
@@ -63,6 +64,55 @@ def test_a_plane_with_cameras_on_both_sides_is_no_support(scene):
     points, _ = scene
     cams = ring(30.0, 4) + ring(-60.0, 4)
     assert support_plane(points, cams, distance=0.01, min_fraction=0.1)[0] is None
+
+
+def test_the_support_is_found_under_an_object_with_larger_flat_faces():
+    """A box whose faces each hold more points than a noisy table: the faces (cameras on both sides)
+    and the top (the object below it) are no candidates; the table is the support."""
+    rng = np.random.default_rng(1)
+    table = np.column_stack([rng.uniform(-1, 1, (6000, 2)), rng.normal(0, 0.01, 6000)])
+    sides = []
+    for axis in range(3):
+        for level in ((-0.3, 0.3) if axis < 2 else (0.6,)):
+            p = np.column_stack([rng.uniform(-0.3, 0.3, (8000, 2)), rng.uniform(0.0, 0.6, 8000)])
+            p[:, axis] = level
+            sides.append(p)
+    points = np.concatenate([table, *sides])
+    plane, inliers = support_plane(points, ring(30.0), distance=0.01, min_fraction=0.05, look_at=CENTRE)
+    assert plane is not None
+    np.testing.assert_allclose(plane[:3], [0.0, 0.0, 1.0], atol=0.02)
+    assert abs(plane[3]) < 0.005
+    assert 0.6 * len(table) < inliers < 8000
+
+
+def _still_scene(changing: bool):
+    """Eight views of a ring: a ball at the centre and a column of points above it on the axis; the
+    images keep every pixel but a disc around the ball (a turntable's still backdrop), or change all."""
+    rng = np.random.default_rng(2)
+    cams = ring(30.0, 8)
+    backdrop = rng.integers(0, 255, (128, 160, 3)).astype(np.uint8)
+    previews = []
+    for _ in cams:
+        img = rng.integers(0, 255, backdrop.shape).astype(np.uint8) if changing else backdrop.copy()
+        disc = np.zeros(backdrop.shape[:2], np.uint8)
+        cv2.circle(disc, (80, 64), 30, 1, -1)
+        img[disc > 0] = rng.integers(0, 255, (int(disc.sum()), 3))  # the turning object
+        previews.append(img)
+    ball = sphere_points(CENTRE, 0.3, 2000, rng)
+    column = np.column_stack([np.zeros((200, 2)), np.linspace(0.82, 0.95, 200)])
+    return cams, previews, ball, column
+
+
+def test_a_still_backdrop_is_told_from_the_turning_object():
+    cams, previews, ball, column = _still_scene(changing=False)
+    still = still_points(np.concatenate([ball, column]), [*cams, None], [*previews, previews[0]], tolerance=4.0)
+    assert not still[: len(ball)].any() and still[len(ball) :].all()
+    assert not still_points(column, cams, previews, tolerance=0.0).any()  # 0: off
+
+
+def test_moving_views_have_no_still_backdrop():
+    cams, previews, ball, column = _still_scene(changing=True)
+    assert not still_points(np.concatenate([ball, column]), cams, previews, tolerance=4.0).any()
 
 
 def test_the_cluster_the_cameras_look_at_is_the_object(scene):

@@ -8,18 +8,30 @@ given masks:
 
 1. **Look-at point**: the point nearest to every registered view's optical
    axis (the cameras aim at the object).
-2. **Support plane**: RANSAC (Open3D ``segment_plane``) on the dense points with
-   an inlier distance of ``plane_distance`` times the median camera distance to
-   the look-at point. It is taken as the support when it holds at least
-   ``plane_min_fraction`` of the points and every camera lies on one side of it
-   (views from above); points within ``plane_clearance`` inlier distances of it
-   or below it are removed.
-3. **Cluster**: DBSCAN (Open3D ``cluster_dbscan``) of the rest with a radius of
+2. **Support plane**: RANSAC on the dense points with an inlier distance of
+   ``plane_distance`` times the median camera distance to the look-at point,
+   among the planes with every camera and the look-at point on one side (views
+   from above: the object's own near-flat patches, which hold more points than
+   a noisy or half-hidden table, and walls are no candidates). The best is
+   the support when it holds at least ``plane_min_fraction`` of the points;
+   points within ``plane_clearance`` inlier distances of it or below it are
+   removed.
+3. **Still backdrop**: where the camera stood still and the object turned (a
+   turntable), the backdrop keeps its pixels in every view, and stereo
+   triangulates it into points around the turntable's axis, above the object
+   and joined to it. A point that projects, in at least :data:`_STILL_SHARE` of
+   the views where it lands in the image, onto pixels whose colour stays within
+   ``still_tolerance`` 8-bit levels of their median over the views (median
+   deviation over the views) is backdrop and removed. Hand-held views leave
+   few pixels still; where still pixels cover less than :data:`_MIN_STILL_AREA`
+   of the images, or the still points would take most of the points off the
+   plane (an object the same in every view), nothing is removed.
+4. **Cluster**: DBSCAN (Open3D ``cluster_dbscan``) of the rest with a radius of
    ``cluster_eps`` median point spacings; the cluster whose median point is
    nearest to the look-at point (among clusters of at least 2 % of the
    remaining points) is the object. A bounding box (world units) replaces this
    choice: the points inside it, off the plane, are the object.
-4. **Masks**: per view the object's solid points (dense neighbourhoods, not
+5. **Masks**: per view the object's solid points (dense neighbourhoods, not
    the sparse points stereo adds beside silhouettes) and vertical columns from
    their lower half down to the plane (the underside the points miss) are
    splatted (discs of the points' projected spacing), closed, and refined by
@@ -27,7 +39,7 @@ given masks:
    eroded projection of the points, probable foreground on the rest of it,
    probable background in a band of ``band_px`` around it, background beyond.
    The refined mask stays within that band.
-5. **Points**: the dense points inside every view's mask (where they project
+6. **Points**: the dense points inside every view's mask (where they project
    into the image) and above the plane's inlier distance are the object's; the
    stage continues with them.
 """
@@ -59,11 +71,11 @@ _MAX_CLUSTER_POINTS = 60_000
 #: A point with fewer neighbours than this share of the median count is not solid (:func:`solid_points`);
 #: measured on a 12-view table scene: 9 (median) on points beside the object, 23 (5th percentile) on it.
 _SOLID_SHARE = 0.4
-#: RANSAC iterations per plane (3 points each): with 10 % of the points on the plane, the chance of
-#: never drawing three of them is (1 - 0.001)^3000, about 5 %.
-_RANSAC_ITERATIONS = 3000
-#: Planes tried in turn when one has cameras on both sides (a wall, a backdrop).
-_PLANE_ATTEMPTS = 3
+#: RANSAC's candidate planes (3 points each): with 10 % of the points on the support, the chance of
+#: never drawing three of them is (1 - 0.001)^4000, about 2 %.
+_RANSAC_ITERATIONS = 4000
+#: Candidate planes scored together (a (sample, batch) array of distances).
+_RANSAC_BATCH = 200
 #: RANSAC draws its planes from a random subset of at most this many points.
 _MAX_RANSAC_POINTS = 20_000
 #: GrabCut's masks end about 1.4 px inside the true silhouettes (pixels the demosaiced preview mixes
@@ -71,6 +83,12 @@ _MAX_RANSAC_POINTS = 20_000
 _GROW = np.ones((3, 3), np.uint8)
 #: Dense points within this many pixels of every mask are kept (their pixel may be a mixed one).
 _KEEP_GROW_PX = 3
+#: A point is still backdrop when it lands on still pixels in at least this share of the views that see it.
+_STILL_SHARE = 0.8
+#: The still-backdrop test runs where still pixels cover at least this share of the images (a still camera).
+_MIN_STILL_AREA = 0.1
+#: Fewest views with images of one size for the still-backdrop test.
+_MIN_STILL_VIEWS = 6
 #: RANSAC's and the subsets' random seed (the same capture gives the same masks).
 _SEED = 0
 
@@ -119,45 +137,66 @@ def point_spacing(points: np.ndarray) -> float:
 
 
 def support_plane(
-    points: np.ndarray, cameras: Sequence[Camera], *, distance: float, min_fraction: float, seed: int = 0
+    points: np.ndarray,
+    cameras: Sequence[Camera],
+    *,
+    distance: float,
+    min_fraction: float,
+    look_at: np.ndarray | None = None,
+    seed: int = 0,
 ) -> tuple[np.ndarray | None, int]:
-    """The dominant plane of the points if it is a support seen from above (module docstring, step 2).
+    """The largest plane of the points that is a support seen from above (module docstring, step 2).
+
+    RANSAC scores only the candidate planes with every camera (and ``look_at``, the object) more
+    than ``distance`` on one side: the object's own near-flat patches and a backdrop, with cameras
+    on both sides, are never candidates, however many points they hold.
 
     Args:
         points: (P, 3) world points.
         cameras: the registered views.
         distance: RANSAC inlier distance, world units (> 0).
         min_fraction: least share of the points on the plane.
+        look_at: (3,) a point of the object, on the cameras' side of a support (optional).
         seed: RANSAC's random seed.
 
     Returns:
         (a, b, c, d) with the unit normal toward the cameras (a x + b y + c z + d > 0 on their side),
-        or None; and the number of inliers (0 without a support). Up to :data:`_PLANE_ATTEMPTS`
-        planes are tried, each found among the points the earlier ones left.
+        or None; and the number of inliers (0 without a support).
     """
-    import open3d as o3d
-
-    if len(points) < 3 or distance <= 0:
-        return None, 0
-    o3d.utility.random.seed(seed)
     pts = np.asarray(points, np.float64)
+    if len(pts) < 3 or distance <= 0 or not cameras:
+        return None, 0
     rng = np.random.default_rng(seed)
-    for _ in range(_PLANE_ATTEMPTS):
-        if len(pts) < max(3, min_fraction * len(points)):
-            break
-        sample = pts[rng.choice(len(pts), min(len(pts), _MAX_RANSAC_POINTS), replace=False)]
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sample))
-        model, _ = pcd.segment_plane(distance_threshold=distance, ransac_n=3, num_iterations=_RANSAC_ITERATIONS)
-        plane = np.asarray(model, np.float64) / max(float(np.linalg.norm(model[:3])), 1e-12)
-        inliers = np.abs(pts @ plane[:3] + plane[3]) <= distance
-        if inliers.sum() < min_fraction * len(points):
-            break  # RANSAC found its largest plane: smaller ones are no support
-        plane = _refit(pts[inliers])
-        side = np.array([plane[:3] @ cam.center + plane[3] for cam in cameras])
-        if np.all(side > distance) or np.all(side < -distance):
-            return (plane if side[0] > 0 else -plane), int(inliers.sum())
-        pts = pts[~inliers]  # cameras on both sides: a wall, not a support; look again
-    return None, 0
+    sample = pts[rng.choice(len(pts), min(len(pts), _MAX_RANSAC_POINTS), replace=False)]
+    above = np.array([cam.center for cam in cameras] + ([] if look_at is None else [np.asarray(look_at)]))
+    best, best_count = None, 0
+    for _ in range(_RANSAC_ITERATIONS // _RANSAC_BATCH):
+        tri = sample[rng.integers(0, len(sample), (_RANSAC_BATCH, 3))]
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        length = np.linalg.norm(normal, axis=1)
+        normal = normal / np.maximum(length, 1e-12)[:, None]
+        offset = -np.einsum("ij,ij->i", normal, tri[:, 0])
+        side = above @ normal.T + offset  # (C, B)
+        sign = np.where(side[0] < 0, -1.0, 1.0)
+        ok = (length > 1e-12) & np.all(side * sign > distance, axis=0)
+        if not ok.any():
+            continue
+        counts = (np.abs(sample @ normal[ok].T + offset[ok]) <= distance).sum(axis=0)
+        k = int(np.argmax(counts))
+        if counts[k] > best_count:
+            best_count = int(counts[k])
+            best = sign[ok][k] * np.append(normal[ok][k], offset[ok][k])
+    if best is None:
+        return None, 0
+    inliers = np.abs(pts @ best[:3] + best[3]) <= distance
+    if inliers.sum() < max(3, min_fraction * len(pts)):
+        return None, 0
+    plane = _refit(pts[inliers])
+    side = above @ plane[:3] + plane[3]
+    if not (np.all(side > 0) or np.all(side < 0)):
+        return None, 0
+    plane = plane if side[0] > 0 else -plane
+    return plane, int((np.abs(pts @ plane[:3] + plane[3]) <= distance).sum())
 
 
 def _refit(points: np.ndarray) -> np.ndarray:
@@ -189,8 +228,12 @@ def object_points(
     *,
     settings: IsolateOptions,
     bbox: Sequence[float] | None = None,
+    backdrop: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, dict[str, int]]:
-    """The dense points of the object (module docstring, steps 1-3).
+    """The dense points of the object (module docstring, steps 1-4).
+
+    ``backdrop`` (P,) bool marks still-backdrop points (:func:`still_points`); they are left out
+    unless they hold most of the points off the plane.
 
     Returns:
         (P,) bool object points, the support plane or None, the look-at point and counts.
@@ -203,10 +246,13 @@ def object_points(
     reach = float(np.median([np.linalg.norm(cam.center - look) for cam in cameras]))
     distance = settings.plane_distance * reach
     plane, inliers = support_plane(
-        pts, cameras, distance=distance, min_fraction=settings.plane_min_fraction, seed=_SEED
+        pts, cameras, distance=distance, min_fraction=settings.plane_min_fraction, look_at=look, seed=_SEED
     )
     off = np.ones(len(pts), bool) if plane is None else pts @ plane[:3] + plane[3] > settings.plane_clearance * distance
     counts = {"points": len(pts), "plane_inliers": inliers, "removed_with_plane": int((~off).sum())}
+    if backdrop is not None and (off & backdrop).sum() < 0.5 * off.sum():
+        counts["still_backdrop"] = int((off & backdrop).sum())
+        off &= ~backdrop
     if not off.any():
         raise ReconstructionError("isolating the object: no dense point lies above the support plane")
     if bbox is not None:
@@ -226,6 +272,39 @@ def object_points(
     keep = np.zeros(len(pts), bool)
     keep[rest[labels == chosen]] = True
     return keep, plane, look, counts | {"clusters": len(names), "object_points": int(keep.sum())}
+
+
+def still_pixels(previews: Sequence[np.ndarray], *, tolerance: float) -> np.ndarray | None:
+    """(H, W) bool: pixels whose colour stays within ``tolerance`` 8-bit levels of their median over the
+    views (the median over views of the largest channel deviation), or None where the views are fewer
+    than :data:`_MIN_STILL_VIEWS`, differ in size, or ``tolerance`` is 0."""
+    if tolerance <= 0 or len(previews) < _MIN_STILL_VIEWS or len({p.shape for p in previews}) != 1:
+        return None
+    stack = np.stack(previews).astype(np.int16)
+    median = np.median(stack, axis=0)
+    deviation = np.median(np.abs(stack - median).max(axis=-1), axis=0)
+    return np.asarray(deviation <= tolerance)
+
+
+def still_points(
+    points: np.ndarray, cameras: Sequence[Camera | None], previews: Sequence[np.ndarray], *, tolerance: float
+) -> np.ndarray:
+    """(P,) bool: points on a still camera's backdrop (module docstring, step 3); all False where the
+    images show no still camera (still pixels under :data:`_MIN_STILL_AREA` of them)."""
+    pts = np.asarray(points, np.float64)
+    views = [(cam, image) for cam, image in zip(cameras, previews, strict=True) if cam is not None]
+    still = still_pixels([image for _, image in views], tolerance=tolerance)
+    if still is None or still.mean() < _MIN_STILL_AREA:
+        return np.zeros(len(pts), bool)
+    h, w = still.shape
+    hits, seen = np.zeros(len(pts)), np.zeros(len(pts))
+    for cam, _ in views:
+        uv, z = project_points(cam, pts)
+        col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        inside = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        seen += inside
+        hits[inside] += still[row[inside], col[inside]]
+    return np.asarray(hits >= _STILL_SHARE * np.maximum(seen, 1)) & (seen > 0)
 
 
 def solid_points(points: np.ndarray, spacing: float) -> np.ndarray:
@@ -369,7 +448,8 @@ def isolate_object(
     pts = np.asarray(points, np.float64)
     if len(pts) < 10:
         raise ReconstructionError(f"isolating the object needs dense points, got {len(pts)}")
-    chosen, plane, look, counts = object_points(pts, reg, settings=settings, bbox=bbox)
+    backdrop = still_points(pts, cameras, previews, tolerance=settings.still_tolerance)
+    chosen, plane, look, counts = object_points(pts, reg, settings=settings, bbox=bbox, backdrop=backdrop)
     spacing = point_spacing(pts[chosen])
     solid = pts[chosen][solid_points(pts[chosen], spacing)]
     below = np.zeros((0, 3)) if plane is None else columns_to_plane(solid, plane, spacing, seed=_SEED)
