@@ -1,13 +1,17 @@
 """Full-size captures: peak memory and time per stage at 612x512, 1224x1024 and 2448x2048.
 
 For each size a built-in capture of the same object (blob, plastic, environment light,
-``--views`` views) is synthesized, then reconstructed with the default options in a child
-process run under ``/usr/bin/time -v`` (the whole run's peak resident memory). The child
-records each stage's own peak (the kernel's high-water mark, reset at every stage boundary
-through ``/proc/self/clear_refs``) and time; the mesh is evaluated against the ground truth.
-Prints a table and writes bench/results/fullsize.json.
+``--views`` views) is synthesized, then reconstructed with the default options (and any
+``--set KEY=VALUE``) in a child process run under ``/usr/bin/time -v`` (the whole run's peak
+resident memory). The child records each stage's own peak (the kernel's high-water mark, reset
+at every stage boundary through ``/proc/self/clear_refs``) and time; the mesh is evaluated
+against the ground truth. A size's views can be set apart (``--views-for 2448x2048=12``).
+Prints a table with each run's working size, vertices, time per stage, its time per megapixel
+and view, and its accuracy against the smallest run; writes bench/results/fullsize.json
+(``--append`` keeps the stored runs of the other sizes).
 
     .venv/bin/python bench/fullsize.py [--views 36] [--sizes 612x512 1224x1024 2448x2048] [--work DIR]
+        [--set KEY=VALUE ...] [--views-for SIZE=N ...] [--append]
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from pathlib import Path
 from _results import ROOT, table, write_results
 
 GIB = 2**30
+RESULTS_PATH = ROOT / "bench" / "results" / "fullsize.json"
 
 
 def _vm_hwm_bytes() -> int:
@@ -39,8 +44,9 @@ def _reset_hwm() -> None:
         pass
 
 
-def child(capture: Path, out: Path) -> None:
-    """Reconstruct ``capture`` into ``out`` with the defaults; write ``out/stage_memory.json``."""
+def child(capture: Path, out: Path, overrides: list[str]) -> None:
+    """Reconstruct ``capture`` into ``out`` with the defaults and ``overrides``; write ``out/stage_memory.json``."""
+    from pmvir.commands.options import parse_overrides
     from pmvir.config import PipelineConfig
     from pmvir.pipeline import run
     from pmvir.progress import Progress
@@ -54,11 +60,12 @@ def child(capture: Path, out: Path) -> None:
             peaks[current[0]] = max(peaks.get(current[0], 0), _vm_hwm_bytes())
             _reset_hwm()
             current[0] = top
+            (out / "stage_memory.json").write_text(json.dumps(peaks))  # kept when a run is stopped later
         elif not current:
             current.append(top)
 
     _reset_hwm()
-    run(PipelineConfig(), capture, out, progress=Progress(on_event))
+    run(PipelineConfig.model_validate(parse_overrides(overrides)), capture, out, progress=Progress(on_event))
     if current:
         peaks[current[0]] = max(peaks.get(current[0], 0), _vm_hwm_bytes())
     (out / "stage_memory.json").write_text(json.dumps(peaks))
@@ -69,18 +76,19 @@ def _peak_rss_bytes(time_v: str) -> int:
     return int(m.group(1)) * 1024 if m else 0
 
 
-def measure(size: str, views: int, work: Path) -> dict:
+def measure(size: str, views: int, work: Path, overrides: list[str]) -> dict:
     from pmvir.evaluate import evaluate_paths
     from pmvir.synth import synthesize
 
     w, h = (int(x) for x in size.split("x"))
-    capture = work / f"cap_{size}"
+    capture = work / f"cap_{size}_{views}v"
     if not (capture / "capture.json").is_file():
         synthesize(capture, shape="blob", views=views, size=(w, h), material="plastic", lighting="envmap", seed=7)
-    out = work / f"out_{size}"
+    out = work / f"out_{size}_{views}v"
     t0 = time.perf_counter()
     proc = subprocess.run(
-        ["/usr/bin/time", "-v", sys.executable, __file__, "--child", str(capture), str(out)],
+        ["/usr/bin/time", "-v", sys.executable, __file__, "--child", str(capture), str(out),
+         *(f"--set={o}" for o in overrides)],
         capture_output=True, text=True, check=False,
     )
     wall = time.perf_counter() - t0
@@ -90,11 +98,14 @@ def measure(size: str, views: int, work: Path) -> dict:
     stage_peaks = json.loads((out / "stage_memory.json").read_text())
     metrics = evaluate_paths(out, capture / "gt")
     timings = report["timings"]
+    subdivision = report.get("geometry", {}).get("subdivision", {})
     return {
         "size": size,
         "views": views,
         "megapixels_x_views": round(w * h * views / 1e6, 1),
         "resolution": report.get("resolution"),
+        "vertices": subdivision.get("vertices"),
+        "subdivision_rounds": subdivision.get("rounds"),
         "peak_rss_gib": round(_peak_rss_bytes(proc.stderr) / GIB, 2),
         "stage_peak_gib": {k: round(v / GIB, 2) for k, v in stage_peaks.items()},
         "stage_s": {k: round(float(timings[k]), 1) for k in ("decode", "geometry", "refine") if k in timings},
@@ -105,41 +116,90 @@ def measure(size: str, views: int, work: Path) -> dict:
     }
 
 
+def fit_memory(runs: list[dict]) -> dict[str, float] | None:
+    """The coefficients of :mod:`pmvir.memory`'s model fitted to the runs' peaks (non-negative least squares).
+
+    peak = base + per_view_pixel * views * working pixels + per_frame_pixel * frame pixels; None with
+    fewer than three measured runs.
+    """
+    import numpy as np
+    from scipy.optimize import nnls
+
+    ok = [r for r in runs if "error" not in r and r.get("resolution")]
+    if len(ok) < 3:
+        return None
+    features = []
+    for r in ok:
+        w, h = (int(x) for x in r["size"].split("x"))
+        f = int(r["resolution"]["binning"])
+        features.append([1.0, r["views"] * (w // f) * (h // f), w * h])
+    a = np.array(features, np.float64)
+    scale = a.max(axis=0)
+    coef, _ = nnls(a / scale, np.array([r["peak_rss_gib"] * GIB for r in ok]))
+    base, per_view_pixel, per_frame_pixel = (float(c) for c in coef / scale)
+    return {"base_bytes": base, "per_view_pixel_bytes": per_view_pixel, "per_frame_pixel_bytes": per_frame_pixel}
+
+
+def _row(r: dict, reference: dict | None) -> list:
+    """One table row: sizes, vertices, peaks, seconds per stage, the time per megapixel and view, accuracy."""
+    if "error" in r:
+        return [r["size"], r["views"], None, None, None, None, None, None, None, None, None, None, None, "failed"]
+    peaks, secs = r["stage_peak_gib"], r["stage_s"]
+    res = r["resolution"] or {}
+    per_mpv = round(r["total_s"] / r["megapixels_x_views"], 2)
+    versus = ""
+    if reference is not None and reference is not r and "error" not in reference:
+        versus = f" ({(r['accuracy'] / reference['accuracy'] - 1) * 100:+.0f}%)"
+    return [
+        r["size"], r["views"], res.get("refine"), r.get("vertices"), r["peak_rss_gib"],
+        peaks.get("decode"), peaks.get("geometry"), peaks.get("refine"),
+        secs.get("decode"), secs.get("geometry"), secs.get("refine"), per_mpv,
+        f"{r['accuracy'] * 100:.4f}{versus}", f"{r['completeness'] * 100:.4f}",
+    ]
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--child", nargs=2, type=Path, metavar=("CAPTURE", "OUT"), help=argparse.SUPPRESS)
-    p.add_argument("--views", type=int, default=36)
+    p.add_argument("--views", type=int, default=36, help="views per capture (default 36)")
+    p.add_argument("--views-for", nargs="+", default=[], metavar="SIZE=N",
+                   help="views of one size instead of --views, e.g. 2448x2048=12")
     p.add_argument("--sizes", nargs="+", default=["612x512", "1224x1024", "2448x2048"])
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="an option of every run, as `pmvir reconstruct --set` takes it")
+    p.add_argument("--append", action="store_true",
+                   help="keep the stored runs of sizes not measured now (bench/results/fullsize.json)")
     p.add_argument("--work", type=Path, default=ROOT / "bench" / "results" / "fullsize")
     args = p.parse_args()
     if args.child:
-        child(*args.child)
+        child(*args.child, args.overrides)
         return
     args.work.mkdir(parents=True, exist_ok=True)
-    runs = [measure(size, args.views, args.work) for size in args.sizes]
-    rows = []
-    for r in runs:
-        if "error" in r:
-            rows.append([r["size"], r["views"], None, None, None, None, None, None, None, None, "failed"])
-            continue
-        peaks, secs = r["stage_peak_gib"], r["stage_s"]
-        res = r["resolution"] or {}
-        rows.append([
-            r["size"], r["views"], res.get("refine"), r["peak_rss_gib"],
-            peaks.get("decode"), peaks.get("geometry"), peaks.get("refine"),
-            secs.get("decode"), secs.get("geometry"), secs.get("refine"),
-            f"{r['accuracy'] * 100:.3f} / {r['completeness'] * 100:.3f}",
-        ])
+    views_for = dict(item.split("=") for item in args.views_for)
+    runs = [measure(size, int(views_for.get(size, args.views)), args.work, args.overrides) for size in args.sizes]
+    stored = RESULTS_PATH.is_file() and args.append
+    if stored:
+        kept = [r for r in json.loads(RESULTS_PATH.read_text())["runs"] if r["size"] not in args.sizes]
+        runs = sorted(kept + runs, key=lambda r: int(r["size"].split("x")[0]))
+    reference = runs[0] if runs else None
+    rows = [_row(r, reference) for r in runs]
     columns = [
-        "frames", "views", "working size", "peak RSS GiB", "decode GiB", "geometry GiB", "refine GiB",
-        "decode s", "geometry s", "refine s", "accuracy / completeness (x1e-2)",
+        "frames", "views", "working size", "vertices", "peak RSS GiB", "decode GiB", "geometry GiB", "refine GiB",
+        "decode s", "geometry s", "refine s", "s per MP x view", "accuracy x1e-2", "completeness x1e-2",
     ]
-    tab = table("Full-size captures: peak memory and time per stage (default options)", columns, rows,
-                note="Peak RSS from /usr/bin/time -v; per-stage peaks from the kernel's high-water mark.")
+    options = ", ".join(args.overrides) or "default options"
+    tab = table(f"Full-size captures: peak memory and time per stage ({options})", columns, rows,
+                note="Peak RSS from /usr/bin/time -v; per-stage peaks from the kernel's high-water mark; "
+                "s per MP x view: the whole run's seconds per megapixel of frames times views; accuracy in "
+                "brackets: against the first row's")
     print(" | ".join(columns))
     for row in rows:
         print(" | ".join("" if v is None else str(v) for v in row))
-    write_results("fullsize", title="Full-size captures", tables=[tab], data={"runs": runs})
+    fit = fit_memory(runs)
+    if fit is not None:
+        print("pmvir.memory fitted: " + ", ".join(f"{k} {v:.4g}" for k, v in fit.items()))
+    write_results("fullsize", title="Full-size captures", tables=[tab],
+                  data={"options": args.overrides, "runs": runs, "memory_fit": fit})
 
 
 if __name__ == "__main__":

@@ -145,7 +145,8 @@ class SurfaceOptions(_Options):
     )
     poisson_voxel_px: float = Field(
         default=3.0, gt=0.0,
-        description="Automatic Poisson depth: target finest-cell size, in full-resolution pixels.",
+        description="Automatic Poisson depth: target finest-cell size, in pixels of the working resolution "
+        "(decode.max_working_size_px).",
         json_schema_extra=advanced("px"),
     )
     trim_density_quantile: float = Field(
@@ -214,7 +215,7 @@ class SubdivisionOptions(_Options):
     max_area_px: float = Field(
         default=2.0, gt=0.0,
         description="sqrt(3) subdivision is repeated until every triangle's projected area, in each view "
-        "that sees it, is below this (px^2).",
+        "that sees it, is below this (px^2 of the working resolution).",
         json_schema_extra=basic("px^2"),
     )
     max_rounds: int = Field(

@@ -15,33 +15,21 @@ import pytest
 from service.store import JobStore
 from service.testing import ServiceStack, write_noise_capture
 
-from svc_helpers import FLIGHT_KEY, FUZZ_KEY, KEY, LIMITS, OTHER_KEY, client_for, require_redis
+from svc_helpers import FLIGHT_KEY, FUZZ_KEY, KEY, OTHER_KEY, client_for, require_redis, running_stack
 
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceStack]:
     """redis + API + one worker, shared by a test module."""
-    require_redis()
-    st = ServiceStack(
-        tmp_path_factory.mktemp("stack"), api_keys=(KEY, OTHER_KEY, FLIGHT_KEY, FUZZ_KEY), env=LIMITS
-    )
-    try:
-        st.start()
+    with running_stack(tmp_path_factory.mktemp("stack"), keys=(KEY, OTHER_KEY, FLIGHT_KEY, FUZZ_KEY)) as st:
         yield st
-    finally:
-        st.stop()
 
 
 @pytest.fixture()
 def fresh_stack(tmp_path: Path) -> Iterator[ServiceStack]:
     """A stack of its own (for tests that kill or restart its parts); no worker started yet."""
-    require_redis()
-    st = ServiceStack(tmp_path / "stack", api_keys=(KEY,), env=LIMITS, appendonly=True)
-    try:
-        st.start(worker=False)
+    with running_stack(tmp_path / "stack", keys=(KEY,), worker=False, appendonly=True) as st:
         yield st
-    finally:
-        st.stop()
 
 
 @pytest.fixture(scope="module")

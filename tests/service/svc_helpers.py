@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import shutil
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
@@ -37,6 +39,29 @@ ONE_REFINE_STAGE = {"solver": {"max_iterations": 1}, "stages": {"tau_pol": [60.0
 def require_redis() -> None:
     if shutil.which("redis-server") is None:
         pytest.skip("redis-server is not installed (make setup installs it)")
+
+
+@contextmanager
+def running_stack(
+    root: Path,
+    *,
+    keys: tuple[str, ...],
+    bucket: str | None = None,
+    worker: bool = True,
+    appendonly: bool = False,
+    env: dict[str, str] | None = None,
+) -> Iterator[ServiceStack]:
+    """A stack with the shared limits (and ``env``), its jobs in ``bucket`` of moto's S3 server when
+    given; stopped on exit."""
+    require_redis()
+    st = ServiceStack(root, api_keys=keys, env={**LIMITS, **(env or {})}, appendonly=appendonly)
+    try:
+        if bucket is not None:
+            st.start_s3(bucket)
+        st.start(worker=worker)
+        yield st
+    finally:
+        st.stop()
 
 
 def client_for(st: ServiceStack, key: str = KEY) -> httpx.Client:

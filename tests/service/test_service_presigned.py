@@ -24,7 +24,7 @@ from svc_helpers import (
     client_for,
     finished,
     new_job,
-    require_redis,
+    running_stack,
     wait_for,
 )
 
@@ -35,15 +35,11 @@ pytest.importorskip("moto")
 @pytest.fixture(scope="module")
 def s3_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServiceStack]:
     """moto, Redis, the API and a worker, with presigned uploads and downloads on."""
-    require_redis()
-    env = {**LIMITS, "PMVIR_S3_PRESIGN_UPLOADS": "1", "PMVIR_S3_PRESIGN_DOWNLOADS": "1"}
-    st = ServiceStack(tmp_path_factory.mktemp("presigned"), api_keys=(KEY, OTHER_KEY), env=env)
-    try:
-        st.start_s3()
-        st.start()
+    env = {"PMVIR_S3_PRESIGN_UPLOADS": "1", "PMVIR_S3_PRESIGN_DOWNLOADS": "1"}
+    with running_stack(
+        tmp_path_factory.mktemp("presigned"), keys=(KEY, OTHER_KEY), bucket="pmvir-test", env=env
+    ) as st:
         yield st
-    finally:
-        st.stop()
 
 
 class _Recorder(httpx.HTTPTransport):
