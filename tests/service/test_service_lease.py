@@ -10,6 +10,8 @@ import time
 import uuid
 from pathlib import Path
 
+import pytest
+
 from service.runner import _Run
 from service.settings import Settings
 from service.store import Claim, JobStore
@@ -45,6 +47,7 @@ def hold_the_gil(seconds: float) -> float:
     return time.perf_counter() - t0
 
 
+@pytest.mark.slow
 def test_the_lease_outlives_a_native_call_longer_than_the_lease(store: JobStore, tmp_path: Path) -> None:
     kw = store.r.connection_pool.connection_kwargs
     url = f"redis://{kw['host']}:{kw['port']}/{kw.get('db', 0)}"

@@ -68,6 +68,7 @@ def _put(offer: dict, data: bytes) -> None:
     assert r.status_code == 200, r.text
 
 
+@pytest.mark.slow
 def test_the_client_uploads_to_the_bucket_and_downloads_from_it(
     s3_stack: ServiceStack, small_capture: Path, tmp_path: Path
 ) -> None:

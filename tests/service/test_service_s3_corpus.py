@@ -16,9 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from test_service_faults import (  # noqa: F401 - collected here, against the bucket
-    test_redis_restarted_between_jobs_the_next_job_runs,
-)
+import test_service_faults as faults
 from test_service_hostile import (  # noqa: F401 - collected here, against the bucket
     test_capture_json_with_a_huge_number_or_deep_nesting_is_422,
     test_chunked_body_with_an_invalid_chunk_size_logs_no_traceback,
@@ -67,6 +65,11 @@ def fresh_stack(tmp_path: Path) -> Iterator[ServiceStack]:
     """A bucket-backed stack of its own for a fault test (Redis with an append-only file)."""
     with running_stack(tmp_path / "stack", keys=(KEY,), bucket=BUCKET, worker=False, appendonly=True) as st:
         yield st
+
+
+@pytest.mark.slow
+def test_redis_restarted_between_jobs_the_next_job_runs(fresh_stack: ServiceStack, small_capture: Path) -> None:
+    faults.test_redis_restarted_between_jobs_the_next_job_runs(fresh_stack, small_capture)
 
 
 def _bucket_jobs(stack: ServiceStack) -> dict[str, list[str]]:
