@@ -104,3 +104,17 @@ def test_one_worker_runs_a_second_tenants_job_before_the_first_tenants_backlog(
     bobs = jobs[-1][1]
     # FIFO would run bob's job last; fair dispatch runs it first or second (the tenants tie at first)
     assert by_start.index(bobs) <= 1, by_start
+
+
+def test_the_hard_time_limit_fails_the_job_its_task_claimed(fair: JobStore, tmp_path: Path) -> None:
+    from service.runner import fail_now
+    from service.settings import Settings
+
+    kw = fair.r.connection_pool.connection_kwargs
+    settings = Settings(redis_url=f"redis://{kw['host']}:{kw['port']}/0", key_prefix=fair.p, storage=tmp_path)
+    a, b = queue(fair, "a"), queue(fair, "b")
+    what, job_id, _ = fair.claim_next(b, "run", lease_seconds=30, max_deliveries=3, task_id="task-of-b")
+    assert (what, job_id) == (Claim.OK, a)  # b's message woke the worker; a's job was next
+    assert fail_now("task-of-b", settings, "hard time limit exceeded")
+    assert fair.get(a).status == "failed" and fair.get(b).status == "queued"
+    assert not fail_now("task-of-nobody", settings, "hard time limit exceeded")
