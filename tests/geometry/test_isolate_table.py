@@ -1,10 +1,11 @@
-"""A capture without masks of an object on a textured table: the geometric stage finds the object.
+"""A capture without masks of an object on a textured table or turntable: the geometric stage finds the object.
 
-One small table scene (pmvir synth --scene table --no-masks, 12 hand-held views of 320 x 256, built-in
-renderer) reconstructed twice: without masks (the stage isolates the object and draws its masks) and
-with the true masks (gt/masks/ named in a copy's capture.json). The mesh without masks holds no table
-and is within 1.5x of the masked run's accuracy and completeness (measured on 16 views: accuracy
-0.203e-2 against 0.149e-2, completeness 2.50e-2 against 2.31e-2).
+Two small scenes (pmvir synth --scene table|turntable --no-masks, 12 views of 320 x 256, built-in
+renderer: hand-held views of a table; a still camera before a still backdrop, the object turning on
+a disc) each reconstructed twice: without masks (the stage isolates the object and draws its masks)
+and with the true masks (gt/masks/ named in a copy's capture.json). The mesh without masks holds no
+table (nor backdrop) and is within 1.5x of the masked run's accuracy and completeness
+(bench/nomask.py measures both renderers on 16 views).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from pmvir.io.frames import read_frame
 from pmvir.io.ply import Mesh, read_mesh
 from pmvir.synth.generate import synthesize
 
-pytestmark = pytest.mark.slow  # two geometric stages: about 2 minutes on 2 cores
+pytestmark = pytest.mark.slow  # two geometric stages per scene: about 2 minutes each on 2 cores
 
 
 def with_true_masks(capture: Path, out: Path) -> Path:
@@ -37,10 +38,12 @@ def with_true_masks(capture: Path, out: Path) -> Path:
     return out
 
 
-@pytest.fixture(scope="module")
-def table_runs(tmp_path_factory, decode_capture) -> dict[str, tuple[Path, GeometryResult]]:
-    root = tmp_path_factory.mktemp("table")
-    bare = synthesize(root / "bare", shape="blob", scene="table", masks=False, views=12, size=(320, 256), seed=4)
+@pytest.fixture(scope="module", params=["table", "turntable"])
+def table_runs(request, tmp_path_factory, decode_capture) -> dict[str, tuple[Path, GeometryResult]]:
+    root = tmp_path_factory.mktemp(request.param)
+    bare = synthesize(
+        root / "bare", shape="blob", scene=request.param, masks=False, views=12, size=(320, 256), seed=4
+    )
     masked = with_true_masks(bare, root / "masked")
     runs = {}
     for name, capture in (("none", bare), ("true", masked)):
@@ -57,11 +60,11 @@ def far_from_object(capture: Path, vertices: np.ndarray) -> np.ndarray:
 
 
 def test_without_masks_the_mesh_is_the_object_alone(table_runs):
-    """No table: every vertex within the object's bounding box grown by 2 % of its diagonal, none
-    farther than 2 % from the object near the table's height. The underside no view sees (the object
-    stands on it) is closed by Poisson as with the true masks: measured 5.5 % (no masks) and 5.2 %
-    (true masks) from the object at most, 7 % of the diagonal above the table, on about 1 % of the
-    vertices in both; the share here is within 1.5x of the masked run's."""
+    """No table, no backdrop: every vertex within the object's bounding box grown by 2 % of its
+    diagonal, none farther than 2 % from the object near the table's height. With the true masks as
+    without, about 1 % of the vertices lie farther than 2 % (at most about 5 %): on the object's lower
+    half, 5 to 35 % of the diagonal above the table, which the views from above see at grazing angles
+    only (no vertex comes within 2 % of the table); the share here is within 1.5x of the masked run's."""
     (capture, g), (_, masked) = table_runs["none"], table_runs["true"]
     assert g.isolation is not None and g.isolation.plane is not None
     gt = read_mesh(capture / "gt" / "mesh.ply")
@@ -86,10 +89,14 @@ def test_without_masks_within_1_5x_of_the_true_masks(table_runs):
 
 
 def test_the_drawn_masks_match_the_true_ones(table_runs):
+    """On the turntable a few views' masks also take the disc in front of the object's base (the
+    columns down to the plane, which GrabCut keeps where the disc's texture resembles the object):
+    measured IoU 0.78 to 0.97 there, 0.95 to 0.98 on the table."""
     capture, g = table_runs["none"]
+    scene = json.loads((capture / "gt" / "synth.json").read_text())["options"]["scene"]
     ious = []
     for name, mask in zip(g.names, g.masks, strict=True):
         truth = read_frame(capture / "gt" / "masks" / f"{name}.png") > 0
         assert mask is not None and mask.shape == truth.shape
         ious.append((mask & truth).sum() / (mask | truth).sum())
-    assert min(ious) > 0.9, np.round(ious, 3)
+    assert min(ious) > (0.9 if scene == "table" else 0.75), np.round(ious, 3)
