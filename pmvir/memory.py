@@ -19,12 +19,18 @@ import re
 
 from pmvir.errors import ConfigError, ResourceLimitError
 
+# Fitted to the peaks bench/fullsize.py measures (blob, 12 views; the benchmarks page): BASE and
+# PER_FRAME from the decode stage's peaks at 612x512, 1224x1024 and 2448x2048 frames (0.65, 0.76 and
+# 1.22 GiB: one full-size frame demosaiced at a time, 131 bytes per frame pixel); PER_VIEW from the
+# refinement's peak with the default subdivision on the 612x512 capture (438k vertices: 2.26 GiB read
+# from the process 24 minutes into its refinement, past its first evaluations). The benchmark's stored
+# runs use a coarser subdivision and stay below the estimate. Rounded up.
 #: Python, NumPy, torch, Open3D and pycolmap loaded, and a small run's working set.
-BASE_BYTES = 1.3 * 2**30
+BASE_BYTES = 0.65 * 2**30
 #: Per view and working pixel: decoded images, refinement tables and (vertex, view) pairs.
-PER_VIEW_PIXEL_BYTES = 260.0
+PER_VIEW_PIXEL_BYTES = 470.0
 #: Per pixel of the largest frame: one frame's demosaicing at full resolution.
-PER_FRAME_PIXEL_BYTES = 220.0
+PER_FRAME_PIXEL_BYTES = 135.0
 #: The environment variable that caps a job's memory (also read by the service's workers).
 MEMORY_VARIABLE = "PMVIR_JOB_MEMORY"
 

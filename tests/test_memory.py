@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -70,3 +71,17 @@ def test_a_capture_over_the_limit_fails_before_decoding(tmp_path: Path, monkeypa
     assert proc.returncode != 0
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "--max-memory" in lines[0] and "0.3 GiB" in lines[0], proc.stderr
+
+
+def test_the_estimate_covers_the_measured_peaks() -> None:
+    results = Path(__file__).resolve().parents[1] / "bench" / "results" / "fullsize.json"
+    if not results.is_file():
+        pytest.skip("no stored bench/fullsize.py result")
+    runs = [r for r in json.loads(results.read_text())["runs"] if "error" not in r]
+    assert runs
+    for r in runs:
+        w, h = (int(x) for x in r["size"].split("x"))
+        estimate = estimated_peak_bytes((w, h), r["views"], r["resolution"]["binning"])
+        measured = r["peak_rss_gib"] * 2**30
+        # the stored runs may use a coarser subdivision than the defaults the estimate is for
+        assert measured <= estimate <= 3 * measured, (r["size"], estimate / 2**30, r["peak_rss_gib"])
