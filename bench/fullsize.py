@@ -21,7 +21,6 @@ import json
 import re
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 from _results import ROOT, table, write_results
@@ -76,7 +75,12 @@ def _peak_rss_bytes(time_v: str) -> int:
     return int(m.group(1)) * 1024 if m else 0
 
 
-def measure(size: str, views: int, work: Path, overrides: list[str]) -> dict:
+def _stage_peaks(out: Path) -> dict[str, int]:
+    path = out / "stage_memory.json"
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def measure(size: str, views: int, work: Path, overrides: list[str], *, reuse: bool = False) -> dict:
     from pmvir.evaluate import evaluate_paths
     from pmvir.synth import synthesize
 
@@ -85,19 +89,23 @@ def measure(size: str, views: int, work: Path, overrides: list[str]) -> dict:
     if not (capture / "capture.json").is_file():
         synthesize(capture, shape="blob", views=views, size=(w, h), material="plastic", lighting="envmap", seed=7)
     out = work / f"out_{size}_{views}v"
-    t0 = time.perf_counter()
-    proc = subprocess.run(
-        ["/usr/bin/time", "-v", sys.executable, __file__, "--child", str(capture), str(out),
-         *(f"--set={o}" for o in overrides)],
-        capture_output=True, text=True, check=False,
-    )
-    wall = time.perf_counter() - t0
-    if proc.returncode != 0:
-        return {"size": size, "views": views, "error": proc.stderr[-2000:], "wall_s": wall}
+    time_v = out / "time-v.txt"
+    finished = (out / "report.json").is_file() and "refine" in _stage_peaks(out)
+    if not (reuse and finished):
+        proc = subprocess.run(
+            ["/usr/bin/time", "-v", sys.executable, __file__, "--child", str(capture), str(out),
+             *(f"--set={o}" for o in overrides)],
+            capture_output=True, text=True, check=False,
+        )
+        if proc.returncode != 0:
+            return {"size": size, "views": views, "error": proc.stderr[-2000:]}
+        time_v.write_text(proc.stderr)
     report = json.loads((out / "report.json").read_text())
-    stage_peaks = json.loads((out / "stage_memory.json").read_text())
+    stage_peaks = _stage_peaks(out)
+    # without /usr/bin/time's record (a run whose measuring process stopped), the largest stage peak
+    peak = _peak_rss_bytes(time_v.read_text()) if time_v.is_file() else max(stage_peaks.values())
     metrics = evaluate_paths(out, capture / "gt")
-    timings = report["timings"]
+    timings = report["timings_s"]
     subdivision = report.get("geometry", {}).get("subdivision", {})
     return {
         "size": size,
@@ -106,7 +114,8 @@ def measure(size: str, views: int, work: Path, overrides: list[str]) -> dict:
         "resolution": report.get("resolution"),
         "vertices": subdivision.get("vertices"),
         "subdivision_rounds": subdivision.get("rounds"),
-        "peak_rss_gib": round(_peak_rss_bytes(proc.stderr) / GIB, 2),
+        "peak_rss_gib": round(peak / GIB, 2),
+        "peak_from": "/usr/bin/time -v" if time_v.is_file() else "stage peaks",
         "stage_peak_gib": {k: round(v / GIB, 2) for k, v in stage_peaks.items()},
         "stage_s": {k: round(float(timings[k]), 1) for k in ("decode", "geometry", "refine") if k in timings},
         "total_s": round(float(timings["total"]), 1),
@@ -169,6 +178,8 @@ def main() -> None:
                    help="an option of every run, as `pmvir reconstruct --set` takes it")
     p.add_argument("--append", action="store_true",
                    help="keep the stored runs of sizes not measured now (bench/results/fullsize.json)")
+    p.add_argument("--reuse", action="store_true",
+                   help="measure again only the sizes without a finished run in --work (its files are read back)")
     p.add_argument("--work", type=Path, default=ROOT / "bench" / "results" / "fullsize")
     args = p.parse_args()
     if args.child:
@@ -176,7 +187,8 @@ def main() -> None:
         return
     args.work.mkdir(parents=True, exist_ok=True)
     views_for = dict(item.split("=") for item in args.views_for)
-    runs = [measure(size, int(views_for.get(size, args.views)), args.work, args.overrides) for size in args.sizes]
+    runs = [measure(size, int(views_for.get(size, args.views)), args.work, args.overrides, reuse=args.reuse)
+            for size in args.sizes]
     stored = RESULTS_PATH.is_file() and args.append
     if stored:
         kept = [r for r in json.loads(RESULTS_PATH.read_text())["runs"] if r["size"] not in args.sizes]
