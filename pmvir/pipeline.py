@@ -454,7 +454,10 @@ def refine_report(refined: RefineResult) -> dict:
         "vertices": len(refined.vertices),
         "intensity_factor": refined.intensity_factor,
         "timings": {k: float(v) for k, v in refined.timings.items()},
-        "stages": [_stage_report(st) for st in refined.stages],
+        "stages": [
+            _stage_report(st) | {"timings": {k: float(v) for k, v in parts.items()}}
+            for st, parts in zip(refined.stages, refined.stage_timings or [{}] * len(refined.stages), strict=True)
+        ],
         "offset_scans": [scan.to_dict() for scan in refined.offset_scans],
         "hull_fits": [fit.to_dict() for fit in refined.hull_fits],
         "rim_fit": None if refined.rim_fit is None else refined.rim_fit.to_dict(),

@@ -50,6 +50,7 @@ class OffsetScan:
         reason: why not, when not applied.
         blurred_costs: with ``deblur_px``, the costs of the scan on the images blurred by it.
         blurred_offset_px: with ``deblur_px``, that scan's minimum, pixels (None when it has none).
+        seconds: wall time of the scan (both scans with ``deblur_px``).
     """
 
     offsets_px: np.ndarray
@@ -61,6 +62,7 @@ class OffsetScan:
     reason: str = ""
     blurred_costs: np.ndarray | None = None
     blurred_offset_px: float | None = None
+    seconds: float = 0.0
 
     def to_dict(self) -> dict:
         extra = {}
@@ -76,6 +78,7 @@ class OffsetScan:
             "applied": self.applied,
             "reason": self.reason,
             "pixels": self.pixels,
+            "seconds": round(self.seconds, 3),
             "scan_px": [round(float(x), 4) for x in self.offsets_px],
             "scan_cost": [round(float(x), 6) for x in self.costs],
         }

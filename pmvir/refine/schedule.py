@@ -130,22 +130,33 @@ def refine_surface(
             state, scans = scanned(state, scans, p)
     timings = {"setup": t_scan - t_start, "offset_scan": time.perf_counter() - t_scan}
     logs: list[StageLog] = []
+    stage_timings: list[dict[str, float]] = []
     for s in range(opts.n_stages):
         t_stage = time.perf_counter()
+        parts: dict[str, float] = {}
         lighting = _LIGHTING_WEIGHT if opts.lighting.coupling > 0.0 else 0.0
         stage_weight = (1.0 - _SCAN_WEIGHT[opts.offset_scan.mode] - lighting) / opts.n_stages
         with progress.step(f"stage {s + 1}", weight=stage_weight) as p:
             p.update(0.0, f"of {opts.n_stages}: visibility and pairs")
             if s > 0 and opts.offset_scan.mode == "stages":
+                t = time.perf_counter()
                 state, scans = scanned(state, scans, p)
+                parts["offset_scan"] = time.perf_counter() - t  # with the hull fit after an applied scan
+            t = time.perf_counter()
             stage, state = prepare_stage(setup, state, vis, s)
+            parts["prepare"] = time.perf_counter() - t
             vis = stage.visibility
             if s == 0 and opts.lighting.prefit_iterations > 0:
+                t = time.perf_counter()
                 with p.step("lighting", weight=0.1) as q:
                     stage, state = prefit_lighting(setup, stage, state, progress=q)
+                parts["lighting_prefit"] = time.perf_counter() - t
+            t = time.perf_counter()
             state, log = solve_stage(setup, stage, state, progress=p)
+            parts["solve"] = time.perf_counter() - t
         logs.append(log)
         timings[f"stage_{s + 1}"] = time.perf_counter() - t_stage
+        stage_timings.append(parts)
 
     if opts.offset_scan.mode == "stages":
         t_scan = time.perf_counter()
@@ -180,6 +191,7 @@ def refine_surface(
         visibility=vis.astype(bool),
         stages=logs,
         timings=timings,
+        stage_timings=stage_timings,
         intensity_factor=setup.units,
         offset_scans=scans,
         hull_fits=hull_fits,

@@ -91,6 +91,9 @@ class RefineResult:
             between stages count in their stage), ``stage_1`` ... ``stage_S``, ``hull_fit`` (with masks: the fit
             after the last stage; the fits after earlier scans count in their stage), ``rim_fit`` (when run),
             ``lighting`` (the final lighting fit, when run), ``total``.
+        stage_timings: per stage, seconds of its parts: ``offset_scan`` (the scan before it, with its hull
+            fit; ``offset_scan.mode`` "stages", from the second stage on), ``prepare`` (visibility, pairs,
+            weights and floors), ``lighting_prefit`` (the first stage, when run) and ``solve`` (L-BFGS).
         intensity_factor: what E_pho and E_psm multiplied intensities and albedos by
             (:func:`intensity_units`).
         offset_scans: the photo-consistent offsets scanned (and applied where the scan found one), in
@@ -113,6 +116,7 @@ class RefineResult:
     sh_high: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
     stages: list[StageLog] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    stage_timings: list[dict[str, float]] = field(default_factory=list)
     intensity_factor: float = 0.0
     offset_scans: list[OffsetScan] = field(default_factory=list)
     hull_fits: list[HullFit] = field(default_factory=list)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import replace
 
@@ -26,6 +27,7 @@ def scan_offset(
     0.25 pixels on the captures measured (README), +-0.75 pixels at half the cost.
     """
     progress.update(0.0, "photo-consistent offset along the normals")
+    t0 = time.perf_counter()
     v = state.vertices.detach().cpu().numpy().astype(np.float64)
     scan = photo_consistent_offset(
         v,
@@ -36,6 +38,7 @@ def scan_offset(
         max_px=0.75 if scans else 1.5,
         deblur_px=opts.offset_scan.deblur_px,
     )
+    scan = replace(scan, seconds=time.perf_counter() - t0)
     if not scan.applied:
         return state, [*scans, scan]
     v = v + scan.offset * vertex_normals_np(v, setup.faces_np)
@@ -52,8 +55,10 @@ def hold_inside_hull(
     tolerance = setup.opts.surface.hull_tolerance_px
     if masks is None or tolerance is None:
         return state
+    t0 = time.perf_counter()
     v = state.vertices.detach().cpu().numpy().astype(np.float64)
     fit = fit_inside_hull(v, setup.faces_np, setup.cameras, masks, tolerance_px=tolerance)
+    fit = replace(fit, seconds=time.perf_counter() - t0)
     fits.append(fit)
     if fit.moved == 0:
         return state

@@ -128,6 +128,11 @@ def test_result_shapes_and_gauge(plastic, plastic_runs) -> None:
     np.testing.assert_array_equal(full.rgb_scale[0], 1.0)  # gauge: view 0's scale
     assert full.visibility.shape == (n, v) and full.visibility.dtype == bool
     assert set(full.timings) == {"setup", "offset_scan", "stage_1", "stage_2", "stage_3", "total"}
+    # each stage's parts: its offset scan (from the second stage on), the set-up and the solve, within its time
+    assert [set(t) for t in full.stage_timings] == [{"prepare", "solve"}] + [{"offset_scan", "prepare", "solve"}] * 2
+    for k, parts in enumerate(full.stage_timings):
+        assert all(v > 0 for v in parts.values()) and sum(parts.values()) <= full.timings[f"stage_{k + 1}"]
+    assert all(scan.seconds > 0 for scan in full.offset_scans)
     # lighting: the shading ratio between views 1 and 0, over the normals both see, matches the
     # truth's (the ratio of rgb_scale alone is not identified: the SH's higher orders can trade
     # with the DC term over a hemisphere of normals)

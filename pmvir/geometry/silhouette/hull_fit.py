@@ -42,6 +42,7 @@ class HullFit:
         moved: vertices that moved.
         mean_move_px: their mean move in pixels of the ground sampling distance (0 when none moved).
         tolerance_px: the tolerance used.
+        seconds: wall time of the fit (set by the caller that times it; 0 otherwise).
     """
 
     vertices: np.ndarray
@@ -50,6 +51,7 @@ class HullFit:
     moved: int
     mean_move_px: float
     tolerance_px: float
+    seconds: float = 0.0
 
     def to_dict(self) -> dict[str, float | int]:
         return {
@@ -58,6 +60,7 @@ class HullFit:
             "moved": self.moved,
             "mean_move_px": round(self.mean_move_px, 4),
             "tolerance_px": self.tolerance_px,
+            "seconds": round(self.seconds, 3),
         }
 
 
