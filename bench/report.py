@@ -34,8 +34,8 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
     "synth": ("Synthetic captures", f"{PY} bench/synth.py", None),
     "sfm_poses": (
         "Poses (structure from motion)",
-        f"{PY} bench/sfm_poses.py",
-        None,
+        f"{PY} bench/sfm_poses.py --models bunny --modes sfm-K sfm",
+        "pycolmap's plain pipeline (SIFT, exhaustive matching, incremental mapping) on the same images",
     ),
     "geometry": ("Geometric stage (initial surface)", f"{PY} bench/geometry.py", None),
     "nomask": ("The object found without masks", f"{PY} bench/nomask.py", "the same captures with their true masks"),

@@ -14,9 +14,12 @@ prints per run the
 registered views, sparse points (and their median / 90th-percentile distance to the true
 surface for known poses), the mean reprojection error, the camera-centre errors after a Umeyama
 similarity (largest, in % of the scene size = bounding-box diagonal of the true camera centres,
-and in object units = bounding-box diagonal 1), the focal-length error and the time per step,
-and writes bench/results/sfm_poses.json. Target: the whole geometric stage under 3 minutes per
-model on 2 cores, so poses well under a minute.
+and in object units = bounding-box diagonal 1), the focal-length error, the time per step and
+what each refinement after the mapping cost and gave (``extras``), and writes
+bench/results/sfm_poses.json. Beside every SfM run, right after it, pycolmap's plain pipeline
+(default SIFT extraction, exhaustive matching, incremental mapping) runs on the same SIFT images
+(``--no-plain``: not), with the same measures and the ratio of the two times. Target: ours within
+2x of the plain pipeline.
 """
 
 from __future__ import annotations
@@ -58,7 +61,7 @@ def _shared() -> Path:
 MODES = ("known", "sfm-K", "sfm")
 
 
-def _run(capture: Path, mode: str, workdir: Path, options: SfmOptions) -> dict:
+def _run(capture: Path, mode: str, workdir: Path, options: SfmOptions, *, plain: bool) -> dict:
     known = mode == "known"
     with open_capture(capture) as cap:
         t0 = time.perf_counter()
@@ -103,37 +106,96 @@ def _run(capture: Path, mode: str, workdir: Path, options: SfmOptions) -> dict:
         row["points_p90_dist"] = float(np.percentile(d, 90))
     else:
         reg = [i for i, c in enumerate(model.cameras) if c is not None]
-        est = np.stack([model.cameras[i].center for i in reg])
-        tru = np.stack([true[i].center for i in reg])
-        err = np.linalg.norm(umeyama(est, tru).apply(est) - tru, axis=1)
-        scene = float(np.linalg.norm(tru.max(0) - tru.min(0)))
-        row["centre_err_max"] = float(err.max())
-        row["centre_err_mean"] = float(err.mean())
-        row["centre_err_max_pct_scene"] = float(100 * err.max() / scene)
-        row["scene_size"] = scene
+        row |= _centre_errors(reg, np.stack([model.cameras[i].center for i in reg]), true)
+        row["extras"] = model.extras
+        if plain:  # side by side: pycolmap's plain pipeline on the SIFT images ours saw
+            sift_dir = workdir / ("fallback" if model.fallback else "") / "images"
+            row["plain"] = _plain_colmap(sift_dir, workdir / "plain", true, names, options.seed)
+            row["ratio_wall"] = row["timings"]["total"] / row["plain"]["timings"]["total"]
+            row["ratio_cpu"] = row["cpu_s"] / row["plain"]["cpu_s"]
         focal = np.array([model.cameras[i].K[0, 0] for i in reg])
         row["focal_err_pct"] = float(100 * (focal.mean() / true[0].K[0, 0] - 1.0))
     return row
 
 
+def _plain_colmap(image_dir: Path, workdir: Path, true: list, names: list[str], seed: int) -> dict:
+    """pycolmap's plain pipeline on the SIFT images ours wrote: default SIFT extraction (one shared
+    camera, COLMAP's default model), exhaustive matching, incremental mapping; its largest model."""
+    import pycolmap
+
+    from pmvir.geometry.sfm.colmap import quiet_colmap
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    database = workdir / "database.db"
+    database.unlink(missing_ok=True)
+    timings: dict[str, float] = {}
+    t_all, cpu0 = time.perf_counter(), time.process_time()
+    with quiet_colmap():
+        t0 = time.perf_counter()
+        pycolmap.extract_features(database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE)
+        timings["features"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        pycolmap.match_exhaustive(database)
+        timings["matching"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        mapping = pycolmap.IncrementalPipelineOptions()
+        mapping.random_seed = seed
+        models = pycolmap.incremental_mapping(database, image_dir, workdir / "sparse", options=mapping)
+        timings["mapping"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_all
+    row: dict = {"timings": timings, "wall_s": timings["total"], "cpu_s": time.process_time() - cpu0,
+                 "registered": 0, "views": len(names), "models": len(models)}
+    if not models:
+        return row
+    rec = max(models.values(), key=lambda r: r.num_reg_images())
+    index = {f"{i:05d}.png": i for i in range(len(names))}
+    centres = {index[im.name]: im.projection_center() for im in rec.images.values() if im.has_pose}
+    row["registered"] = len(centres)
+    row["points"] = rec.num_points3D()
+    row["reprojection_px"] = float(rec.compute_mean_reprojection_error())
+    row |= _centre_errors(list(centres), np.stack([centres[i] for i in centres]), true)
+    return row
+
+
+def _centre_errors(reg: list[int], est: np.ndarray, true: list) -> dict:
+    """Camera-centre errors after a similarity to the true centres of the registered views."""
+    tru = np.stack([true[i].center for i in reg])
+    err = np.linalg.norm(umeyama(est, tru).apply(est) - tru, axis=1)
+    scene = float(np.linalg.norm(tru.max(0) - tru.min(0)))
+    return {"centre_err_max": float(err.max()), "centre_err_mean": float(err.mean()),
+            "centre_err_max_pct_scene": float(100 * err.max() / scene), "scene_size": scene}
+
+
 def sfm_table(results: list[dict], args: argparse.Namespace) -> dict:
-    """The runs as one table of the benchmarks page (known poses: distance of the points to the surface)."""
+    """The runs as one table of the benchmarks page (known poses: distance of the points to the surface), each
+    SfM run followed by pycolmap's plain pipeline on the same images and the ratio of the two times."""
     rows = []
     for r in results:
         if "error" in r:
-            rows.append([r["model"], r["mode"], None, None, None, None, None, f"failed: {r['error'][:120]}"])
+            rows.append([r["model"], r["mode"], None, None, None, None, None, None, f"failed: {r['error'][:120]}"])
             continue
         quality = (
             f"points to surface: median {r['points_median_dist']:.4f}" if r["mode"] == "known" else
-            f"centre error max {r['centre_err_max_pct_scene']:.2f}% of the scene; focal {r['focal_err_pct']:+.2f}%"
+            f"centre error max {r['centre_err_max_pct_scene']:.3f}% of the scene; focal {r['focal_err_pct']:+.2f}%"
         )
         rows.append([r["model"], r["mode"], f"{r['registered']}/{r['views']}", r["points"],
-                     round(r["reprojection_px"], 2), round(r["timings"]["total"], 1), round(r["cpu_s"], 1), quality])
+                     round(r["reprojection_px"], 2), round(r["timings"]["total"], 1), round(r["cpu_s"], 1),
+                     None, quality])
+        plain = r.get("plain")
+        if plain is not None:
+            quality = ("no model" if not plain["registered"] else
+                       f"centre error max {plain['centre_err_max_pct_scene']:.3f}% of the scene")
+            rows.append([r["model"], f"{r['mode']}, pycolmap plain", f"{plain['registered']}/{plain['views']}",
+                         plain.get("points"), round(plain.get("reprojection_px", float("nan")), 2),
+                         round(plain["timings"]["total"], 1), round(plain["cpu_s"], 1),
+                         f"{r['ratio_wall']:.2f} (CPU {r['ratio_cpu']:.2f})", quality])
     return table(
         f"{args.views} views of {args.size}, plastic, built-in renderer",
-        ["model", "mode", "registered", "points", "reprojection px", "seconds", "CPU s", "quality"],
+        ["model", "mode", "registered", "points", "reprojection px", "seconds", "CPU s", "ours / plain", "quality"],
         rows,
-        note="known: the capture's poses; sfm-K: intrinsics given; sfm: neither",
+        note="known: the capture's poses; sfm-K: intrinsics given; sfm: neither. pycolmap plain: default SIFT "
+        "extraction, exhaustive matching and incremental mapping on the SIFT images of the run above it, right "
+        "after it; ours / plain: the ratio of their seconds (and CPU seconds)",
     )
 
 
@@ -152,6 +214,7 @@ def main() -> int:
     ap.add_argument(
         "--rematch-min-track", type=int, default=SfmOptions().rematch_min_track, help="sfm.rematch_min_track"
     )
+    ap.add_argument("--no-plain", action="store_true", help="do not run pycolmap's plain pipeline beside ours")
     ap.add_argument("--tag", default="", help="results go to bench/results/sfm_poses[-TAG].json")
     args = ap.parse_args()
     options = SfmOptions(
@@ -177,7 +240,8 @@ def main() -> int:
             for mode in args.modes:
                 known = mode == "known"
                 try:
-                    row = {"model": name, "synth_s": synth_s, **_run(capture, mode, root / f"{name}-work", options)}
+                    row = {"model": name, "synth_s": synth_s,
+                           **_run(capture, mode, root / f"{name}-work", options, plain=not args.no_plain)}
                 except ReconstructionError as exc:
                     results.append({"model": name, "mode": mode, "error": str(exc)})
                     print(f"{name:10s} {mode:5s} ReconstructionError: {exc}", flush=True)
@@ -191,6 +255,12 @@ def main() -> int:
                     f"centres: max {row['centre_err_max']:.4f} ({row['centre_err_max_pct_scene']:.2f} % of scene "
                     f"{row['scene_size']:.2f}) mean {row['centre_err_mean']:.4f}; focal {row['focal_err_pct']:+.2f} %"
                 )
+                if "plain" in row:
+                    pl = row["plain"]
+                    print(f"{name:10s} {mode:5s} pycolmap plain: reg {pl['registered']}/{pl['views']} "
+                          f"centres max {pl.get('centre_err_max_pct_scene', float('nan')):.3f} % of scene | "
+                          f"total {pl['timings']['total']:.1f}s (cpu {pl['cpu_s']:.1f}s) | ours / plain "
+                          f"{row['ratio_wall']:.2f} (cpu {row['ratio_cpu']:.2f})", flush=True)
                 print(
                     f"{name:10s} {row['mode']:5s} {row['sift_images']} reg {row['registered']:2d}/{row['views']} "
                     f"pts {row['points']:5d} "

@@ -141,7 +141,8 @@ class SfmOptions(_Options):
     )
     frontier_iterations: int = Field(
         default=1000, ge=1, le=100000,
-        description="L-BFGS iterations of the frontier adjustment (frontier_weight).",
+        description="Most L-BFGS iterations of the frontier adjustment (frontier_weight); it stops earlier once "
+        "converged, 1..100000.",
         json_schema_extra=advanced(),
     )
     silhouette_register_px: float = Field(

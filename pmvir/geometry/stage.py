@@ -341,6 +341,7 @@ def geometry_report(result: GeometryResult) -> dict[str, Any]:
             "silhouette_registered": list(sparse.silhouette_registered),  # sfm.silhouette_register_px
             "silhouette_refused": dict(sparse.silhouette_refused),  # views the silhouette search left out, and why
             "timings": {k: float(v) for k, v in sparse.timings.items()},
+            "extras": sparse.extras,  # each refinement after the mapping: its seconds and what it gave
         },
         "dense": {
             "backend": dense.backend,

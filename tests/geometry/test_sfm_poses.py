@@ -364,10 +364,13 @@ def test_rematch_rounds_lengthen_tracks_with_sfm_poses(sfm_views: dict, tmp_path
     still within 0.5 % (measured 0.23 -> 0.30 %). The re-matching keeps no point seen in fewer than
     sfm.rematch_min_track (3) views: its two-view matches are checked by the estimated epipolar line
     alone; with rematch_min_track 2 they stay (measured: a quarter of the points). A second round (the
-    default) keeps the centres within 0.5 % and adds no short track."""
+    default) keeps the centres within 0.5 % and adds no short track, or is skipped where the first moved
+    the poses too little to change the matches; ``extras`` says what each round and the frontier
+    adjustment cost and gave."""
     ring = list(range(12, 36))
     true = [sfm_views["cameras"][i] for i in ring]
     results = {}
+    extras = {}
     for rounds, min_track in ((0, 3), (1, 3), (1, 2), (2, 3)):
         model = estimate_poses(
             [sfm_views["images"][i] for i in ring], [sfm_views["names"][i] for i in ring],
@@ -380,11 +383,19 @@ def test_rematch_rounds_lengthen_tracks_with_sfm_poses(sfm_views: dict, tmp_path
         err, scene = _centre_errors(model, true)
         lengths = np.array([len(v) for v in model.point_views])
         results[rounds, min_track] = (int((lengths >= 3).sum()), err.max() / scene, int((lengths < 3).sum()))
+        extras[rounds, min_track] = model.extras
     assert results[1, 3][0] >= 1.2 * results[0, 3][0], results
     assert results[1, 3][1] <= 0.005, results
     assert results[1, 3][2] == 0, results
     assert results[1, 2][2] >= 0.1 * results[1, 2][0], results
     assert results[2, 3][1] <= 0.005 and results[2, 3][2] == 0, results
+    assert [e["step"] for e in extras[0, 3]] == ["frontier", "silhouette_registration"], extras[0, 3]
+    rounds = [e for e in extras[2, 3] if e["step"] == "rematch"]
+    assert 1 <= len(rounds) <= 2 and all(e["seconds"] > 0 for e in rounds), rounds
+    assert rounds[0]["after"]["observations_3plus"] > rounds[0]["before"]["observations_3plus"], rounds
+    assert (len(rounds) == 2) != ("stopped" in rounds[0]), rounds  # a skipped round says why
+    frontier = next(e for e in extras[2, 3] if e["step"] == "frontier")
+    assert frontier["seconds"] > 0 and frontier["iterations"] < SfmOptions().frontier_iterations, frontier
 
 
 def test_fallback_images_register_the_views_the_first_ones_leave_out(sfm_views: dict, tmp_path: Path) -> None:

@@ -47,6 +47,11 @@ FRONTIER_SCALE_PX = 3.0
 #: undefined.
 MAX_ANGLE = 1.5
 MAX_SPAN = 2.5
+#: The adjustment stops when its last ``CONVERGED_WINDOW`` iterations lowered the energy by less than
+#: ``CONVERGED_FRACTION`` of what it has lowered it in all (bunny, 36 views: 99.9 % of the decrease of
+#: 1,000 iterations came in the first 150, and the camera centres were the same at 150 and at 1,000).
+CONVERGED_WINDOW = 25
+CONVERGED_FRACTION = 0.002
 #: Weight of the soft gauge (first view's pose, the centres' mean distance to their centroid).
 GAUGE_WEIGHT = 1e4
 
@@ -84,7 +89,7 @@ def frontier_adjust(
         masks: image name -> (H, W) bool silhouette of the whole object; views without one are
             left out of the frontier term (their tracks still count).
         weight: w above (> 0).
-        iterations: L-BFGS iterations.
+        iterations: most L-BFGS iterations; it stops earlier once converged (``CONVERGED_WINDOW``).
 
     Returns:
         The report, or None when fewer than 3 masked views or no usable pair (nothing changed).
@@ -110,10 +115,20 @@ def frontier_adjust(
         (grad,) = torch.autograd.grad(energy, xt)
         return float(energy.detach()), grad.numpy()
 
+    x0 = np.zeros(6 * n_view + 3 * n_point)
+    history = [energy_and_gradient(x0)[0]]
+
+    def stop_when_converged(intermediate_result: scipy.optimize.OptimizeResult) -> None:
+        history.append(float(intermediate_result.fun))
+        if len(history) > CONVERGED_WINDOW:
+            recent = history[-CONVERGED_WINDOW - 1] - history[-1]
+            if recent <= CONVERGED_FRACTION * (history[0] - history[-1]):
+                raise StopIteration
+
     # SciPy's L-BFGS-B: the same method as torch.optim.LBFGS at half its cost here (its bookkeeping
     # took as long as the energy and gradient on the dragon).
     res = scipy.optimize.minimize(
-        energy_and_gradient, np.zeros(6 * n_view + 3 * n_point), jac=True, method="L-BFGS-B",
+        energy_and_gradient, x0, jac=True, method="L-BFGS-B", callback=stop_when_converged,
         options={"maxiter": iterations, "maxfun": 2 * iterations, "maxcor": 30, "ftol": 1e-15, "gtol": 1e-10},
     )
     n_iter = int(res.nit)

@@ -107,6 +107,13 @@ class SparseModel:
         silhouette_refused: name -> why the silhouette search did not register a view SfM left
             out (no pose fits its mask well enough, or a distinct pose fits it about as well: an
             ambiguous, e.g. symmetric, silhouette).
+        extras: what each refinement after SfM's mapping cost and gave, in order, one dict per step with
+            its ``step`` name and ``seconds``: ``rematch`` rounds and ``join_rematch`` rounds (the model's
+            :func:`~.colmap.track_stats` before and after, the gain in observations of tracks of 3+
+            views, and why later rounds were skipped), ``join`` (models joined, stats before and after),
+            ``second_images`` (the SfM run on ``fallback_images`` and the registered views of both),
+            ``frontier`` (its report) and ``silhouette_registration`` (views registered); a step that did
+            not run says why (``skipped``).
     """
 
     cameras: list[Camera | None]
@@ -124,6 +131,7 @@ class SparseModel:
     frontier: dict[str, float | int | bool] | None = None
     silhouette_registered: list[str] = field(default_factory=list)
     silhouette_refused: dict[str, str] = field(default_factory=dict)
+    extras: list[dict] = field(default_factory=list)
 
     @property
     def num_registered(self) -> int:
@@ -298,6 +306,12 @@ def estimate_poses(
         # the total counts both runs; "first_images" / "second_images" is the time of the run not kept
         other = "first_images" if model.fallback else "second_images"
         model.timings[other] = seconds[other]
+        model.extras.insert(0, {
+            "step": "second_images", "seconds": seconds["second_images"],
+            "registered_first": 0 if first is None else first.num_registered,
+            "registered_second": 0 if second is None else second.num_registered, "kept": "second" if model.fallback
+            else "first",
+        })
         return model
     raise ReconstructionError(f"{first_error}; on the second images: {second_error}")
 
@@ -324,6 +338,7 @@ class _SfmRun:
     known_cameras: list[Camera]
     timings: dict[str, float]
     seconds: float  # wall time of the run
+    extras: list[dict] = field(default_factory=list)  # SparseModel.extras: the refinements after the mapping
 
     @property
     def num_registered(self) -> int:
@@ -361,13 +376,15 @@ def _run_sfm(
     image_dir, mask_dir, files = write_inputs(workdir, images, masks, options)
     timings["images"] = time.perf_counter() - t0
     Ks = [view_intrinsics(i, cameras, intrinsics) for i in range(n)]
+    extras: list[dict] = []
     with quiet_colmap():
         rec, features, partners = run_colmap(
             workdir, image_dir, mask_dir, files, [im.shape[:2] for im in images], Ks,
-            known_cameras if known else None, options, timings, report, focal_priors=focal_priors,
+            known_cameras if known else None, options, timings, report, focal_priors=focal_priors, extras=extras,
         )
     return _SfmRun(
-        rec, images, files, Ks, features, partners, known, known_cameras, timings, time.perf_counter() - t_start
+        rec, images, files, Ks, features, partners, known, known_cameras, timings, time.perf_counter() - t_start,
+        extras,
     )
 
 
@@ -389,6 +406,7 @@ def _finish(
     features, partners, known, known_cameras = run.features, run.partners, run.known, run.known_cameras
     n = len(images)
     timings = dict(run.timings)
+    extras = list(run.extras)
     frontier = None
     silhouette_views: list[str] = []
     silhouette_refused: dict[str, str] = {}
@@ -408,13 +426,19 @@ def _finish(
             rec, by_file, weight=options.frontier_weight, iterations=options.frontier_iterations
         )
         timings["frontier"] = time.perf_counter() - t
+        extras.append({"step": "frontier", "seconds": timings["frontier"],
+                       **({"skipped": "too few masked views or pairs"} if frontier is None else frontier.as_dict())})
         if options.silhouette_register_px > 0:
             t = time.perf_counter()
+            missing = n - run.num_registered
             silhouette_views, silhouette_refused, last = _register_missing_by_silhouette(
                 rec, by_file, files, Ks, images, options
             )
             frontier = last or frontier  # the adjustment that gave the final poses
             timings["silhouette_registration"] = time.perf_counter() - t
+            extras.append({"step": "silhouette_registration", "seconds": timings["silhouette_registration"],
+                           "missing": missing, "registered": len(silhouette_views),
+                           **({"skipped": "every view registered"} if not missing else {})})
 
     index = {name: i for i, name in enumerate(files)}
     view_of_image = {} if rec is None else {im.image_id: index[im.name] for im in rec.images.values()}
@@ -465,6 +489,7 @@ def _finish(
         frontier=None if frontier is None else frontier.as_dict(),
         silhouette_registered=[names[index[f]] for f in silhouette_views],
         silhouette_refused={names[index[f]]: why for f, why in silhouette_refused.items()},
+        extras=extras,
     )
 
 
