@@ -160,7 +160,8 @@ def _row(r: dict, reference: dict | None) -> list:
     if reference is not None and reference is not r and "error" not in reference:
         versus = f" ({(r['accuracy'] / reference['accuracy'] - 1) * 100:+.0f}%)"
     return [
-        r["size"], r["views"], res.get("refine"), r.get("vertices"), r["peak_rss_gib"],
+        r["size"], r["views"], res.get("refine"), r.get("vertices"),
+        r["peak_rss_gib"] if r.get("peak_from") != "stage peaks" else f"{r['peak_rss_gib']} *",
         peaks.get("decode"), peaks.get("geometry"), peaks.get("refine"),
         secs.get("decode"), secs.get("geometry"), secs.get("refine"), per_mpv,
         f"{r['accuracy'] * 100:.4f}{versus}", f"{r['completeness'] * 100:.4f}",
@@ -201,7 +202,8 @@ def main() -> None:
     ]
     options = ", ".join(args.overrides) or "default options"
     tab = table(f"Full-size captures: peak memory and time per stage ({options})", columns, rows,
-                note="Peak RSS from /usr/bin/time -v; per-stage peaks from the kernel's high-water mark; "
+                note="Peak RSS from /usr/bin/time -v (* where its record was lost: the largest stage peak); "
+                "per-stage peaks from the kernel's high-water mark; "
                 "s per MP x view: the whole run's seconds per megapixel of frames times views; accuracy in "
                 "brackets: against the first row's")
     print(" | ".join(columns))
