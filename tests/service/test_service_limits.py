@@ -35,6 +35,25 @@ def test_apply_threads_bounds_torch_opencv_and_blas() -> None:
     assert seen["pools"] in ([2], [1, 2], [])  # every BLAS/OpenMP pool loaded is at most 2
 
 
+def test_apply_threads_reaches_pycolmap_options() -> None:
+    seen = _run(
+        """
+        import json
+        from service import limits
+        limits.apply_threads(3)
+        from pmvir.config import SfmOptions
+        from pmvir.geometry.sfm import colmap, matching
+        options = SfmOptions()
+        print(json.dumps({
+            "threads": matching.colmap_threads(),
+            "incremental": colmap._pipeline_options(options, set()).num_threads,
+            "global": colmap._global_options(options, set()).num_threads,
+        }))
+        """
+    )
+    assert seen == {"threads": 3, "incremental": 3, "global": 3}
+
+
 def test_memory_cap_turns_a_large_allocation_into_out_of_memory() -> None:
     seen = _run(
         """

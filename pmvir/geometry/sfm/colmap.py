@@ -31,6 +31,7 @@ from pmvir.geometry.sfm.join import (
 )
 from pmvir.geometry.sfm.matching import (
     KNOWN_POSE_MIN_MATCHES,
+    colmap_threads,
     database_stats,
     extract_features,
     match_images,
@@ -175,6 +176,7 @@ def _pipeline_options(
     options: SfmOptions, constant_cameras: set[int], *, min_matches: int = 15
 ) -> pycolmap.IncrementalPipelineOptions:
     po = pycolmap.IncrementalPipelineOptions()
+    po.num_threads = colmap_threads()
     po.min_num_matches = min_matches
     po.random_seed = options.seed
     po.min_model_size = options.min_registered_views
@@ -189,6 +191,7 @@ def _pipeline_options(
 def _global_options(options: SfmOptions, constant_cameras: set[int]) -> pycolmap.GlobalPipelineOptions:
     """GLOMAP options: seeded, CPU, given intrinsics held fixed (focal lengths refined only when estimated)."""
     po = pycolmap.GlobalPipelineOptions()
+    po.num_threads = colmap_threads()
     po.random_seed = options.seed
     po.min_model_size = options.min_registered_views
     po.mapper.random_seed = options.seed
@@ -284,6 +287,7 @@ def _refine_sfm(rec: pycolmap.Reconstruction, options: SfmOptions, constant_came
     ba.print_summary = False
     ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     ba.ceres.loss_function_scale = 1.0
+    ba.ceres.solver_options.num_threads = colmap_threads()
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in rec.reg_image_ids():
         config.add_image(image_id)

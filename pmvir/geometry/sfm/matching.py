@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -43,6 +44,13 @@ _MAX_DESCRIPTOR_DISTANCE = 0.7
 _KNOWN_POSE_MAX_AXIS_DEG = 80.0
 
 
+def colmap_threads() -> int:
+    """Threads for COLMAP's extraction, matching and mapping: ``OMP_NUM_THREADS`` when it holds a
+    positive integer (the service sets it from ``PMVIR_JOB_THREADS``), else -1 (every core)."""
+    value = os.environ.get("OMP_NUM_THREADS", "").strip()
+    return int(value) if value.isdigit() and int(value) > 0 else -1
+
+
 def extract_features(
     database: Path,
     image_dir: Path,
@@ -67,6 +75,7 @@ def extract_features(
             key = ("estimated", w, h, prior, i)
         groups.setdefault(key, []).append(i)
     extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = colmap_threads()
     extraction.sift.max_num_features = options.sift_max_features
     extraction.sift.peak_threshold = options.sift_peak_threshold
     extraction.sift.estimate_affine_shape = options.sift_affine_shape
@@ -106,6 +115,7 @@ def match_images(database: Path, n: int, options: SfmOptions) -> None:
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = options.seed
     matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = colmap_threads()
     matching.guided_matching = options.guided_matching
     matching.sift.max_ratio = options.match_max_ratio
     if n <= options.exhaustive_matching_max_views:
