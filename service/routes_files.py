@@ -94,6 +94,7 @@ async def upload_file(
     response_model=UploadOfferOut,
     responses={
         **_JOB_ERRORS,
+        400: {**_E, "description": "A body that is not readable JSON."},
         409: {**_E, "description": "Not offered by this server, or the job takes no uploads now."},
         413: {**_E, "description": "The file or the job would be over a size or count limit."},
     },
