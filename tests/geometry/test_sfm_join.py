@@ -116,9 +116,9 @@ def test_the_dragons_two_one_sided_models_are_joined(tmp_path: Path, monkeypatch
     rounds: list[int] = []
     rematch = sfm_colmap._rematch_and_refine
 
-    def spy(rec, run, n, *, min_track):  # type: ignore[no-untyped-def]
+    def spy(rec, run, n, **kwargs):  # type: ignore[no-untyped-def]
         rounds.append(n)
-        return rematch(rec, run, n, min_track=min_track)
+        return rematch(rec, run, n, **kwargs)
 
     monkeypatch.setattr(sfm_colmap, "_rematch_and_refine", spy)
     model = estimate_poses(
