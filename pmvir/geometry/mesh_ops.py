@@ -154,10 +154,27 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     fn = face_normals(v, f, normalize=False)
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
+    idx = f.reshape(-1)
+    n = np.stack(
+        [np.bincount(idx, weights=np.repeat(fn[:, c], 3), minlength=len(v)) for c in range(3)], axis=1
+    )
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)
+
+
+def grouped_medians(values: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """The median of each run ``values[starts[i]:starts[i + 1]]`` (the last run to the end), (G,).
+
+    The same as ``np.median`` per run (the mean of the two middle values of an even run), in
+    one sort instead of one call per run.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    bounds = np.r_[starts, len(values)]
+    group = np.repeat(np.arange(len(starts)), np.diff(bounds))
+    ordered = values[np.lexsort((values, group))]
+    size = np.diff(bounds)
+    lo = ordered[starts + (size - 1) // 2]
+    hi = ordered[starts + size // 2]
+    return 0.5 * (lo + hi)
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,7 @@ import open3d as o3d
 
 from pmvir.camera import Camera, sample_bilinear
 from pmvir.errors import ConfigError, ShapeError
-from pmvir.geometry.mesh_ops import raycasting_scene, vertex_normals
+from pmvir.geometry.mesh_ops import grouped_medians, raycasting_scene, vertex_normals
 
 
 @dataclass(frozen=True)
@@ -382,8 +382,8 @@ def fit_to_rims(
     who, inside_px, gsd_all = who[order], inside_px[order], gsd_all[order]
     starts = np.flatnonzero(np.r_[True, who[1:] != who[:-1]])
     rims = who[starts]
-    median_px = np.array([np.median(a) for a in np.split(inside_px, starts[1:])])
-    median_gsd = np.array([np.median(a) for a in np.split(gsd_all, starts[1:])])
+    median_px = grouped_medians(inside_px, starts)
+    median_gsd = grouped_medians(gsd_all, starts)
     estimate = max(float(np.quantile(median_px, MARGIN_QUANTILE)), 0.0)
     margin = estimate if mask_margin_px is None else given_margin
     excess = median_px - margin - tolerance_px
