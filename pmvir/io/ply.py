@@ -58,7 +58,6 @@ def linear_to_srgb(x: np.ndarray) -> np.ndarray:
 
 def write_mesh_ply(path: str | Path, mesh: Mesh) -> None:
     """Write ``mesh`` as spec PLY, atomically (temporary name, then rename)."""
-    from plyfile import PlyData, PlyElement
 
     path = Path(path)
     normals = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
@@ -74,12 +73,19 @@ def write_mesh_ply(path: str | Path, mesh: Mesh) -> None:
     for i, n in enumerate(("red", "green", "blue")):
         vert[n] = rgb[:, i]
         vert["albedo_" + "rgb"[i]] = albedo[:, i]
-    face = np.empty(len(mesh.faces), dtype=[("vertex_indices", "<i4", (3,))])
-    face["vertex_indices"] = mesh.faces
-    el_v = PlyElement.describe(vert, "vertex")
-    el_f = PlyElement.describe(face, "face", val_types={"vertex_indices": "i4"}, len_types={"vertex_indices": "u1"})
+    # faces as (uchar 3, int32 a, b, c) records, packed: the bytes of spec PLY's list property,
+    # written in one block (plyfile writes list properties row by row)
+    face = np.empty(len(mesh.faces), dtype=np.dtype([("count", "u1"), ("abc", "<i4", (3,))], align=False))
+    face["count"] = 3
+    face["abc"] = mesh.faces
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(vert)}"]
+    header += [f"property {'float' if t == '<f4' else 'uchar'} {n}" for n, t in vdtype]
+    header += [f"element face {len(face)}", "property list uchar int vertex_indices", "end_header"]
     tmp = path.with_name(path.name + ".tmp")
-    PlyData([el_v, el_f], text=False, byte_order="<").write(str(tmp))
+    with open(tmp, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(vert.tobytes())
+        fh.write(face.tobytes())
     os.replace(tmp, path)
 
 
@@ -106,9 +112,12 @@ def read_mesh(path: str | Path) -> Mesh:
 
 
 def _read_ply(path: Path) -> Mesh:
-    from plyfile import PlyData
+    from plyfile import PlyData, PlyElementParseError
 
-    ply = PlyData.read(str(path))
+    try:  # triangle faces in one block (the list length known), not row by row
+        ply = PlyData.read(str(path), known_list_len={"face": {"vertex_indices": 3, "vertex_index": 3}})
+    except PlyElementParseError:  # polygons of other sizes: the general reader
+        ply = PlyData.read(str(path))
     names = [e.name for e in ply.elements]
     if "vertex" not in names or "face" not in names:
         raise MeshError(f"{path}: PLY needs vertex and face elements, has {names}")
@@ -118,7 +127,13 @@ def _read_ply(path: Path) -> Mesh:
     key = "vertex_indices" if "vertex_indices" in fprops else ("vertex_index" if "vertex_index" in fprops else None)
     if key is None:
         raise MeshError(f"{path}: face element has no vertex_indices")
-    faces = _triangulate(list(ply["face"].data[key]), path)
+    data = ply["face"].data[key]
+    if data.dtype != object and data.ndim == 2:  # read as one (F, 3) block
+        faces = np.array(data, dtype=np.int64)
+        if not len(faces):
+            raise MeshError(f"{path}: mesh has no faces")
+    else:
+        faces = _triangulate(list(data), path)
     vprops = set(v.dtype.names)
     albedo = None
     if {"albedo_r", "albedo_g", "albedo_b"} <= vprops:
