@@ -78,6 +78,14 @@ class _Point:
     aux: Any
 
 
+def _bracket_closed(a: _Point, b: _Point, d_norm: float, min_move: float, min_change: float) -> bool:
+    """True when the zoom cannot tell its two ends apart: in position (largest component of the
+    move between them below ``min_move``), or in value (within ``min_change``)."""
+    if abs(b.t - a.t) * d_norm < min_move:
+        return True
+    return math.isfinite(a.f) and math.isfinite(b.f) and abs(a.f - b.f) <= min_change
+
+
 def strong_wolfe(
     fun: Objective,
     x: torch.Tensor,
@@ -90,9 +98,14 @@ def strong_wolfe(
     c1: float = 1e-4,
     c2: float = 0.9,
     tolerance_change: float = 1e-12,
+    f_tolerance: float = 0.0,
     max_evaluations: int = 25,
 ) -> tuple[_Point, int]:
     """Step length along ``d`` satisfying the strong Wolfe conditions (or the best one found).
+
+    The zoom stops early, keeping the best point so far, once the bracket's two ends differ in
+    value by at most ``f_tolerance * |f|``: a cost evaluated in float32 sums (and with an inner
+    solve to a tolerance) is only known to about that, and zooming further probes noise.
 
     Returns:
         the accepted point (t may be 0 when nothing decreased the objective) and the
@@ -132,7 +145,7 @@ def strong_wolfe(
     while not done and n_eval < max_evaluations:
         a, b = bracket
         low, high = (0, 1) if a.f <= b.f else (1, 0)
-        if abs(b.t - a.t) * d_norm < tolerance_change:
+        if _bracket_closed(a, b, d_norm, tolerance_change, f_tolerance * abs(f)):
             break
         fa = a.f if math.isfinite(a.f) else 1e300
         fb = b.f if math.isfinite(b.f) else 1e300
@@ -203,7 +216,8 @@ def minimize_lbfgs(
     Stopping rule: after ``max_iterations`` accepted iterations; when an iteration
     lowers the objective by less than ``rel_tolerance`` times its magnitude; when the
     gradient's largest component is at most ``grad_tolerance``; or when the line
-    search finds no decrease.
+    search finds no decrease (its zoom ends once the trial values differ by at most
+    ``rel_tolerance`` times the objective).
 
     Args:
         fun: objective returning (value, flat gradient, aux).
@@ -249,7 +263,7 @@ def minimize_lbfgs(
                 t0 = min(1.0, 1.0 / max(float(d.abs().sum()), 1e-30))
         else:
             t0 = 1.0
-        point, n = strong_wolfe(fun, x, t0, d, f, g, gtd)
+        point, n = strong_wolfe(fun, x, t0, d, f, g, gtd, f_tolerance=rel_tolerance)
         n_eval += n
         if point.t == 0.0:
             reason = "line_search"

@@ -10,7 +10,7 @@ import torch
 
 from pmvir.refine.albedo import AlbedoSolver
 from pmvir.refine.energy import photometric_smoothness_term, photometric_term
-from pmvir.refine.lbfgs import minimize_lbfgs
+from pmvir.refine.lbfgs import minimize_lbfgs, strong_wolfe
 from pmvir.refine.mesh_ops import GraphSmoother, face_adjacency, unique_edges
 from pmvir.refine.sampling import PairSet
 from pmvir.synth.shapes import geodesic_sphere
@@ -48,6 +48,24 @@ def test_lbfgs_stops_on_max_iterations_and_relative_decrease() -> None:
     assert minimize_lbfgs(_rosenbrock, x0, max_iterations=3, rel_tolerance=0.0).reason == "max_iterations"
     res = minimize_lbfgs(_rosenbrock, x0, max_iterations=500, rel_tolerance=0.05, grad_tolerance=0.0)
     assert res.reason == "relative_decrease" and res.iterations < 500
+
+
+def test_line_search_stops_zooming_into_noise() -> None:
+    """A cost known to 1e-5 of itself (float32 sums, an inner solve): once the trial values differ by
+    less than that, more probes buy nothing; without the floor the zoom runs to its cap."""
+    rng = np.random.default_rng(0)
+
+    def noisy(x):  # flat up to noise of 1e-5 of the value, with a gradient that promises a decrease
+        return 1.0 + 1e-5 * rng.standard_normal(), torch.ones_like(x), None
+
+    x = torch.zeros(1, dtype=F64)
+    f, g, _ = noisy(x)
+    d = -g
+    counts = {}
+    for floor in (0.0, 1e-5):
+        _, counts[floor] = strong_wolfe(noisy, x, 1.0, d, f, g, float(g @ d), f_tolerance=floor)
+    assert counts[0.0] >= 10
+    assert counts[1e-5] <= 3
 
 
 def test_lbfgs_with_exact_preconditioner_solves_a_quadratic_at_once() -> None:
