@@ -25,6 +25,7 @@ bench/results/sfm_poses.json. Beside every SfM run, right after it, pycolmap's p
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import tempfile
@@ -216,10 +217,15 @@ def main() -> int:
     )
     ap.add_argument("--no-plain", action="store_true", help="do not run pycolmap's plain pipeline beside ours")
     ap.add_argument("--tag", default="", help="results go to bench/results/sfm_poses[-TAG].json")
+    ap.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE",
+        help="one more SfM option (a field of SfmOptions; VALUE is JSON), e.g. --set sift_affine_shape=false",
+    )
     args = ap.parse_args()
+    extra = {key: json.loads(value) for key, _, value in (item.partition("=") for item in args.set)}
     options = SfmOptions(
         mapper=args.mapper, grey=args.grey, guided_matching=args.guided, rematch_rounds=args.rematch,
-        rematch_min_track=args.rematch_min_track,
+        rematch_min_track=args.rematch_min_track, **extra,
     )
     models_dir = _shared() / "data" / "models"
     if not models_dir.is_dir():

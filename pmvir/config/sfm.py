@@ -47,10 +47,11 @@ class SfmOptions(_Options):
         "but features survive the 30-45 degree viewpoint changes of a ring of views far better.",
         json_schema_extra=advanced(),
     )
-    sift_upsample: bool = Field(
-        default=True,
+    sift_upsample: bool | Literal["auto"] = Field(
+        default="auto",
         description="Detect SIFT features on the image upsampled 2x (COLMAP first_octave -1): more small "
-        "features (which small objects need), about 3x the extraction time.",
+        "features (which small objects need), about 3x the extraction time. 'auto': SfM first runs without, "
+        "and again with it unless every view registered; known poses always use it.",
         json_schema_extra=advanced(),
     )
     sift_equalize: bool = Field(

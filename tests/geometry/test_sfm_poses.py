@@ -366,7 +366,7 @@ def test_rematch_rounds_lengthen_tracks_with_sfm_poses(sfm_views: dict, tmp_path
     alone; with rematch_min_track 2 they stay (measured: a quarter of the points). A second round (the
     default) keeps the centres within 0.5 % and adds no short track, or is skipped where the first moved
     the poses too little to change the matches; ``extras`` says what each round and the frontier
-    adjustment cost and gave."""
+    adjustment cost and gave. With SIFT upsampling on, the features the numbers above were measured with."""
     ring = list(range(12, 36))
     true = [sfm_views["cameras"][i] for i in ring]
     results = {}
@@ -375,7 +375,7 @@ def test_rematch_rounds_lengthen_tracks_with_sfm_poses(sfm_views: dict, tmp_path
         model = estimate_poses(
             [sfm_views["images"][i] for i in ring], [sfm_views["names"][i] for i in ring],
             intrinsics=[true[0].K] * len(ring), masks=[sfm_views["masks"][i] for i in ring],
-            options=SfmOptions(rematch_rounds=rounds, rematch_min_track=min_track),
+            options=SfmOptions(rematch_rounds=rounds, rematch_min_track=min_track, sift_upsample=True),
             workdir=tmp_path / f"r{rounds}-{min_track}",
         )
         assert model.num_registered == len(ring)
@@ -403,7 +403,7 @@ def test_fallback_images_register_the_views_the_first_ones_leave_out(sfm_views: 
     features: they register in no model, 24 of 36 do) are registered from the second images, and the
     model says it came from them; only the kept model is held to the masks (the first images' 24-view model,
     discarded, is not: that was 5-23 s of wasted work on the benchmark models); first images that register
-    every view are kept without a second run."""
+    every view are kept without a second run, and (sift_upsample 'auto') without an upsampled one."""
     true = sfm_views["cameras"]
     blanked = [np.full_like(im, 0.3) if i < 12 else im for i, im in enumerate(sfm_views["images"])]
     steps: list[tuple[float, str]] = []
@@ -420,6 +420,10 @@ def test_fallback_images_register_the_views_the_first_ones_leave_out(sfm_views: 
     err, scene = _centre_errors(model, true)
     assert err.max() <= 0.005 * scene
     assert (tmp_path / "a" / "fallback" / "database.db").is_file()
+    # sift_upsample 'auto': the run without upsampling left the blanked ring out, so it was not kept
+    quick = model.extras[0]
+    assert quick["step"] == "without_upsampling" and not quick["kept"] and quick["registered"] < 36, quick
+    assert model.timings["without_upsampling"] > 0
 
     ring = list(range(12, 36))
     calls: list[tuple[float, str]] = []
@@ -431,6 +435,11 @@ def test_fallback_images_register_the_views_the_first_ones_leave_out(sfm_views: 
     )
     assert not model.fallback and model.num_registered == len(ring)
     assert not (tmp_path / "b" / "fallback").exists()
+    # every view registered without SIFT upsampling: that model is kept and no upsampled run is made
+    assert model.extras[0] == {"step": "without_upsampling", "seconds": model.extras[0]["seconds"], "kept": True,
+                               "registered": len(ring)}
+    assert (tmp_path / "b" / "without-upsampling" / "database.db").is_file()
+    assert not (tmp_path / "b" / "database.db").exists() and "without_upsampling" not in model.timings
     fractions = [f for f, _ in calls]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
 

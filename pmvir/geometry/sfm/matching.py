@@ -79,7 +79,7 @@ def extract_features(
     extraction.sift.max_num_features = options.sift_max_features
     extraction.sift.peak_threshold = options.sift_peak_threshold
     extraction.sift.estimate_affine_shape = options.sift_affine_shape
-    extraction.sift.first_octave = -1 if options.sift_upsample else 0
+    extraction.sift.first_octave = 0 if options.sift_upsample is False else -1  # 'auto' is resolved by SfM
     # COLMAP numbers images in the order its extraction threads finish them, which varies from run
     # to run; the matching and the mapper visit views in image-id order, so importing the images
     # first (one thread, group by group, in the views' order) makes SfM and the known-pose matches

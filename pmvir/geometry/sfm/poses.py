@@ -92,7 +92,8 @@ class SparseModel:
         timings: seconds per step: "images", "features", "matching", then "triangulation"
             (known poses) or "mapping" and "refinement" (SfM), "frontier" and
             "silhouette_registration" (SfM with masks), "finish" (those two and the checks), and
-            "total"; with ``fallback_images``, "first_images" or "second_images": the run not kept.
+            "total"; with ``fallback_images``, "first_images" or "second_images": the run not kept;
+            "without_upsampling": the run without SIFT upsampling when it was not kept.
         names: the views' names, in capture order.
         num_features: SIFT features per view.
         point_observations: per point a (k, 3) float64 array of its observations: view index,
@@ -111,6 +112,7 @@ class SparseModel:
             its ``step`` name and ``seconds``: ``rematch`` rounds and ``join_rematch`` rounds (the model's
             :func:`~.colmap.track_stats` before and after, the gain in observations of tracks of 3+
             views, and why later rounds were skipped), ``join`` (models joined, stats before and after),
+            ``without_upsampling`` (SfM without SIFT upsampling: registered views, whether it was kept),
             ``second_images`` (the SfM run on ``fallback_images`` and the registered views of both),
             ``frontier`` (its report) and ``silhouette_registration`` (views registered); a step that did
             not run says why (``skipped``).
@@ -242,9 +244,11 @@ def estimate_poses(
         cameras: per view the known Camera or None; known-pose mode when every entry is given.
         intrinsics: per view a known (3, 3) K or None (SfM mode; a given camera's K counts too).
         masks: per view an (H, W) bool foreground mask or None; features only inside.
-        options: the ``geometry.sfm`` options.
+        options: the ``geometry.sfm`` options. With ``sift_upsample`` 'auto', SfM runs first without
+            SIFT upsampling (in ``workdir/without-upsampling``) and is kept when every view registers;
+            otherwise everything below runs with it.
         workdir: scratch folder (created; its images/, masks/, sparse/, database.db and guided.db are
-            replaced).
+            replaced, and fallback/ and without-upsampling/ for those runs).
         progress: called as ``progress(fraction, step)`` between steps; it may raise
             CanceledError to stop.
         fallback_images: per view a second image of the same kind as ``images`` (e.g. I_int
@@ -267,6 +271,65 @@ def estimate_poses(
             views; too few 3D points. The message names the views that failed.
     """
     report = progress or (lambda fraction, step: None)
+    known = cameras is not None and all(c is not None for c in cameras) and len(cameras) == len(images)
+    if fallback_images is not None and len(fallback_images) != len(images):
+        raise ShapeError(f"expected {len(images)} fallback images (one per view), got {len(fallback_images)}")
+    if options.sift_upsample != "auto":
+        return _estimate(images, names, cameras, intrinsics, masks, options, workdir, report, fallback_images,
+                         focal_priors)
+    upsampled = options.model_copy(update={"sift_upsample": True})
+    if known:  # triangulation keeps every feature it can get
+        return _estimate(images, names, cameras, intrinsics, masks, upsampled, workdir, report, fallback_images,
+                         focal_priors)
+    # SfM without upsampling first (about a third of the extraction time); with it only when a view is
+    # left out or SfM fails
+    t0 = time.perf_counter()
+    quick, quick_error = _attempt(lambda: _run_sfm(
+        images, cameras, intrinsics, masks, options.model_copy(update={"sift_upsample": False}),
+        Path(workdir) / "without-upsampling", lambda f, s: report(0.3 * f, f"{s} (without upsampling)"),
+        names=names, focal_priors=focal_priors,
+    ))
+    if quick is not None and quick.num_registered == len(images):
+        try:
+            model = _finish(quick, names, cameras, masks, options, report)
+        except ReconstructionError as exc:
+            quick_error = exc
+        else:
+            model.extras.insert(0, _upsampling_extra(quick, quick_error, time.perf_counter() - t0, kept=True))
+            return model
+    seconds = time.perf_counter() - t0
+    model = _estimate(images, names, cameras, intrinsics, masks, upsampled, workdir,
+                      lambda f, s: report(0.3 + 0.7 * f, s), fallback_images, focal_priors)
+    model.timings["without_upsampling"] = seconds
+    model.timings["total"] += seconds
+    model.extras.insert(0, _upsampling_extra(quick, quick_error, seconds, kept=False))
+    return model
+
+
+def _upsampling_extra(
+    run: _SfmRun | None, error: ReconstructionError | None, seconds: float, *, kept: bool
+) -> dict:
+    """The ``extras`` entry of the SfM run without SIFT upsampling (``sfm.sift_upsample`` 'auto')."""
+    entry: dict = {"step": "without_upsampling", "seconds": seconds, "kept": kept,
+                   "registered": 0 if run is None else run.num_registered}
+    if error is not None:
+        entry["error"] = str(error)
+    return entry
+
+
+def _estimate(
+    images: Sequence[np.ndarray],
+    names: Sequence[str],
+    cameras: Sequence[Camera | None] | None,
+    intrinsics: Sequence[np.ndarray | None] | None,
+    masks: Sequence[np.ndarray | None] | None,
+    options: SfmOptions,
+    workdir: str | Path,
+    report: Progress,
+    fallback_images: Sequence[np.ndarray] | None,
+    focal_priors: Sequence[float | None] | None,
+) -> SparseModel:
+    """:func:`estimate_poses` with ``sfm.sift_upsample`` decided: one run, or the first and fallback images."""
     known = cameras is not None and all(c is not None for c in cameras) and len(cameras) == len(images)
     if fallback_images is None or known:
         run = _run_sfm(
