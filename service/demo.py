@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
                 "--stop-after",
                 stop_after,
                 "--poll",
-                "0.5",
+                "2",
                 "--label",
                 "demo",
                 *DEMO_OPTIONS,
