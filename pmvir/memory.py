@@ -8,7 +8,8 @@ pixel (``bench/fullsize.py`` measures the true peaks; the benchmarks page shows 
 
 The views' decoded images, the refinement's per-view tables and its (vertex, view) pairs
 grow with views x working pixels (the subdivision sizes triangles in working pixels); one
-full-size frame is demosaiced at a time. A limit comes from ``--max-memory`` or the
+full-size frame is demosaiced at a time. A run that stops after decoding keeps its views at full
+size instead (``PER_DECODED_PIXEL_BYTES`` per view and frame pixel). A limit comes from ``--max-memory`` or the
 ``PMVIR_JOB_MEMORY`` environment variable (bytes, or with a K/M/G/T suffix, powers of 1024).
 """
 
@@ -31,6 +32,9 @@ BASE_BYTES = 0.65 * 2**30
 PER_VIEW_PIXEL_BYTES = 470.0
 #: Per pixel of the largest frame: one frame's demosaicing at full resolution.
 PER_FRAME_PIXEL_BYTES = 135.0
+#: Per view and frame pixel of a decode-only run, which keeps every decoded view at full size until
+#: it writes them (measured 36 bytes: 1.04 and 1.39 GiB peaks for 1 and 3 frames of 2448x2048).
+PER_DECODED_PIXEL_BYTES = 40.0
 #: The environment variable that caps a job's memory (also read by the service's workers).
 MEMORY_VARIABLE = "PMVIR_JOB_MEMORY"
 
@@ -61,9 +65,14 @@ def memory_limit(explicit: int | None = None) -> tuple[int | None, str]:
     return parse_bytes(raw), MEMORY_VARIABLE
 
 
-def estimated_peak_bytes(frame_size: tuple[int, int], views: int, factor: int) -> int:
-    """The estimated peak of a run on ``views`` frames of ``frame_size`` (width, height) binned by ``factor``."""
+def estimated_peak_bytes(
+    frame_size: tuple[int, int], views: int, factor: int, *, decode_only: bool = False
+) -> int:
+    """The estimated peak of a run on ``views`` frames of ``frame_size`` (width, height) binned by ``factor``
+    (``decode_only``: a run that stops after decoding, its views kept at full size)."""
     w, h = frame_size
+    if decode_only:
+        return int(BASE_BYTES + (PER_DECODED_PIXEL_BYTES * views + PER_FRAME_PIXEL_BYTES) * w * h)
     working = (w // factor) * (h // factor)
     return int(BASE_BYTES + PER_VIEW_PIXEL_BYTES * views * working + PER_FRAME_PIXEL_BYTES * w * h)
 
@@ -73,7 +82,14 @@ def _gib(n: float) -> str:
 
 
 def check_memory(
-    label: str, frame_size: tuple[int, int], views: int, factor: int, limit: int | None, source: str
+    label: str,
+    frame_size: tuple[int, int],
+    views: int,
+    factor: int,
+    limit: int | None,
+    source: str,
+    *,
+    decode_only: bool = False,
 ) -> int:
     """The estimated peak; ResourceLimitError naming the limit and what would fit when it is above ``limit``.
 
@@ -84,17 +100,19 @@ def check_memory(
         factor: the working resolution's binning factor.
         limit: bytes, or None for no limit.
         source: where the limit came from (``--max-memory`` or ``PMVIR_JOB_MEMORY``).
+        decode_only: the run stops after decoding (its views at full size; binning does not apply).
     """
-    need = estimated_peak_bytes(frame_size, views, factor)
+    need = estimated_peak_bytes(frame_size, views, factor, decode_only=decode_only)
     if limit is None or need <= limit:
         return need
     w, h = frame_size
     working = (w // factor) * (h // factor)
     room = limit - BASE_BYTES - PER_FRAME_PIXEL_BYTES * w * h
+    per_view = PER_DECODED_PIXEL_BYTES * w * h if decode_only else PER_VIEW_PIXEL_BYTES * working
     fits: list[str] = []
-    if room > 0 and (max_views := int(room // (PER_VIEW_PIXEL_BYTES * working))) >= 3:
+    if room > 0 and (max_views := int(room // per_view)) >= 1 + 2 * (not decode_only):
         fits.append(f"at most {max_views} views at this size")
-    for f in range(factor + 1, factor + 9):
+    for f in range(factor + 1, factor + 9) if not decode_only else ():
         if estimated_peak_bytes(frame_size, views, f) <= limit:
             fits.append(f"decode.max_working_size_px={max(w, h) // f} (frames binned by {f})")
             break

@@ -303,7 +303,10 @@ def run(
         factor = 1 if config.stop_after == Stage.DECODE else binning_factor(*extent, config.decode.max_working_size_px)
         work_cap = working_capture(cap, factor)
         limit, source = memory_limit(max_memory)
-        check_memory(str(capture), extent, len(cap.frames), factor, limit, source)
+        check_memory(
+            str(capture), extent, len(cap.frames), factor, limit, source,
+            decode_only=config.stop_after == Stage.DECODE,
+        )
         sections["resolution"] = resolution_report(extent, factor)
         with progress.step(Stage.DECODE, weight[Stage.DECODE]) as p:
             if cache is not None and resume.position > Stage.DECODE.position:  # resuming needs a cache

@@ -56,6 +56,21 @@ def test_binning_lowers_the_estimate_and_the_error_says_what_fits() -> None:
     assert estimated_peak_bytes((2448, 2048), 36, factor) <= binned + 2**20
 
 
+def test_a_decode_only_run_is_estimated_at_full_size_without_the_refinement() -> None:
+    """Decoding alone keeps 36 full-size views (about 8 GiB), far below the refinement's model at full
+    size (84 GiB), so a 12 GiB worker takes it; over a limit it names how many views fit, not binning."""
+    decode = estimated_peak_bytes((2448, 2048), 36, 1, decode_only=True)
+    assert 7 * 2**30 < decode < 9 * 2**30 < estimated_peak_bytes((2448, 2048), 36, 1)
+    assert check_memory("cap", (2448, 2048), 36, 1, 12 * 2**30, "PMVIR_JOB_MEMORY", decode_only=True) == decode
+    with pytest.raises(ResourceLimitError) as err:
+        check_memory("cap", (2448, 2048), 36, 1, 4 * 2**30, "PMVIR_JOB_MEMORY", decode_only=True)
+    message = str(err.value)
+    assert "decode.max_working_size_px" not in message
+    views = int(message.split("at most ")[1].split(" views")[0])
+    assert estimated_peak_bytes((2448, 2048), views, 1, decode_only=True) <= 4 * 2**30
+    assert estimated_peak_bytes((2448, 2048), views + 1, 1, decode_only=True) > 4 * 2**30
+
+
 def test_a_capture_over_the_limit_fails_before_decoding(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     capture = synthesize(tmp_path / "cap", shape="sphere", views=3, size=(64, 48), seed=0)
     monkeypatch.setenv("PMVIR_JOB_MEMORY", "256M")
