@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 import re
+from pathlib import Path
 
 from pmvir.errors import ConfigError, ResourceLimitError
 
@@ -77,6 +78,33 @@ def estimated_peak_bytes(
     return int(BASE_BYTES + PER_VIEW_PIXEL_BYTES * views * working + PER_FRAME_PIXEL_BYTES * w * h)
 
 
+def mapped_overhead_bytes() -> int:
+    """Address space this process maps beyond what it holds (``VmSize - VmRSS``: shared libraries,
+    thread stacks, allocator arenas) when its address space is capped (``RLIMIT_AS``, as a service
+    worker caps a job's at ``PMVIR_JOB_MEMORY``); 0 when it is not capped or cannot be read.
+
+    The estimate is of resident memory, so under an address-space cap a run needs this much more.
+    """
+    try:
+        import resource
+    except ImportError:  # not a POSIX system
+        return 0
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft == resource.RLIM_INFINITY:
+        return 0
+    kib: dict[str, int] = {}
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key in ("VmSize", "VmRSS"):
+                kib[key] = int(value.split()[0])
+    except (OSError, ValueError, IndexError):
+        return 0
+    if len(kib) != 2:
+        return 0
+    return max(kib["VmSize"] - kib["VmRSS"], 0) * 1024
+
+
 def _gib(n: float) -> str:
     return f"{n / 2**30:.1f} GiB"
 
@@ -90,6 +118,7 @@ def check_memory(
     source: str,
     *,
     decode_only: bool = False,
+    reserved: int = 0,
 ) -> int:
     """The estimated peak; ResourceLimitError naming the limit and what would fit when it is above ``limit``.
 
@@ -101,23 +130,26 @@ def check_memory(
         limit: bytes, or None for no limit.
         source: where the limit came from (``--max-memory`` or ``PMVIR_JOB_MEMORY``).
         decode_only: the run stops after decoding (its views at full size; binning does not apply).
+        reserved: bytes of the limit already taken by other means (:func:`mapped_overhead_bytes`
+            under an address-space cap).
     """
     need = estimated_peak_bytes(frame_size, views, factor, decode_only=decode_only)
-    if limit is None or need <= limit:
+    if limit is None or need + reserved <= limit:
         return need
     w, h = frame_size
     working = (w // factor) * (h // factor)
-    room = limit - BASE_BYTES - PER_FRAME_PIXEL_BYTES * w * h
+    room = limit - reserved - BASE_BYTES - PER_FRAME_PIXEL_BYTES * w * h
     per_view = PER_DECODED_PIXEL_BYTES * w * h if decode_only else PER_VIEW_PIXEL_BYTES * working
     fits: list[str] = []
     if room > 0 and (max_views := int(room // per_view)) >= 1 + 2 * (not decode_only):
         fits.append(f"at most {max_views} views at this size")
     for f in range(factor + 1, factor + 9) if not decode_only else ():
-        if estimated_peak_bytes(frame_size, views, f) <= limit:
+        if estimated_peak_bytes(frame_size, views, f) + reserved <= limit:
             fits.append(f"decode.max_working_size_px={max(w, h) // f} (frames binned by {f})")
             break
     hint = "; it fits with " + " or ".join(fits) if fits else ""
+    mapped = f" plus {_gib(reserved)} of address space the process maps already" if reserved else ""
     raise ResourceLimitError(
         f"{label}: {views} frames of {w}x{h} at the working size {w // factor}x{h // factor} need about "
-        f"{_gib(need)}, above the memory limit of {_gib(limit)} ({source}){hint}, or raise the limit"
+        f"{_gib(need)}{mapped}, above the memory limit of {_gib(limit)} ({source}){hint}, or raise the limit"
     )

@@ -37,7 +37,7 @@ from pmvir.geometry.silhouette.hull_fit import RimFit
 from pmvir.geometry.stage import GeometryResult, geometry_report, run_geometry, write_geometry
 from pmvir.io.illumination import illumination_from_arrays
 from pmvir.io.ply import Mesh
-from pmvir.memory import check_memory, memory_limit
+from pmvir.memory import check_memory, mapped_overhead_bytes, memory_limit
 from pmvir.polarization.noise import closure_noise
 from pmvir.polarization.stokes import PolarizationImages
 from pmvir.progress import Progress
@@ -305,7 +305,7 @@ def run(
         limit, source = memory_limit(max_memory)
         check_memory(
             str(capture), extent, len(cap.frames), factor, limit, source,
-            decode_only=config.stop_after == Stage.DECODE,
+            decode_only=config.stop_after == Stage.DECODE, reserved=mapped_overhead_bytes(),
         )
         sections["resolution"] = resolution_report(extent, factor)
         with progress.step(Stage.DECODE, weight[Stage.DECODE]) as p:

@@ -12,7 +12,7 @@ import pytest
 
 from pmvir.config import PipelineConfig
 from pmvir.errors import ConfigError, ResourceLimitError
-from pmvir.memory import check_memory, estimated_peak_bytes, memory_limit, parse_bytes
+from pmvir.memory import check_memory, estimated_peak_bytes, mapped_overhead_bytes, memory_limit, parse_bytes
 from pmvir.pipeline import run
 from pmvir.synth import synthesize
 
@@ -69,6 +69,25 @@ def test_a_decode_only_run_is_estimated_at_full_size_without_the_refinement() ->
     views = int(message.split("at most ")[1].split(" views")[0])
     assert estimated_peak_bytes((2448, 2048), views, 1, decode_only=True) <= 4 * 2**30
     assert estimated_peak_bytes((2448, 2048), views + 1, 1, decode_only=True) > 4 * 2**30
+
+
+def test_under_an_address_space_cap_the_mapped_overhead_counts() -> None:
+    """A service worker caps a job's address space (RLIMIT_AS) at PMVIR_JOB_MEMORY; the libraries a
+    process maps (torch, Open3D, pycolmap: gigabytes of address space, little of it resident) take
+    part of that, so the check reserves it. Without a cap nothing is reserved."""
+    code = (
+        "import json, resource; import torch, open3d; from pmvir.memory import mapped_overhead_bytes as m; "
+        "before = m(); resource.setrlimit(resource.RLIMIT_AS, (64 * 2**30, resource.getrlimit(resource.RLIMIT_AS)[1])); "
+        "print(json.dumps([before, m()]))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    before, capped = json.loads(out.stdout)
+    assert before == 0 and 2**28 < capped < 64 * 2**30, (before, capped)
+    assert mapped_overhead_bytes() >= 0
+    need = estimated_peak_bytes((2448, 2048), 36, 3)
+    assert check_memory("cap", (2448, 2048), 36, 3, need + 2**30, "PMVIR_JOB_MEMORY", reserved=2**29) == need
+    with pytest.raises(ResourceLimitError, match=r"plus 2\.0 GiB of address space the process maps already"):
+        check_memory("cap", (2448, 2048), 36, 3, need + 2**30, "PMVIR_JOB_MEMORY", reserved=2 * 2**30)
 
 
 def test_a_capture_over_the_limit_fails_before_decoding(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
