@@ -154,7 +154,8 @@ def _plain_colmap(image_dir: Path, workdir: Path, true: list, names: list[str], 
     row["registered"] = len(centres)
     row["points"] = rec.num_points3D()
     row["reprojection_px"] = float(rec.compute_mean_reprojection_error())
-    row |= _centre_errors(list(centres), np.stack([centres[i] for i in centres]), true)
+    if len(centres) >= 3:  # a similarity needs three centres
+        row |= _centre_errors(list(centres), np.stack([centres[i] for i in centres]), true)
     return row
 
 
@@ -185,6 +186,7 @@ def sfm_table(results: list[dict], args: argparse.Namespace) -> dict:
         plain = r.get("plain")
         if plain is not None:
             quality = ("no model" if not plain["registered"] else
+                       f"{plain['registered']} views: no similarity" if "centre_err_max_pct_scene" not in plain else
                        f"centre error max {plain['centre_err_max_pct_scene']:.3f}% of the scene")
             rows.append([r["model"], f"{r['mode']}, pycolmap plain", f"{plain['registered']}/{plain['views']}",
                          plain.get("points"), round(plain.get("reprojection_px", float("nan")), 2),

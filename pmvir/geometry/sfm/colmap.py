@@ -83,6 +83,7 @@ def run_colmap(
     *,
     focal_priors: Sequence[float | None] | None = None,
     extras: list[dict] | None = None,
+    complete_or_stop: bool = False,
 ) -> tuple[pycolmap.Reconstruction | None, list[int], list[int]]:
     """Features, matches, then triangulation (known poses) or incremental SfM.
 
@@ -90,6 +91,8 @@ def run_colmap(
     views whose ``Ks`` entry is None (else COLMAP's default guess, 1.2 x the longer side).
     ``extras``: SfM appends what each refinement after the mapping cost and gave (:func:`track_stats`
     before and after each re-matching round, the joining passes).
+    ``complete_or_stop``: when the mapper's largest model leaves a view out, return it as it is (no
+    refinement, no joining): the caller will run SfM again on better features anyway.
 
     Returns:
         The reconstruction (SfM: the model with most registered views, joined with the others
@@ -140,6 +143,8 @@ def run_colmap(
     timings["mapping"] = time.perf_counter() - t0
     if not ranked:
         return None, features, partners
+    if complete_or_stop and ranked[0].num_reg_images() < len(files):
+        return ranked[0], features, partners
     report(0.9, "refining the poses")
     t0 = time.perf_counter()
     joining = options.join_models and ranked[0].num_reg_images() < len(files)

@@ -287,7 +287,7 @@ def estimate_poses(
     quick, quick_error = _attempt(lambda: _run_sfm(
         images, cameras, intrinsics, masks, options.model_copy(update={"sift_upsample": False}),
         Path(workdir) / "without-upsampling", lambda f, s: report(0.3 * f, f"{s} (without upsampling)"),
-        names=names, focal_priors=focal_priors,
+        names=names, focal_priors=focal_priors, complete_or_stop=True,
     ))
     if quick is not None and quick.num_registered == len(images):
         try:
@@ -419,8 +419,10 @@ def _run_sfm(
     *,
     names: Sequence[str],
     focal_priors: Sequence[float | None] | None = None,
+    complete_or_stop: bool = False,
 ) -> _SfmRun:
-    """COLMAP's features, matches and model (or triangulation with known poses) on one set of images."""
+    """COLMAP's features, matches and model (or triangulation with known poses) on one set of images
+    (``complete_or_stop``: see :func:`~.colmap.run_colmap`)."""
     t_start = time.perf_counter()
     n = len(images)
     check_inputs(images, names, cameras, intrinsics, masks)
@@ -444,6 +446,7 @@ def _run_sfm(
         rec, features, partners = run_colmap(
             workdir, image_dir, mask_dir, files, [im.shape[:2] for im in images], Ks,
             known_cameras if known else None, options, timings, report, focal_priors=focal_priors, extras=extras,
+            complete_or_stop=complete_or_stop,
         )
     return _SfmRun(
         rec, images, files, Ks, features, partners, known, known_cameras, timings, time.perf_counter() - t_start,
