@@ -75,6 +75,8 @@ def test_types_ranges_and_units_come_from_the_models() -> None:
     assert catalog["refine.surface.hull_tolerance_px"].type == "float | None"
     assert catalog["refine.stages.tau_pol"].type == "list[float]"
     assert catalog["stop_after"].range == "decode, geometry, refine"
+    upsample = catalog["geometry.sfm.sift_upsample"]  # bool | Literal["auto"]: both booleans count too
+    assert (upsample.type, upsample.range) == ("bool | str", "true, false, auto")
     # the schema the API publishes carries the same level and unit
     schema = PipelineConfig.model_json_schema()["$defs"]["SubdivisionOptions"]["properties"]["max_area_px"]
     assert schema["level"] == "basic" and schema["unit"] == "px^2"

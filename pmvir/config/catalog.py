@@ -111,6 +111,8 @@ def _type_and_choices(annotation: Any) -> tuple[str, str | None]:
         parts = [_type_and_choices(a) for a in args if a is not type(None)]
         names = sorted({p[0] for p in parts})
         choices = [p[1] for p in parts if p[1]]
+        if choices and any(p[0] == "bool" for p in parts):  # e.g. bool | Literal["auto"]: every value
+            choices = ["true, false", *choices]
         type_name = " | ".join(names) + (" | None" if optional else "")
         return type_name, ", ".join(choices) if choices else None
     if origin is Literal:

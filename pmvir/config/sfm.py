@@ -49,9 +49,8 @@ class SfmOptions(_Options):
     )
     sift_upsample: bool | Literal["auto"] = Field(
         default="auto",
-        description="Detect SIFT features on the image upsampled 2x (COLMAP first_octave -1): more small "
-        "features (which small objects need), about 3x the extraction time. 'auto': SfM first runs without, "
-        "and again with it unless every view registered; known poses always use it.",
+        description="SIFT on the images upsampled 2x (COLMAP first_octave -1): more small features, 3x the "
+        "extraction time. 'auto': only when SfM without it leaves a view out (always with known poses).",
         json_schema_extra=advanced(),
     )
     sift_equalize: bool = Field(
