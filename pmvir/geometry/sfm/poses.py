@@ -49,6 +49,7 @@ are silenced below FATAL while it runs.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -274,70 +275,31 @@ def estimate_poses(
     known = cameras is not None and all(c is not None for c in cameras) and len(cameras) == len(images)
     if fallback_images is not None and len(fallback_images) != len(images):
         raise ShapeError(f"expected {len(images)} fallback images (one per view), got {len(fallback_images)}")
-    if options.sift_upsample != "auto":
-        return _estimate(images, names, cameras, intrinsics, masks, options, workdir, report, fallback_images,
-                         focal_priors)
-    upsampled = options.model_copy(update={"sift_upsample": True})
-    if known:  # triangulation keeps every feature it can get
-        return _estimate(images, names, cameras, intrinsics, masks, upsampled, workdir, report, fallback_images,
-                         focal_priors)
-    # SfM without upsampling first (about a third of the extraction time); with it only when a view is
-    # left out or SfM fails
-    t0 = time.perf_counter()
-    quick, quick_error = _attempt(lambda: _run_sfm(
-        images, cameras, intrinsics, masks, options.model_copy(update={"sift_upsample": False}),
-        Path(workdir) / "without-upsampling", lambda f, s: report(0.3 * f, f"{s} (without upsampling)"),
-        names=names, focal_priors=focal_priors, complete_or_stop=True,
-    ))
-    if quick is not None and quick.num_registered == len(images):
-        try:
-            model = _finish(quick, names, cameras, masks, options, report)
-        except ReconstructionError as exc:
-            quick_error = exc
-        else:
-            model.extras.insert(0, _upsampling_extra(quick, quick_error, time.perf_counter() - t0, kept=True))
-            return model
-    seconds = time.perf_counter() - t0
-    model = _estimate(images, names, cameras, intrinsics, masks, upsampled, workdir,
-                      lambda f, s: report(0.3 + 0.7 * f, s), fallback_images, focal_priors)
-    model.timings["without_upsampling"] = seconds
-    model.timings["total"] += seconds
-    model.extras.insert(0, _upsampling_extra(quick, quick_error, seconds, kept=False))
-    return model
-
-
-def _upsampling_extra(
-    run: _SfmRun | None, error: ReconstructionError | None, seconds: float, *, kept: bool
-) -> dict:
-    """The ``extras`` entry of the SfM run without SIFT upsampling (``sfm.sift_upsample`` 'auto')."""
-    entry: dict = {"step": "without_upsampling", "seconds": seconds, "kept": kept,
-                   "registered": 0 if run is None else run.num_registered}
-    if error is not None:
-        entry["error"] = str(error)
-    return entry
-
-
-def _estimate(
-    images: Sequence[np.ndarray],
-    names: Sequence[str],
-    cameras: Sequence[Camera | None] | None,
-    intrinsics: Sequence[np.ndarray | None] | None,
-    masks: Sequence[np.ndarray | None] | None,
-    options: SfmOptions,
-    workdir: str | Path,
-    report: Progress,
-    fallback_images: Sequence[np.ndarray] | None,
-    focal_priors: Sequence[float | None] | None,
-) -> SparseModel:
-    """:func:`estimate_poses` with ``sfm.sift_upsample`` decided: one run, or the first and fallback images."""
-    known = cameras is not None and all(c is not None for c in cameras) and len(cameras) == len(images)
+    tried: dict | None = None  # the SfM run without SIFT upsampling, when it was not kept
+    if options.sift_upsample == "auto":
+        options = options.model_copy(update={"sift_upsample": True})  # what every run below uses
+        if not known:  # (known poses: triangulation keeps every feature it can get)
+            # SfM without upsampling first (a third of the extraction time); kept when every view registers
+            t_try = time.perf_counter()
+            quick, quick_error = _attempt(lambda: _run_sfm(
+                images, cameras, intrinsics, masks, options.model_copy(update={"sift_upsample": False}),
+                Path(workdir) / "without-upsampling", lambda f, s: report(0.3 * f, f"{s} (without upsampling)"),
+                names=names, focal_priors=focal_priors, complete_or_stop=True,
+            ))
+            if quick is not None and quick.num_registered == len(images):
+                try:
+                    model = _finish(quick, names, cameras, masks, options, report)
+                except ReconstructionError as exc:
+                    quick_error = exc
+                else:
+                    return _noting(_upsampling_try(quick, None, time.perf_counter() - t_try, kept=True), model)
+            tried = _upsampling_try(quick, quick_error, time.perf_counter() - t_try, kept=False)
+            report = functools.partial(_rescaled, report, 0.3, 0.7)  # the runs below: the rest of the range
     if fallback_images is None or known:
         run = _run_sfm(
             images, cameras, intrinsics, masks, options, workdir, report, names=names, focal_priors=focal_priors
         )
-        return _finish(run, names, cameras, masks, options, report)
-    if len(fallback_images) != len(images):
-        raise ShapeError(f"expected {len(images)} fallback images (one per view), got {len(fallback_images)}")
+        return _noting(tried, _finish(run, names, cameras, masks, options, report))
     t0 = time.perf_counter()
     n = len(images)
     first, first_error = _attempt(lambda: _run_sfm(
@@ -346,7 +308,7 @@ def _estimate(
     ))
     if first is not None and first.num_registered == n:
         try:
-            return _finish(first, names, cameras, masks, options, report)
+            return _noting(tried, _finish(first, names, cameras, masks, options, report))
         except ReconstructionError as exc:  # e.g. too few sparse points: the second images may give more
             first, first_error = None, exc
     t1 = time.perf_counter()
@@ -375,8 +337,35 @@ def _estimate(
             "registered_second": 0 if second is None else second.num_registered, "kept": "second" if model.fallback
             else "first",
         })
-        return model
+        return _noting(tried, model)
     raise ReconstructionError(f"{first_error}; on the second images: {second_error}")
+
+
+def _upsampling_try(
+    run: _SfmRun | None, error: ReconstructionError | None, seconds: float, *, kept: bool
+) -> dict:
+    """The ``extras`` entry of the SfM run without SIFT upsampling (``sfm.sift_upsample`` 'auto')."""
+    entry: dict = {"step": "without_upsampling", "seconds": seconds, "kept": kept,
+                   "registered": 0 if run is None else run.num_registered}
+    if error is not None:
+        entry["error"] = str(error)
+    return entry
+
+
+def _rescaled(report: Progress, start: float, span: float, fraction: float, step: str) -> None:
+    """``report`` of a step that takes ``span`` of the range from ``start``."""
+    report(start + span * fraction, step)
+
+
+def _noting(tried: dict | None, model: SparseModel) -> SparseModel:
+    """``model`` with the SfM run without upsampling first in its extras; a run not kept also counts in
+    its timings (``without_upsampling``, and the total)."""
+    if tried is not None:
+        model.extras.insert(0, tried)
+        if not tried["kept"]:
+            model.timings["without_upsampling"] = tried["seconds"]
+            model.timings["total"] += tried["seconds"]
+    return model
 
 
 def _attempt(run: Callable[[], _SfmRun]) -> tuple[_SfmRun | None, ReconstructionError | None]:
