@@ -9,8 +9,9 @@ pixel (``bench/fullsize.py`` measures the true peaks; the benchmarks page shows 
 The views' decoded images, the refinement's per-view tables and its (vertex, view) pairs
 grow with views x working pixels (the subdivision sizes triangles in working pixels); one
 full-size frame is demosaiced at a time. A run that stops after decoding keeps its views at full
-size instead (``PER_DECODED_PIXEL_BYTES`` per view and frame pixel). A limit comes from ``--max-memory`` or the
-``PMVIR_JOB_MEMORY`` environment variable (bytes, or with a K/M/G/T suffix, powers of 1024).
+size instead (``PER_DECODED_PIXEL_BYTES`` per view and frame pixel). A limit comes from
+``--max-memory`` or the ``PMVIR_JOB_MEMORY`` environment variable (bytes, or with a K/M/G/T
+suffix, powers of 1024).
 """
 
 from __future__ import annotations
@@ -140,13 +141,15 @@ def check_memory(
     working = (w // factor) * (h // factor)
     room = limit - reserved - BASE_BYTES - PER_FRAME_PIXEL_BYTES * w * h
     per_view = PER_DECODED_PIXEL_BYTES * w * h if decode_only else PER_VIEW_PIXEL_BYTES * working
+    fewest_views = 1 if decode_only else 3  # a reconstruction needs three views; decoding one
     fits: list[str] = []
-    if room > 0 and (max_views := int(room // per_view)) >= 1 + 2 * (not decode_only):
+    if room > 0 and (max_views := int(room // per_view)) >= fewest_views:
         fits.append(f"at most {max_views} views at this size")
-    for f in range(factor + 1, factor + 9) if not decode_only else ():
-        if estimated_peak_bytes(frame_size, views, f) + reserved <= limit:
-            fits.append(f"decode.max_working_size_px={max(w, h) // f} (frames binned by {f})")
-            break
+    if not decode_only:  # decoding alone runs at full size: binning does not apply
+        for f in range(factor + 1, factor + 9):
+            if estimated_peak_bytes(frame_size, views, f) + reserved <= limit:
+                fits.append(f"decode.max_working_size_px={max(w, h) // f} (frames binned by {f})")
+                break
     hint = "; it fits with " + " or ".join(fits) if fits else ""
     mapped = f" plus {_gib(reserved)} of address space the process maps already" if reserved else ""
     raise ResourceLimitError(

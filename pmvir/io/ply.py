@@ -58,7 +58,6 @@ def linear_to_srgb(x: np.ndarray) -> np.ndarray:
 
 def write_mesh_ply(path: str | Path, mesh: Mesh) -> None:
     """Write ``mesh`` as spec PLY, atomically (temporary name, then rename)."""
-
     path = Path(path)
     normals = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
     albedo = mesh.albedo if mesh.albedo is not None else np.full((len(mesh.vertices), 3), 0.5, np.float32)
