@@ -60,6 +60,11 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/refine_speed.py",
         "the CPU run on the same machine (for --device cuda)",
     ),
+    "coarse_to_fine": (
+        "Coarse to fine (refine.stages.coarse)",
+        f"{PY} bench/coarse_to_fine.py",
+        "refine.stages.coarse=0 (every stage on the subdivided surface)",
+    ),
     "fullsize": ("Full-size captures: memory and time per stage", f"{PY} bench/fullsize.py", None),
     "mitsuba_render": ("Path tracing (Mitsuba 3)", f"{PY} bench/mitsuba_render.py", None),
     "evaluate": ("Evaluation", f"{PY} bench/bench_evaluate.py", None),

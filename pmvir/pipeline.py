@@ -27,14 +27,16 @@ from pathlib import Path
 import numpy as np
 
 from pmvir import __version__, stage_cache
+from pmvir.camera import Camera
 from pmvir.capture import MANIFEST_NAME, Capture, RawFrame, open_capture
-from pmvir.config import DecodeOptions, PipelineConfig, RefineOptions
+from pmvir.config import DecodeOptions, GeometryOptions, PipelineConfig, RefineOptions
 from pmvir.decode import decode_frame, write_decoded, write_previews
 from pmvir.errors import ConfigError, PmvirError
 from pmvir.export import write_previews as write_view_previews
 from pmvir.export import write_refined_outputs
 from pmvir.geometry.silhouette.hull_fit import RimFit
 from pmvir.geometry.stage import GeometryResult, geometry_report, run_geometry, write_geometry
+from pmvir.geometry.subdivision import densify_for_views
 from pmvir.io.illumination import illumination_from_arrays
 from pmvir.io.ply import Mesh
 from pmvir.memory import check_memory, mapped_overhead_bytes, memory_limit
@@ -42,6 +44,7 @@ from pmvir.polarization.noise import closure_noise
 from pmvir.polarization.stokes import PolarizationImages
 from pmvir.progress import Progress
 from pmvir.refine import RefineResult, make_visibility_fn, observation_from_decoded, refine_surface
+from pmvir.refine.coarse import CoarseMesh
 from pmvir.refine.sampling import Observation
 from pmvir.refine.state import StageLog
 from pmvir.result import ResultFolder
@@ -405,6 +408,9 @@ def _refine_stage(
     visibility_fn = make_visibility_fn(
         cameras, masks, min_cos=config.geometry.visibility.min_cos, rel_tol=config.geometry.visibility.rel_tol
     )
+    t_coarse = time.perf_counter()
+    coarse = coarse_surface(geometry, cameras, masks, config.geometry) if options.stages.coarse > 0 else None
+    coarse_seconds = time.perf_counter() - t_coarse
     with progress.step("optimize", share - decode_share) as q:
         refined = refine_surface(
             geometry.vertices,
@@ -416,8 +422,27 @@ def _refine_stage(
             visibility_fn=visibility_fn,
             progress=q,
             masks=masks,
+            coarse=coarse,
         )
+    if coarse is not None:
+        refined.timings["coarse_surface"] = coarse_seconds
     return refined, registered
+
+
+def coarse_surface(
+    geometry: GeometryResult, cameras: list[Camera], masks: list[np.ndarray | None], options: GeometryOptions
+) -> CoarseMesh | None:
+    """The surface one sqrt(3) step before the subdivided one (``refine.stages.coarse``), with its visibility
+    in the registered views; None where the initial surface was not subdivided."""
+    rounds = geometry.subdivision_rounds
+    if rounds == 0:
+        return None
+    fewer = options.subdivision.model_copy(update={"max_rounds": rounds - 1})
+    sub = densify_for_views(
+        geometry.surface.vertices, geometry.surface.faces, cameras, masks,
+        options.model_copy(update={"subdivision": fewer}),
+    )
+    return CoarseMesh(sub.vertices, sub.faces, sub.visibility)
 
 
 def _write_refined(
@@ -455,6 +480,7 @@ def refine_report(refined: RefineResult) -> dict:
     """The refinement's part of report.json: per stage its parameters and per-iteration term values."""
     return {
         "vertices": len(refined.vertices),
+        "coarse_vertices": refined.coarse_vertices,
         "intensity_factor": refined.intensity_factor,
         "timings": {k: float(v) for k, v in refined.timings.items()},
         "stages": [

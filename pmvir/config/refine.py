@@ -35,6 +35,12 @@ class StageOptions(_Options):
         description="Per stage: exponent t of E_gsm (>= 1).",
         json_schema_extra=advanced(),
     )
+    coarse: int = Field(
+        default=0, ge=0,
+        description="The first this many stages run on the surface one sqrt(3) step coarser than the "
+        "subdivided one, then move it (0: all on the subdivided surface), < the stage count.",
+        json_schema_extra=advanced(),
+    )
 
     @model_validator(mode="after")
     def _same_stage_count(self) -> StageOptions:
@@ -48,6 +54,8 @@ class StageOptions(_Options):
             raise ValueError("the tau weights must be >= 0")
         if min(self.gsm_exponent) < 1.0:
             raise ValueError(f"gsm_exponent entries must be >= 1, got {self.gsm_exponent}")
+        if self.coarse >= len(self.tau_pol):
+            raise ValueError(f"coarse must be below the stage count {len(self.tau_pol)}, got {self.coarse}")
         return self
 
 

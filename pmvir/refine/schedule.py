@@ -22,6 +22,8 @@ per-view SH coefficients L_basis (9) and RGB scales L_scale (3).
 * Preconditioning: L-BFGS's initial inverse Hessian is a graph smoother on the
   vertex-motion block (:class:`pmvir.refine.mesh_ops.GraphSmoother`); SH and scale
   unknowns of view c are scaled by 1/sqrt(sum of the pair weights 1/|V(i)| of the view).
+* Coarse to fine (``stages.coarse``): the first stages may run on the surface one sqrt(3) step
+  coarser, their motion then carried to the subdivided surface (:mod:`pmvir.refine.coarse`).
 * Relaxation (``surface.relax_iterations``): after the last stage the vertices are spread evenly
   over the refined surface (:mod:`pmvir.refine.relax`) and the albedo solved there again.
 * Stages: :func:`prepare_stage` fixes a stage's data at the current geometry (visibility,
@@ -33,6 +35,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -42,6 +45,7 @@ from pmvir.config import RefineOptions
 from pmvir.errors import ConfigError
 from pmvir.geometry.silhouette.hull_fit import HullFit
 from pmvir.progress import Progress
+from pmvir.refine.coarse import CoarseMesh, Lift
 from pmvir.refine.lighting_fit import final_lighting_fit, prefit_lighting
 from pmvir.refine.mesh_ops import (
     check_mesh,
@@ -52,8 +56,8 @@ from pmvir.refine.sampling import (
     Observation,
 )
 from pmvir.refine.solve import solve_stage
-from pmvir.refine.stage_setup import initial_unknowns, make_setup, prepare_stage
-from pmvir.refine.state import RefineResult, StageLog, Unknowns, VisibilityFn
+from pmvir.refine.stage_setup import initial_unknowns, make_setup, prepare_stage, setup_for_mesh
+from pmvir.refine.state import RefineResult, RefineSetup, StageLog, Unknowns, VisibilityFn
 from pmvir.refine.surface_moves import hold_inside_hull, move_to_rims, scan_offset
 
 #: Share of the refinement's progress taken by the offset scans outside the stages, per ``offset_scan.mode``.
@@ -73,6 +77,7 @@ def refine_surface(
     visibility_fn: VisibilityFn | None = None,
     progress: Progress | None = None,
     masks: Sequence[np.ndarray | None] | None = None,
+    coarse: CoarseMesh | None = None,
 ) -> RefineResult:
     """Polarimetric MVIR: refine a mesh, its albedo and per-view lighting (paper sections 4.3, 5.1).
 
@@ -92,6 +97,8 @@ def refine_surface(
             (:func:`pmvir.geometry.silhouette.hull_fit.fit_inside_hull`), and with ``surface.rim_fit_gain`` the shoulders
             whose rims lie inside them move out after the last stage
             (:func:`pmvir.geometry.silhouette.hull_fit.fit_to_rims`). None: neither.
+        coarse: the surface one sqrt(3) step before ``vertices, faces`` (its vertices on the same surface);
+            the first ``options.stages.coarse`` stages run on it. None: every stage on ``vertices, faces``.
 
     Returns:
         :class:`RefineResult`.
@@ -106,12 +113,14 @@ def refine_surface(
     progress = progress or Progress.none()
     verts_np, faces_np = check_mesh(vertices, faces)
     n, n_views = len(verts_np), len(cameras)
-    setup = make_setup(faces_np, n, cameras, observations, opts=opts, visibility_fn=visibility_fn)
-    vis = np.asarray(visibility)
-    if vis.shape != (n, n_views):
-        raise ConfigError(f"expected ({n}, {n_views}) visibility, got {vis.shape}")
+    fine_vis = np.asarray(visibility)
+    if fine_vis.shape != (n, n_views):
+        raise ConfigError(f"expected ({n}, {n_views}) visibility, got {fine_vis.shape}")
+    n_coarse = opts.stages.coarse if coarse is not None else 0
+    start, start_faces, vis, lift = _start_mesh(verts_np, faces_np, fine_vis, coarse if n_coarse > 0 else None)
+    setup = make_setup(start_faces, len(start), cameras, observations, opts=opts, visibility_fn=visibility_fn)
     state = initial_unknowns(
-        verts_np, n_views, sh_order=opts.lighting.sh_order, device=setup.device, dtype=setup.dtype
+        start, n_views, sh_order=opts.lighting.sh_order, device=setup.device, dtype=setup.dtype
     )
     if masks is not None and len(masks) != n_views:
         raise ConfigError(f"expected {n_views} masks (one per view), got {len(masks)}")
@@ -138,6 +147,11 @@ def refine_surface(
         stage_weight = (1.0 - _SCAN_WEIGHT[opts.offset_scan.mode] - lighting) / opts.n_stages
         with progress.step(f"stage {s + 1}", weight=stage_weight) as p:
             p.update(0.0, f"of {opts.n_stages}: visibility and pairs")
+            if lift is not None and s == n_coarse:
+                t = time.perf_counter()
+                setup, state = _to_fine(setup, state, lift, faces_np)
+                vis = fine_vis
+                parts["lift"] = time.perf_counter() - t
             if s > 0 and opts.offset_scan.mode == "stages":
                 t = time.perf_counter()
                 state, scans = scanned(state, scans, p)
@@ -197,4 +211,25 @@ def refine_surface(
         hull_fits=hull_fits,
         rim_fit=rim_fit,
         lighting_fit=lighting_fit,
+        coarse_vertices=len(start) if lift is not None else 0,
     )
+
+
+def _start_mesh(
+    vertices: np.ndarray, faces: np.ndarray, visibility: np.ndarray, coarse: CoarseMesh | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, Lift | None]:
+    """The mesh the first stage runs on (``coarse`` where given), its visibility, and the lift to the
+    subdivided mesh (None without ``coarse``)."""
+    if coarse is None:
+        return vertices, faces, visibility, None
+    coarse.check(visibility.shape[1])
+    start, start_faces = check_mesh(coarse.vertices, coarse.faces)
+    return start, start_faces, np.asarray(coarse.visibility), Lift.between(start, start_faces, vertices)
+
+
+def _to_fine(setup: RefineSetup, state: Unknowns, lift: Lift, faces_np: np.ndarray) -> tuple[RefineSetup, Unknowns]:
+    """The coarse stages' positions and albedo carried to the subdivided surface, and its set-up."""
+    with torch.no_grad():
+        vertices = lift.apply(state.vertices, offsets=True)
+        albedo = lift.apply(state.albedo, offsets=False)
+    return setup_for_mesh(setup, faces_np, len(vertices)), replace(state, vertices=vertices, albedo=albedo)

@@ -306,15 +306,7 @@ def make_setup(
     views = build_view_stack(
         cameras, observations, polarimetric=opts.pol.enabled, device=device, dtype=dtype
     )
-    topo = Topology.of(faces_np, device)
-    smoother = GraphSmoother(
-        topo.edges_np,
-        n_vertices,
-        lam=opts.solver.precondition_lambda,
-        iterations=opts.solver.precondition_iterations,
-        device=device,
-        dtype=dtype,
-    )
+    topo, smoother = _connectivity(faces_np, n_vertices, opts, device, dtype)
     return RefineSetup(
         units=intensity_units(observations, opts),
         faces_np=faces_np,
@@ -328,6 +320,28 @@ def make_setup(
         device=device,
         dtype=dtype,
     )
+
+
+def setup_for_mesh(setup: RefineSetup, faces_np: np.ndarray, n_vertices: int) -> RefineSetup:
+    """``setup`` for another mesh over the same views (the coarse-to-fine switch): its connectivity and
+    preconditioner rebuilt, the views' tensors shared."""
+    topo, smoother = _connectivity(faces_np, n_vertices, setup.opts, setup.device, setup.dtype)
+    return replace(setup, faces_np=faces_np, topo=topo, smoother=smoother)
+
+
+def _connectivity(
+    faces_np: np.ndarray, n_vertices: int, opts: RefineOptions, device: torch.device, dtype: torch.dtype
+) -> tuple[Topology, GraphSmoother]:
+    topo = Topology.of(faces_np, device)
+    smoother = GraphSmoother(
+        topo.edges_np,
+        n_vertices,
+        lam=opts.solver.precondition_lambda,
+        iterations=opts.solver.precondition_iterations,
+        device=device,
+        dtype=dtype,
+    )
+    return topo, smoother
 
 
 

@@ -92,7 +92,8 @@ class RefineResult:
             after the last stage; the fits after earlier scans count in their stage), ``rim_fit`` (when run),
             ``lighting`` (the final lighting fit, when run), ``total``.
         stage_timings: per stage, seconds of its parts: ``offset_scan`` (the scan before it, with its hull
-            fit; ``offset_scan.mode`` "stages", from the second stage on), ``prepare`` (visibility, pairs,
+            fit; ``offset_scan.mode`` "stages", from the second stage on), ``lift`` (the first stage on the
+            subdivided surface after coarse ones: the motion carried to it), ``prepare`` (visibility, pairs,
             weights and floors), ``lighting_prefit`` (the first stage, when run) and ``solve`` (L-BFGS).
         intensity_factor: what E_pho and E_psm multiplied intensities and albedos by
             (:func:`intensity_units`).
@@ -105,6 +106,7 @@ class RefineResult:
             with masks), else None.
         lighting_fit: the final lighting fit's log (``lighting.coupling`` > 0; its time is
             ``timings["lighting"]``), else None.
+        coarse_vertices: vertices of the surface the first ``stages.coarse`` stages ran on (0: none).
     """
 
     vertices: np.ndarray
@@ -122,6 +124,7 @@ class RefineResult:
     hull_fits: list[HullFit] = field(default_factory=list)
     rim_fit: RimFit | None = None
     lighting_fit: StageLog | None = None
+    coarse_vertices: int = 0
 
     def shading_coefficients(self) -> np.ndarray:
         """(V, T) every fitted coefficient of :func:`pmvir.sh.sh_basis` (``sh`` then ``sh_high``)."""
