@@ -109,3 +109,18 @@ def write_results(
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(doc, indent=1) + "\n")
     return path
+
+
+def capture_description(capture: Path) -> str:
+    """How a synthetic capture was made, from its gt/synth.json (e.g. "rock, builtin, plastic, sh lighting,
+    12 views 612x512, seed 5"); "" for a capture without one."""
+    path = Path(capture) / "gt" / "synth.json"
+    if not path.exists():
+        return ""
+    synth = json.loads(path.read_text())
+    o = synth["options"]
+    return (f"{synth['source'].get('shape', 'mesh')}, {o['renderer']}"
+            + (f" {o['spp']} spp" if o["renderer"] == "mitsuba" else "")
+            + f", {o['material']}, {o['lighting']} lighting, {o['views']} views {o['size'][0]}x{o['size'][1]}, "
+            f"seed {o['seed']}")
+

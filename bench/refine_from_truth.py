@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _results import table, write_results
+from _results import capture_description, table, write_results
 
 from pmvir.capture import open_capture
 from pmvir.commands.options import parse_overrides
@@ -87,6 +87,7 @@ def main() -> None:
         )
     except PmvirError as e:
         sys.exit(f"error: {e}")
+    made = f" ({d})" if (d := capture_description(args.capture)) else ""
     start = "the true surface" + (
         f" moved {args.offset:+g} diagonals along its normals" if args.offset else ""
     )
@@ -97,7 +98,7 @@ def main() -> None:
         peer="MVIR (the refinement without E_pol)" if "mvir" in {r["variant"] for r in rows} else None,
         tables=[
             table(
-                f"{args.capture.name}: refined from {start} ({rows[0]['vertices']:,} vertices)",
+                f"{args.capture.name}{made}: refined from {start} ({rows[0]['vertices']:,} vertices)",
                 ["variant", "options", "accuracy x1e-2", "signed offset x1e-2", "completeness x1e-2",
                  "normal error mean deg", "normal error median deg", "seconds"],
                 [[r["variant"], r["options"] or "defaults", round(100 * r["accuracy"], 4),

@@ -19,12 +19,11 @@ Run: .venv/bin/python bench/relief_aop.py CAPTURE [CAPTURE ...] [--relief-px 4] 
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import cv2
 import numpy as np
-from _results import table, write_results
+from _results import capture_description, table, write_results
 
 from pmvir.capture import open_capture
 from pmvir.config import DecodeOptions
@@ -106,12 +105,7 @@ def main() -> None:
         print(f"{capture}\n{'AoP':<24} {'pixels':<7} {'count':>8} {'mean':>6} {'median':>6} {'DoP-w':>6}  (deg, mod 90)")
         for row in rows:
             print(f"{row[0]:<24} {row[1]:<7} {row[2]:8d} {row[3]:6.2f} {row[4]:6.2f} {row[5]:6.2f}")
-        synth = json.loads((capture / "gt" / "synth.json").read_text())
-        o = synth["options"]
-        made = (f"{synth['source'].get('shape', 'mesh')}, {o['renderer']}"
-                + (f" {o['spp']} spp" if o["renderer"] == "mitsuba" else "")
-                + f", {o['material']}, {o['lighting']} lighting, {o['views']} views {o['size'][0]}x{o['size'][1]}, "
-                f"seed {o['seed']}")
+        made = capture_description(capture)
         tables.append(table(f"{capture.name} ({made}): AoP error modulo 90 deg against the true normal's azimuth",
                             ["AoP", "pixels", "count", "mean deg", "median deg", "DoP-weighted deg"], rows,
                             note=f"relief: the true normal turns > {args.relief_deg} deg from its blur over "
