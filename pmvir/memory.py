@@ -22,12 +22,12 @@ from pathlib import Path
 
 from pmvir.errors import ConfigError, ResourceLimitError
 
-# Fitted to the peaks bench/fullsize.py measures (blob, 12 views; the benchmarks page): BASE and
-# PER_FRAME from the decode stage's peaks at 612x512, 1224x1024 and 2448x2048 frames (0.65, 0.76 and
-# 1.22 GiB: one full-size frame demosaiced at a time, 131 bytes per frame pixel); PER_VIEW from the
-# refinement's peak with the default subdivision on the 612x512 capture (438k vertices: 2.26 GiB read
-# from the process 24 minutes into its refinement, past its first evaluations). The benchmark's stored
-# runs use a coarser subdivision and stay below the estimate. Rounded up.
+# Fitted to the peaks bench/fullsize.py measures (blob): BASE and PER_FRAME from the
+# decode stage's peaks of 12 views at 612x512, 1224x1024 and 2448x2048 frames (0.65, 0.76 and 1.22 GiB:
+# one full-size frame demosaiced at a time, 131 bytes per frame pixel); PER_VIEW from the refinement's
+# peaks with the default options. 36 views measured 4.36 GiB at 612x512 (486k vertices; estimated
+# 5.6 GiB) and 7.31 GiB for 2448x2048 frames worked at 816x682 (813k vertices; estimated 10.0 GiB).
+# Rounded up.
 #: Python, NumPy, torch, Open3D and pycolmap loaded, and a small run's working set.
 BASE_BYTES = 0.65 * 2**30
 #: Per view and working pixel: decoded images, refinement tables and (vertex, view) pairs.
