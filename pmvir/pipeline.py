@@ -48,7 +48,7 @@ from pmvir.refine.coarse import CoarseMesh
 from pmvir.refine.sampling import Observation
 from pmvir.refine.state import StageLog
 from pmvir.result import ResultFolder
-from pmvir.stages import STAGES, Stage
+from pmvir.stages import STAGES, Stage, stages_through
 from pmvir.working import (
     BinnedCapture,
     bin_images,
@@ -69,8 +69,6 @@ SPECULAR_MEDIAN_DOP = 0.2
 STAGE_WEIGHTS: dict[str, float] = {"decode": 0.1, "geometry": 0.3, "refine": 0.6}
 #: The pipeline's stages, in order (the one definition; the CLI, config and service read it).
 STAGE_ORDER: tuple[Stage, ...] = STAGES
-#: Stages this build can run.
-AVAILABLE_STAGES: tuple[Stage, ...] = STAGES
 
 
 @dataclass
@@ -96,7 +94,7 @@ class PipelineResult:
 
 def stages_for(config: PipelineConfig) -> list[Stage]:
     """The stages a run with ``config`` executes, in order."""
-    return list(STAGES[: Stage(config.stop_after).position + 1])
+    return stages_through(config.stop_after)
 
 
 def decode_views(

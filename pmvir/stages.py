@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from enum import StrEnum
 
-__all__ = ["STAGES", "Stage"]
+__all__ = ["AVAILABLE_STAGES", "STAGES", "Stage", "stages_through"]
 
 
 class Stage(StrEnum):
@@ -28,3 +28,14 @@ class Stage(StrEnum):
 
 #: Every stage, in order.
 STAGES: tuple[Stage, ...] = tuple(Stage)
+#: Stages this build can run (the service refuses a job naming another before it queues it).
+AVAILABLE_STAGES: tuple[Stage, ...] = STAGES
+
+
+def stages_through(last: Stage | str) -> list[Stage]:
+    """The stages a run that stops after ``last`` executes, in order.
+
+    >>> [str(s) for s in stages_through("geometry")]
+    ['decode', 'geometry']
+    """
+    return list(STAGES[: Stage(last).position + 1])

@@ -22,7 +22,7 @@ from pydantic import ValidationError
 from pmvir.capture import open_capture, validate_capture
 from pmvir.config import PipelineConfig, merge_options
 from pmvir.errors import CaptureError
-from pmvir.stages import Stage
+from pmvir.stages import AVAILABLE_STAGES, Stage, stages_through
 from service import observability
 from service.deps import Services
 from service.errors import ApiError, ErrorItem, conflict, invalid, not_found
@@ -363,10 +363,8 @@ def delete_job(svc: Services, *, job: Job) -> None:
 
 def stage_problems(job: Job) -> list[ErrorItem]:
     """A stop_after naming a stage this build cannot run (the pipeline would fail at once)."""
-    from pmvir import pipeline
-
     config = PipelineConfig.model_validate(job.options)
-    missing = [s for s in pipeline.stages_for(config) if s not in pipeline.AVAILABLE_STAGES]
+    missing = [s for s in stages_through(config.stop_after) if s not in AVAILABLE_STAGES]
     if not missing:
         return []
     return [
@@ -374,7 +372,7 @@ def stage_problems(job: Job) -> list[ErrorItem]:
             loc=["options", "stop_after"],
             type="unavailable_stage",
             msg=f"stage(s) {', '.join(missing)} are not available in this build; "
-            f"available: {', '.join(pipeline.AVAILABLE_STAGES)}",
+            f"available: {', '.join(AVAILABLE_STAGES)}",
         )
     ]
 

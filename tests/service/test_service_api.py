@@ -425,9 +425,9 @@ def test_job_id_is_checked_before_the_store(api: httpx.Client) -> None:
 
 
 def test_stage_this_build_lacks_is_refused_at_start(api: httpx.Client, small_capture: Path) -> None:
-    from pmvir import pipeline
+    from pmvir.stages import AVAILABLE_STAGES, STAGES
 
-    missing = [s for s in pipeline.STAGE_ORDER if s not in pipeline.AVAILABLE_STAGES]
+    missing = [s for s in STAGES if s not in AVAILABLE_STAGES]
     if not missing:
         pytest.skip("every stage is available")
     job_id = new_job(api, small_capture, options={"stop_after": missing[-1]})
