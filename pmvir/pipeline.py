@@ -27,16 +27,14 @@ from pathlib import Path
 import numpy as np
 
 from pmvir import __version__, stage_cache
-from pmvir.camera import Camera
 from pmvir.capture import MANIFEST_NAME, Capture, RawFrame, open_capture
-from pmvir.config import DecodeOptions, GeometryOptions, PipelineConfig, RefineOptions
+from pmvir.config import DecodeOptions, PipelineConfig, RefineOptions
 from pmvir.decode import decode_frame, write_decoded, write_previews
 from pmvir.errors import ConfigError, PmvirError
 from pmvir.export import write_previews as write_view_previews
 from pmvir.export import write_refined_outputs
 from pmvir.geometry.silhouette.hull_fit import RimFit
 from pmvir.geometry.stage import GeometryResult, geometry_report, run_geometry, write_geometry
-from pmvir.geometry.subdivision import densify_for_views
 from pmvir.io.illumination import illumination_from_arrays
 from pmvir.io.ply import Mesh
 from pmvir.memory import check_memory, mapped_overhead_bytes, memory_limit
@@ -406,9 +404,7 @@ def _refine_stage(
     visibility_fn = make_visibility_fn(
         cameras, masks, min_cos=config.geometry.visibility.min_cos, rel_tol=config.geometry.visibility.rel_tol
     )
-    t_coarse = time.perf_counter()
-    coarse = coarse_surface(geometry, cameras, masks, config.geometry) if options.stages.coarse > 0 else None
-    coarse_seconds = time.perf_counter() - t_coarse
+    coarse = coarse_surface(geometry, registered) if options.stages.coarse > 0 else None
     with progress.step("optimize", share - decode_share) as q:
         refined = refine_surface(
             geometry.vertices,
@@ -422,25 +418,26 @@ def _refine_stage(
             masks=masks,
             coarse=coarse,
         )
-    if coarse is not None:
-        refined.timings["coarse_surface"] = coarse_seconds
     return refined, registered
 
 
-def coarse_surface(
-    geometry: GeometryResult, cameras: list[Camera], masks: list[np.ndarray | None], options: GeometryOptions
-) -> CoarseMesh | None:
-    """The surface one sqrt(3) step before the subdivided one (``refine.stages.coarse``), with its visibility
-    in the registered views; None where the initial surface was not subdivided."""
-    rounds = geometry.subdivision_rounds
-    if rounds == 0:
+def coarse_surface(geometry: GeometryResult, registered: list[int]) -> CoarseMesh | None:
+    """The surface one sqrt(3) step before the subdivided one (``refine.stages.coarse``), kept by the
+    geometry stage, with its visibility in the ``registered`` views; None where the initial surface was
+    not subdivided.
+
+    Raises:
+        PmvirError: a cached geometry stage that kept no coarse surface of its subdivided one.
+    """
+    if geometry.subdivision_rounds == 0:
         return None
-    fewer = options.subdivision.model_copy(update={"max_rounds": rounds - 1})
-    sub = densify_for_views(
-        geometry.surface.vertices, geometry.surface.faces, cameras, masks,
-        options.model_copy(update={"subdivision": fewer}),
-    )
-    return CoarseMesh(sub.vertices, sub.faces, sub.visibility)
+    if geometry.coarse is None:
+        raise PmvirError(
+            "refine.stages.coarse needs the surface one subdivision step short, which the cached geometry "
+            "stage did not keep: run the geometry stage again (resume_from='geometry')"
+        )
+    vertices, faces, visibility = geometry.coarse
+    return CoarseMesh(vertices, faces, visibility[:, registered])
 
 
 def _write_refined(

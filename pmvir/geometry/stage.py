@@ -96,6 +96,8 @@ class GeometryResult:
         previews: per frame (H, W, 3) uint8 sRGB I_int with one exposure for all frames (``images/``).
         masks: per frame the object mask the stage used (given, or drawn by the isolation; None: none).
         isolation: what the isolation found (``geometry.isolate``), or None where it did not run.
+        coarse: (vertices, faces, visibility over all frames) of the subdivided surface one sqrt(3) step
+            short, before the hull fit (``refine.stages.coarse``); None when no step was applied.
     """
 
     names: list[str]
@@ -115,6 +117,7 @@ class GeometryResult:
     previews: list[np.ndarray] = field(default_factory=list)
     masks: list[np.ndarray | None] = field(default_factory=list)
     isolation: Isolation | None = None
+    coarse: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @property
     def registered(self) -> list[bool]:
@@ -251,6 +254,12 @@ def run_geometry(
             vertices = hull.vertices
     full_vis = np.zeros((len(sub.vertices), n), bool)
     full_vis[:, reg] = sub.visibility
+    coarse = None
+    if sub.before_last is not None:
+        coarse_vertices, coarse_faces, coarse_reg_vis = sub.before_last
+        coarse_vis = np.zeros((len(coarse_vertices), n), bool)
+        coarse_vis[:, reg] = coarse_reg_vis
+        coarse = (coarse_vertices, coarse_faces, coarse_vis)
     timings = {k: v for k, v in progress.timings.items() if k != "dense"} | dict(dense.timings)
     timings["total"] = time.perf_counter() - t_start
     return GeometryResult(
@@ -271,6 +280,7 @@ def run_geometry(
         previews=viewable_images(images, masks),
         masks=masks,
         isolation=isolation,
+        coarse=coarse,
     )
 
 

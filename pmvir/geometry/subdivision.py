@@ -73,6 +73,8 @@ class SubdivisionResult:
         max_area_px: largest projected visible face area (pixels^2) of the result.
         converged: True when ``max_area_px`` is below the requested threshold;
             False when ``max_rounds`` or ``max_vertices`` stopped the loop first.
+        before_last: (vertices, faces, visibility) of the mesh one step before the result
+            (the coarse surface of ``refine.stages.coarse``); None when no step was applied.
     """
 
     vertices: np.ndarray
@@ -81,6 +83,7 @@ class SubdivisionResult:
     rounds: int
     max_area_px: float
     converged: bool
+    before_last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
 def sqrt3_subdivide(vertices: np.ndarray, faces: np.ndarray, *, split_boundary: bool = False) -> Sqrt3Step:
@@ -284,15 +287,17 @@ def subdivide_until(
     surface = ReferenceSurface(v, f) if project and len(f) else None
     input_face_vis = face_visibility(f, vis, min_visible_corners=min_visible_corners)
     rounds = 0
+    before: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     while True:
         fvis = face_visibility(f, vis, min_visible_corners=min_visible_corners)
         areas = projected_face_areas(v, f, cameras, fvis)
         largest = float(areas.max()) if len(areas) else 0.0
         if largest < max_area_px:
-            return SubdivisionResult(v, f, vis, rounds, largest, True)
+            return SubdivisionResult(v, f, vis, rounds, largest, True, before)
         split_boundary = rounds % 2 == 1
         if rounds >= max_rounds or _vertices_after_step(v, f, split_boundary) > max_vertices:
-            return SubdivisionResult(v, f, vis, rounds, largest, False)
+            return SubdivisionResult(v, f, vis, rounds, largest, False, before)
+        before = (v, f, vis)  # a step makes new arrays: these stay as they are
         step = sqrt3_subdivide(v, f, split_boundary=split_boundary)
         v, f = step.vertices, step.faces
         if surface is not None:

@@ -50,6 +50,11 @@ def test_initial_surface_is_one_manifold_component_seen_by_the_views(blob_geomet
     assert g.visibility.any(axis=1).mean() > 0.99
     assert g.subdivision_converged and g.subdivision_max_area_px < GeometryOptions().subdivision.max_area_px
     assert g.surface.counts["slivers_collapsed"] >= 0 and g.surface.counts["clean_faces"] > 1000
+    # the surface one sqrt(3) step short (refine.stages.coarse): a third of the faces, visibility over all frames
+    assert g.subdivision_rounds > 0 and g.coarse is not None
+    coarse_vertices, coarse_faces, coarse_vis = g.coarse
+    assert 0.95 * 3 * len(coarse_faces) <= len(g.faces) <= 1.05 * 3 * len(coarse_faces)
+    assert coarse_vis.shape == (len(coarse_vertices), len(g.names)) and coarse_vis.any(axis=1).mean() > 0.99
 
 
 def test_outputs_and_report(blob_geometry, blob_capture: Path, tmp_path: Path):

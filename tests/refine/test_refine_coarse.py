@@ -9,7 +9,7 @@ from pydantic import ValidationError
 from refine_scene import accuracy, make_scene
 
 from pmvir.config import RefineOptions
-from pmvir.errors import ConfigError
+from pmvir.errors import ConfigError, PmvirError
 from pmvir.geometry.subdivision import sqrt3_subdivide, subdivide_until
 from pmvir.refine import make_visibility_fn, observation_from_decoded, refine_surface
 from pmvir.refine.coarse import CoarseMesh, Lift, barycentric
@@ -107,20 +107,30 @@ def test_coarse_stages_must_leave_a_stage_for_the_subdivided_surface() -> None:
 def test_the_pipelines_coarse_surface_is_the_subdivision_one_step_short(scene_and_inputs) -> None:
     from types import SimpleNamespace
 
-    from pmvir.config import GeometryOptions
-    from pmvir.geometry.surface.initial import SurfaceResult
     from pmvir.pipeline import coarse_surface
 
     scene = scene_and_inputs[0]
-    options = GeometryOptions(subdivision={"max_area_px": 1e-6, "max_rounds": 2})
-    surface = SurfaceResult(scene.vertices, scene.faces)
     two = subdivide_until(scene.vertices, scene.faces, scene_and_inputs[3], scene.cameras, max_area_px=1e-6,
                           max_rounds=2, max_vertices=10**7)
-    one = coarse_surface(SimpleNamespace(surface=surface, subdivision_rounds=two.rounds), scene.cameras, [None] * 8,
-                         options)
-    assert one is not None and two.rounds == 2
-    np.testing.assert_array_equal(one.faces, scene_and_inputs[4].faces)  # the one-step mesh of the fixture
-    np.testing.assert_allclose(one.vertices, scene_and_inputs[4].vertices)
-    assert one.visibility.shape == (len(one.vertices), 8)
-    assert coarse_surface(SimpleNamespace(surface=surface, subdivision_rounds=0), scene.cameras, [None] * 8,
-                          options) is None
+    assert two.rounds == 2 and two.before_last is not None
+    vertices, faces, visibility = two.before_last
+    np.testing.assert_array_equal(faces, scene_and_inputs[4].faces)  # the one-step mesh of the fixture
+    np.testing.assert_allclose(vertices, scene_and_inputs[4].vertices)
+    assert visibility.shape == (len(vertices), 8)
+    # the geometry stage keeps it over all frames; the refinement takes the registered views' columns
+    frames = np.zeros((len(vertices), 9), bool)
+    frames[:, [0, 1, 2, 3, 5, 6, 7, 8]] = visibility
+    geometry = SimpleNamespace(subdivision_rounds=2, coarse=(vertices, faces, frames))
+    one = coarse_surface(geometry, [0, 1, 2, 3, 5, 6, 7, 8])
+    assert one is not None
+    np.testing.assert_array_equal(one.visibility, visibility)
+    assert coarse_surface(SimpleNamespace(subdivision_rounds=0, coarse=None), list(range(8))) is None
+    with pytest.raises(PmvirError, match="run the geometry stage again"):
+        coarse_surface(SimpleNamespace(subdivision_rounds=2, coarse=None), list(range(8)))
+
+
+def test_subdivision_without_a_step_keeps_no_coarse_surface(scene_and_inputs) -> None:
+    scene = scene_and_inputs[0]
+    none = subdivide_until(scene.vertices, scene.faces, scene_and_inputs[3], scene.cameras, max_area_px=1e-6,
+                           max_rounds=0, max_vertices=10**7)
+    assert none.rounds == 0 and none.before_last is None
