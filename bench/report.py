@@ -66,6 +66,11 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         "refine.stages.coarse=0 (every stage on the subdivided surface)",
     ),
     "fullsize": ("Full-size captures: memory and time per stage", f"{PY} bench/fullsize.py", None),
+    "fullsize_service": (
+        "A full-size capture through the service",
+        f"{PY} bench/fullsize_service.py",
+        None,
+    ),
     "mitsuba_render": ("Path tracing (Mitsuba 3)", f"{PY} bench/mitsuba_render.py", None),
     "evaluate": ("Evaluation", f"{PY} bench/bench_evaluate.py", None),
     "service": ("Service uploads", f"{PY} bench/service.py", None),
