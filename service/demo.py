@@ -89,8 +89,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     synth.shutdown(wait=False)
     print("[demo] 2/4 starting redis-server, the API and a worker")
-    with ServiceStack(out / "service", api_keys=(API_KEY,)) as stack:
-        stack.start_worker()  # entering the stack started Redis and the API
+    stack = ServiceStack(out / "service", api_keys=(API_KEY,))
+    try:
+        stack.start()  # Redis, then the worker and the API loading at once
         print(f"[demo]     API at {stack.url}; logs in {stack.log_dir}")
         rc = rendered.result()
         if rc:
@@ -125,6 +126,8 @@ def main(argv: list[str] | None = None) -> int:
                 input("[demo] the service stays up until you press Enter ")
             except (EOFError, KeyboardInterrupt):
                 print()
+    finally:
+        stack.stop()
     print("[demo]     service stopped")
     print(f"[demo] done in {time.perf_counter() - t0:.0f} s; everything is under {out}")
     return 0

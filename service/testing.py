@@ -340,17 +340,24 @@ class ServiceStack:
         w = Proc(f"worker{self._n}", argv, log=log, env={**self.env, **(env or {})})
         self.workers.append(w)
         if wait:
-            _wait(lambda: " ready." in w.tail(20000), 60, "celery worker", w)
+            self.wait_worker(w)
         return w
 
+    @staticmethod
+    def wait_worker(worker: Proc, timeout: float = 60) -> None:
+        """Wait until a worker started with ``wait=False`` consumes from the queue."""
+        _wait(lambda: " ready." in worker.tail(20000), timeout, "celery worker", worker)
+
     def start(self, *, worker: bool = True) -> ServiceStack:
-        """Start whatever is not running yet (Redis, the API, and one worker when ``worker``)."""
+        """Start whatever is not running yet (Redis, the API, and one worker when ``worker``); the worker
+        starts before the API and both load at once."""
         if self.redis is None:
             self.start_redis()
+        booting = self.start_worker(wait=False) if worker and not self.workers else None
         if self.api is None:
             self.start_api()
-        if worker and not self.workers:
-            self.start_worker()
+        if booting is not None:
+            self.wait_worker(booting)
         return self
 
     def restart_api(self) -> Proc:
