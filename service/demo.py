@@ -4,10 +4,10 @@ It starts Redis, the API and a worker by itself (loopback ports, a storage
 folder under ``--out``), generates a synthetic capture with ground truth
 (built-in shape, no download), submits it over HTTP with ``pmvir submit``
 (upload, start, progress, download), prints the result's accuracy against the
-ground truth and the web console's address. When stdin is a terminal it keeps
-the service up until Enter, so the result can be looked at in a browser; without
-a terminal, or with ``--no-wait``, it stops everything it started at once (also
-when a step fails).
+ground truth and, when stdin is a terminal, the web console's address, keeping
+the service up until Enter so the result can be looked at in a browser; without
+a terminal, or with ``--no-wait``, it stops everything it started while it
+evaluates the result (and at once when a step fails).
 
     python -m service.demo --out demo-out [--views 24] [--size 408x340] [--no-wait]
 """
@@ -18,6 +18,7 @@ import argparse
 import json
 import os
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -109,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
                 "--stop-after",
                 stop_after,
                 "--poll",
-                "1",
+                "0.5",
                 "--label",
                 "demo",
                 *DEMO_OPTIONS,
@@ -119,15 +120,27 @@ def main(argv: list[str] | None = None) -> int:
             print(f"[demo] the job did not succeed; service logs:\n{stack.logs()}", file=sys.stderr)
             return rc
         print("[demo] 4/4 result")
+        if args.no_wait or not sys.stdin.isatty():
+            # nothing left for the service to do: it stops while the result is evaluated
+            stopping = threading.Thread(target=stack.stop)
+            stopping.start()
+            try:
+                _summarize(result, capture)
+            finally:
+                stopping.join()
+            return _done(t0, out)
         _summarize(result, capture)
         print(f"[demo] the web console: {stack.url}/ui/  (API key: {API_KEY}); API docs: {stack.url}/docs")
-        if not args.no_wait and sys.stdin.isatty():
-            try:
-                input("[demo] the service stays up until you press Enter ")
-            except (EOFError, KeyboardInterrupt):
-                print()
+        try:
+            input("[demo] the service stays up until you press Enter ")
+        except (EOFError, KeyboardInterrupt):
+            print()
     finally:
-        stack.stop()
+        stack.stop()  # also after a failed step; a stopped stack stops at once
+    return _done(t0, out)
+
+
+def _done(t0: float, out: Path) -> int:
     print("[demo]     service stopped")
     print(f"[demo] done in {time.perf_counter() - t0:.0f} s; everything is under {out}")
     return 0
