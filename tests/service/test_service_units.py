@@ -168,3 +168,20 @@ def test_result_zip_leaves_no_temporary_file(tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "result.zip"]
     with zipfile.ZipFile(tmp_path / "result.zip") as zf:
         assert zf.namelist() == ["a.json"]
+
+
+def test_the_api_checks_a_jobs_stages_without_loading_the_library() -> None:
+    """Starting a job checks its stop_after; that must not import the pipeline (torch, Open3D, pycolmap)
+    into the API process, which took 3 s on each API process's first start."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, types\n"
+        "import service.app\n"
+        "from service.jobs import stage_problems\n"
+        "assert stage_problems(types.SimpleNamespace(options={'stop_after': 'refine'})) == []\n"
+        "print(sorted(m for m in ('pmvir.pipeline', 'torch', 'open3d', 'pycolmap') if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120)
+    assert out.stdout.strip() == "[]", out.stdout
