@@ -60,6 +60,11 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/refine_speed.py",
         "the CPU run on the same machine (for --device cuda)",
     ),
+    "relief_solver": (
+        "The refinement's solver on fine relief",
+        f"{PY} bench/relief_solver.py",
+        "MVIR (refine.pol.enabled=false)",
+    ),
     "coarse_to_fine": (
         "Coarse to fine (refine.stages.coarse)",
         f"{PY} bench/coarse_to_fine.py",
