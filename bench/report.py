@@ -70,6 +70,7 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/coarse_to_fine.py",
         "refine.stages.coarse=0 (every stage on the subdivided surface)",
     ),
+    "demo_time": ("Time of make demo", f"{PY} bench/demo_time.py", "the 90 s target"),
     "fullsize": ("Full-size captures: memory and time per stage", f"{PY} bench/fullsize.py", None),
     "fullsize_service": (
         "A full-size capture through the service",
