@@ -90,11 +90,6 @@ class PipelineResult:
     warnings: list[str] = field(default_factory=list)
 
 
-def stages_for(config: PipelineConfig) -> list[Stage]:
-    """The stages a run with ``config`` executes, in order."""
-    return stages_through(config.stop_after)
-
-
 def decode_views(
     cap: Capture, config: PipelineConfig, progress: Progress | None = None, *, factor: int = 1
 ) -> list[DecodedView]:
@@ -279,7 +274,7 @@ def run(
     progress = progress or Progress.none()
     result = ResultFolder(out)
     result.root.mkdir(parents=True, exist_ok=True)
-    stages = stages_for(config)
+    stages = stages_through(config.stop_after)
     resume = Stage(resume_from or Stage.DECODE)
     if resume.position > 0 and cache is None:
         raise PmvirError(f"resume_from={resume} needs the cache folder of an earlier run")
