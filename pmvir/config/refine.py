@@ -358,7 +358,7 @@ class OffsetScanOptions(_Options):
 
 
 class SurfaceMoveOptions(_Options):
-    """Moves of the surface outside the stages: hull fit, rim fit and tangential relaxation."""
+    """Moves of the surface outside the stages: hull fit, rim fit, fairing and tangential relaxation."""
 
     hull_tolerance_px: float | None = Field(
         default=0.5, ge=0.0,
@@ -377,6 +377,12 @@ class SurfaceMoveOptions(_Options):
         description="How far (px) the masks reach past the true outline, discounted by the rim fit, [0, 4). "
         "None: estimated from the rims where the offset scans run, else 0.",
         json_schema_extra=advanced("px"),
+    )
+    fair_iterations: int = Field(
+        default=16, ge=0, le=1000,
+        description="Last move of the surface (after the hull and rim fits): pairs of Taubin fairing steps that "
+        "damp wrinkles one or two edges across, 0..1000; 0: off.",
+        json_schema_extra=advanced(),
     )
     relax_iterations: int = Field(
         default=20, ge=0, le=1000,

@@ -1,4 +1,4 @@
-"""Tangential relaxation: even out a refined mesh's vertices without changing its surface.
+"""The refinement's last moves: tangential relaxation that evens out the vertices without changing the surface, and Taubin fairing of its finest wrinkles.
 
 The refinement moves vertices freely in 3D (``solver.vertex_motion='free'``). Motion along the
 surface leaves the surface where it is, so the energy barely resists it, yet per-vertex
@@ -27,6 +27,9 @@ from pmvir.geometry.mesh_ops import ReferenceSurface, barycentric, edge_topology
 
 #: Fraction of the tangential umbrella step taken per iteration (0.5: stable for any valence).
 RELAX_STEP = 0.5
+#: Taubin's shrinking and inflating umbrella steps (lambda, mu): the pass band ends at
+#: 1/lambda + 1/mu = 0.11, so shapes ten edges across are kept and the mesh does not shrink.
+TAUBIN_STEPS = (0.5, -0.53)
 
 
 def relax_tangentially(
@@ -51,21 +54,13 @@ def relax_tangentially(
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     n = len(v)
-    topo = edge_topology(f, n)
-    e = topo.edges
-    pinned = np.ones(n, dtype=bool)
-    pinned[e.reshape(-1)] = False
-    pinned[e[~topo.interior].reshape(-1)] = True  # boundary or non-manifold: stay put
-    w = sp.coo_matrix(
-        (np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)
-    ).tocsr()
-    degree = np.maximum(np.asarray(w.sum(axis=1)).ravel(), 1.0)
+    mean, pinned = _umbrella(f, n)
     reference = ReferenceSurface(v, f)
     x = v.copy()
     face_ids = np.empty(0, dtype=np.int64)
     for _ in range(iterations):
         normal = vertex_normals(x, f)
-        step = w @ x / degree[:, None] - x
+        step = mean @ x - x
         step -= np.einsum("ij,ij->i", step, normal)[:, None] * normal
         step[pinned] = 0.0
         x, face_ids = reference.project(x + RELAX_STEP * step)
@@ -77,6 +72,52 @@ def relax_tangentially(
     # A pinned vertex is its own value: point it at a face it is a corner of.
     face_ids[pinned], bary[pinned] = own_face[pinned], own_bary[pinned]
     return x, face_ids, bary
+
+
+def fair_taubin(vertices: np.ndarray, faces: np.ndarray, iterations: int) -> np.ndarray:
+    """Taubin's low-pass fairing: ``iterations`` pairs of umbrella steps (:data:`TAUBIN_STEPS`).
+
+    Noise in the images leaves wrinkles a few edges across that no view resolves: E_gsm, whose
+    cost grows as a power above 2 of the bend's angle, barely resists bends of a few degrees.
+    Along a line of edges, one pair of steps keeps 0 % of a ripple two edges long, 45 % of one
+    three edges long, 77 % at four, 95 % at six and 99.6 % at ten, without the shrinking of
+    plain umbrella smoothing. Boundary vertices and vertices on non-manifold edges stay put.
+
+    Args:
+        vertices: (N, 3) positions; faces: (F, 3) int64 indices.
+        iterations: pairs of steps (0: the vertices are returned unchanged).
+
+    Returns:
+        (N, 3) float64 positions.
+
+    Raises:
+        ConfigError: negative ``iterations``.
+    """
+    if iterations < 0:
+        raise ConfigError(f"fairing iterations must be >= 0, got {iterations}")
+    v = np.asarray(vertices, dtype=np.float64)
+    mean, pinned = _umbrella(np.asarray(faces, dtype=np.int64), len(v))
+    free = (~pinned)[:, None].astype(np.float64)
+    x = v.copy()
+    for _ in range(iterations):
+        for step in TAUBIN_STEPS:
+            x = x + step * free * (mean @ x - x)
+    return x
+
+
+def _umbrella(f: np.ndarray, n: int) -> tuple[sp.csr_matrix, np.ndarray]:
+    """(N, N) the mean over each vertex's one-ring neighbours, and (N,) bool the vertices that stay
+    put: boundary, on a non-manifold edge, or unused."""
+    topo = edge_topology(f, n)
+    e = topo.edges
+    pinned = np.ones(n, dtype=bool)
+    pinned[e.reshape(-1)] = False
+    pinned[e[~topo.interior].reshape(-1)] = True
+    w = sp.coo_matrix(
+        (np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)
+    ).tocsr()
+    degree = np.maximum(np.asarray(w.sum(axis=1)).ravel(), 1.0)
+    return (sp.diags(1.0 / degree) @ w).tocsr(), pinned
 
 
 def _own_corners(f: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:

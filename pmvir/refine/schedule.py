@@ -26,6 +26,8 @@ per-view SH coefficients L_basis (9) and RGB scales L_scale (3).
   coarser, their motion then carried to the subdivided surface (:mod:`pmvir.refine.coarse`).
 * Relaxation (``surface.relax_iterations``): after the last stage the vertices are spread evenly
   over the refined surface (:mod:`pmvir.refine.relax`) and the albedo solved there again.
+* Fairing (``surface.fair_iterations``): the last move of the surface, after the hull and rim
+  fits, damps wrinkles an edge or two across (:func:`pmvir.refine.relax.fair_taubin`).
 * Stages: :func:`prepare_stage` fixes a stage's data at the current geometry (visibility,
   pairs, E_psm weights, E_pol's DoP mask and DoP weights, n0 and h), :func:`solve_stage`
   minimizes its cost; :func:`refine_surface` is the loop over the two.
@@ -43,7 +45,7 @@ import torch
 from pmvir.camera import Camera
 from pmvir.config import RefineOptions
 from pmvir.errors import ConfigError
-from pmvir.geometry.silhouette.hull_fit import HullFit
+from pmvir.geometry.silhouette.hull_fit import HullFit, RimFit
 from pmvir.progress import Progress
 from pmvir.refine.coarse import CoarseMesh, Lift
 from pmvir.refine.lighting_fit import final_lighting_fit, prefit_lighting
@@ -58,7 +60,7 @@ from pmvir.refine.sampling import (
 from pmvir.refine.solve import solve_stage
 from pmvir.refine.stage_setup import initial_unknowns, make_setup, prepare_stage, setup_for_mesh
 from pmvir.refine.state import RefineResult, RefineSetup, StageLog, Unknowns, VisibilityFn
-from pmvir.refine.surface_moves import hold_inside_hull, move_to_rims, scan_offset
+from pmvir.refine.surface_moves import fair_surface, hold_inside_hull, move_to_rims, scan_offset
 
 #: Share of the refinement's progress taken by the offset scans outside the stages, per ``offset_scan.mode``.
 _SCAN_WEIGHT = {"off": 0.0, "start": 0.01, "stages": 0.02}
@@ -172,20 +174,7 @@ def refine_surface(
         timings[f"stage_{s + 1}"] = time.perf_counter() - t_stage
         stage_timings.append(parts)
 
-    if opts.offset_scan.mode == "stages":
-        t_scan = time.perf_counter()
-        with progress.step("offset scan", weight=0.01) as p:
-            state, scans = scan_offset(setup, state, opts, scans, p)
-        timings["offset_scan"] += time.perf_counter() - t_scan
-    if masks is not None and opts.surface.hull_tolerance_px is not None:
-        t_hull = time.perf_counter()
-        state = hold_inside_hull(setup, state, masks, hull_fits)
-        timings["hull_fit"] = time.perf_counter() - t_hull
-    rim_fit = None
-    if masks is not None and opts.surface.rim_fit_gain > 0.0:
-        t_rim = time.perf_counter()
-        state, rim_fit = move_to_rims(setup, state, masks)
-        timings["rim_fit"] = time.perf_counter() - t_rim
+    state, scans, rim_fit = _final_moves(setup, state, masks, scans, hull_fits, timings, progress)
     lighting_fit = None
     if opts.lighting.coupling > 0.0:
         t_fit = time.perf_counter()
@@ -213,6 +202,40 @@ def refine_surface(
         lighting_fit=lighting_fit,
         coarse_vertices=len(start) if lift is not None else 0,
     )
+
+
+def _final_moves(
+    setup: RefineSetup,
+    state: Unknowns,
+    masks: Sequence[np.ndarray | None] | None,
+    scans: list[OffsetScan],
+    hull_fits: list[HullFit],
+    timings: dict[str, float],
+    progress: Progress,
+) -> tuple[Unknowns, list[OffsetScan], RimFit | None]:
+    """The moves of the surface after the last stage, in order: the offset scan (``offset_scan.mode``
+    "stages"), the hull fit and the rim fit (with masks), the fairing; each one's seconds go into
+    ``timings``. Returns the state, the scans so far and the rim fit (None when not run)."""
+    opts = setup.opts
+    if opts.offset_scan.mode == "stages":
+        t_scan = time.perf_counter()
+        with progress.step("offset scan", weight=0.01) as p:
+            state, scans = scan_offset(setup, state, opts, scans, p)
+        timings["offset_scan"] += time.perf_counter() - t_scan
+    if masks is not None and opts.surface.hull_tolerance_px is not None:
+        t_hull = time.perf_counter()
+        state = hold_inside_hull(setup, state, masks, hull_fits)
+        timings["hull_fit"] = time.perf_counter() - t_hull
+    rim_fit = None
+    if masks is not None and opts.surface.rim_fit_gain > 0.0:
+        t_rim = time.perf_counter()
+        state, rim_fit = move_to_rims(setup, state, masks)
+        timings["rim_fit"] = time.perf_counter() - t_rim
+    if opts.surface.fair_iterations > 0:
+        t_fair = time.perf_counter()
+        state = fair_surface(setup, state)
+        timings["fairing"] = time.perf_counter() - t_fair
+    return state, scans, rim_fit
 
 
 def _start_mesh(

@@ -14,6 +14,7 @@ from pmvir.geometry.mesh_ops import vertex_normals as vertex_normals_np
 from pmvir.geometry.silhouette.hull_fit import HullFit, RimFit, fit_inside_hull, fit_to_rims
 from pmvir.progress import Progress
 from pmvir.refine.offset import OffsetScan, photo_consistent_offset
+from pmvir.refine.relax import fair_taubin
 from pmvir.refine.state import RefineSetup, Unknowns
 
 
@@ -94,3 +95,13 @@ def move_to_rims(
     )
     moved = torch.from_numpy(fit.vertices).to(device=setup.device, dtype=setup.dtype)
     return replace(state, vertices=moved), fit
+
+
+
+def fair_surface(setup: RefineSetup, state: Unknowns) -> Unknowns:
+    """``state`` with its surface faired (``surface.fair_iterations`` pairs of Taubin steps,
+    :func:`pmvir.refine.relax.fair_taubin`); each vertex keeps its albedo (it moves by a fraction of
+    an edge)."""
+    v = state.vertices.detach().cpu().numpy().astype(np.float64)
+    faired = fair_taubin(v, setup.faces_np, setup.opts.surface.fair_iterations)
+    return replace(state, vertices=torch.from_numpy(faired).to(device=setup.device, dtype=setup.dtype))

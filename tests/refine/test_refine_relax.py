@@ -1,4 +1,5 @@
-"""Tangential relaxation (``refine.surface.relax_iterations``): vertices spread out, the surface stays."""
+"""After the last stage: Taubin fairing (``refine.surface.fair_iterations``) damps wrinkles and keeps the shape;
+tangential relaxation (``refine.surface.relax_iterations``) spreads the vertices and keeps the surface."""
 
 from __future__ import annotations
 
@@ -9,13 +10,13 @@ from refine_scene import make_scene
 from pmvir.config import RefineOptions
 from pmvir.errors import ConfigError
 from pmvir.evaluate import SurfaceQuery
-from pmvir.geometry.mesh_ops import ReferenceSurface, barycentric
+from pmvir.geometry.mesh_ops import ReferenceSurface, barycentric, edge_topology, vertex_normals
 from pmvir.progress import Progress
 from pmvir.refine import make_visibility_fn, observation_from_decoded
 from pmvir.refine.albedo import AlbedoSolver
 from pmvir.refine.energy import energy_terms
 from pmvir.refine.mesh_ops import unique_edges
-from pmvir.refine.relax import carry_values, relax_tangentially
+from pmvir.refine.relax import carry_values, fair_taubin, relax_tangentially
 from pmvir.synth.shapes import geodesic_sphere
 
 ONE_STAGE = {"stages": {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]}}
@@ -138,10 +139,12 @@ def test_a_relaxed_stage_keeps_its_surface_and_solves_the_albedo_at_the_new_vert
     faces = scene_inputs[0].faces.astype(np.int64)
     # One stage, so it is the last: the relaxation follows it.
     plain_state, _ = _first_stage_solved(
-        scene_inputs, surface={"relax_iterations": 0}, solver={"max_iterations": 15}, **ONE_STAGE
+        scene_inputs, surface={"relax_iterations": 0, "fair_iterations": 0}, solver={"max_iterations": 15},
+        **ONE_STAGE,
     )
     relaxed_state, stage = _first_stage_solved(
-        scene_inputs, surface={"relax_iterations": 20}, solver={"max_iterations": 15}, **ONE_STAGE
+        scene_inputs, surface={"relax_iterations": 20, "fair_iterations": 0}, solver={"max_iterations": 15},
+        **ONE_STAGE,
     )
     plain = plain_state.vertices.numpy().astype(np.float64)
     relaxed = relaxed_state.vertices.numpy().astype(np.float64)
@@ -164,3 +167,79 @@ def test_only_the_last_stage_is_relaxed(scene_inputs) -> None:
         scene_inputs, surface={"relax_iterations": 20}, solver={"max_iterations": 5}
     )
     assert np.array_equal(plain.vertices.numpy(), relaxed.vertices.numpy())
+
+
+def _sphere_normal_error(v: np.ndarray, f: np.ndarray) -> float:
+    """Median angle (degrees) between the mesh's vertex normals and the unit sphere's normals at them."""
+    n = vertex_normals(v, f)
+    true = v / np.linalg.norm(v, axis=1, keepdims=True)
+    return float(np.degrees(np.median(np.arccos(np.clip((n * true).sum(1), -1.0, 1.0)))))
+
+
+def test_fairing_damps_wrinkles_without_shrinking_and_keeps_wide_bumps() -> None:
+    """A unit sphere with a bump ten edges wide and radial noise of a fifth of an edge: fairing brings
+    the normals back toward the true ones, keeps the radius (plain umbrella smoothing shrinks it by
+    more) and most of the bump's height."""
+    v, f = geodesic_sphere(12)
+    e = unique_edges(f)
+    h = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1).mean()
+    axis = np.array([0.0, 0.0, 1.0])
+    bump = 3 * h * np.exp(-(np.arccos(np.clip(v @ axis, -1, 1)) / (5 * h)) ** 2)
+    shaped = v * (1.0 + bump)[:, None]
+    noisy = shaped * (1.0 + np.random.default_rng(2).normal(0.0, 0.2 * h, len(v)))[:, None]
+    faired = fair_taubin(noisy, f, 16)
+    assert _sphere_normal_error(faired, f) < 0.6 * _sphere_normal_error(noisy, f)
+    top = int(np.argmax(v @ axis))
+    radius = np.linalg.norm(faired, axis=1)
+    far = bump < 1e-3 * h
+    assert abs(np.median(radius[far]) - 1.0) < 0.05 * h
+    assert radius[top] - 1.0 > 0.7 * (np.linalg.norm(shaped[top]) - 1.0)
+    degree = np.bincount(e.reshape(-1), minlength=len(v))[:, None]
+    mean = noisy.copy()
+    for _ in range(32):  # the same number of umbrella steps, all shrinking
+        ring = np.zeros_like(mean)
+        np.add.at(ring, e[:, 0], mean[e[:, 1]])
+        np.add.at(ring, e[:, 1], mean[e[:, 0]])
+        mean = mean + 0.5 * (ring / degree - mean)
+    assert 1.0 - np.median(np.linalg.norm(mean, axis=1)[far]) > 4 * abs(np.median(radius[far]) - 1.0)
+
+
+def test_fairing_keeps_boundary_vertices_and_zero_iterations_is_the_input() -> None:
+    v, f = geodesic_sphere(6)
+    keep = v[:, 2] < 0.3
+    f = f[keep[f].all(axis=1)]  # an open cap: its rim is a boundary
+    noisy = v + np.random.default_rng(1).normal(0.0, 0.01, v.shape)
+    faired = fair_taubin(noisy, f, 8)
+    used = np.unique(f)
+    topo = edge_topology(f, len(v))
+    boundary = np.unique(topo.edges[~topo.interior])
+    assert len(boundary) > 0
+    np.testing.assert_array_equal(faired[boundary], noisy[boundary])
+    unused = np.setdiff1d(np.arange(len(v)), used)
+    np.testing.assert_array_equal(faired[unused], noisy[unused])
+    interior = np.setdiff1d(used, boundary)
+    assert np.abs(faired[interior] - noisy[interior]).max() > 0
+    np.testing.assert_array_equal(fair_taubin(noisy, f, 0), noisy)
+    with pytest.raises(ConfigError, match="fairing iterations"):
+        fair_taubin(noisy, f, -1)
+
+
+def test_fairing_is_the_refinements_last_move_of_the_surface(scene_inputs) -> None:
+    """One short stage refined with and without fairing: the faired result is the unfaired one faired,
+    each vertex keeping its albedo, and report.json's timings name the step."""
+    from pmvir.refine import refine_surface
+
+    scene, obs, vis = scene_inputs
+    faces = scene.faces.astype(np.int64)
+
+    def refined(fair: int):
+        opts = RefineOptions.model_validate(
+            {"surface": {"fair_iterations": fair}, "solver": {"max_iterations": 5}, **ONE_STAGE}
+        )
+        return refine_surface(scene.vertices, faces, scene.cameras, obs, vis, options=opts)
+
+    plain, faired = refined(0), refined(4)
+    np.testing.assert_allclose(faired.vertices, fair_taubin(plain.vertices, faces, 4), atol=1e-6)
+    assert np.abs(faired.vertices - plain.vertices).max() > 0
+    np.testing.assert_array_equal(faired.albedo, plain.albedo)
+    assert "fairing" in faired.timings and "fairing" not in plain.timings

@@ -127,7 +127,7 @@ def test_result_shapes_and_gauge(plastic, plastic_runs) -> None:
     np.testing.assert_array_equal(full.sh[:, 0], 1.0)  # gauge: L0 = 1
     np.testing.assert_array_equal(full.rgb_scale[0], 1.0)  # gauge: view 0's scale
     assert full.visibility.shape == (n, v) and full.visibility.dtype == bool
-    assert set(full.timings) == {"setup", "offset_scan", "stage_1", "stage_2", "stage_3", "total"}
+    assert set(full.timings) == {"setup", "offset_scan", "stage_1", "stage_2", "stage_3", "fairing", "total"}
     # each stage's parts: its offset scan (from the second stage on), the set-up and the solve, within its time
     assert [set(t) for t in full.stage_timings] == [{"prepare", "solve"}] + [{"offset_scan", "prepare", "solve"}] * 2
     for k, parts in enumerate(full.stage_timings):
