@@ -81,6 +81,7 @@ VARIANTS: dict[str, dict] = {
     "raw_dop_weight": {"pol": {"dop_weight_normalized": False}},
     "least_squares_raw_weight": {"pho": {"robust": "none"}, "pol": {"dop_weight_normalized": False}},
     "no_relax": {"surface": {"relax_iterations": 0}},
+    "no_fairing": {"surface": {"fair_iterations": 0}},
 }
 LABELS = {
     "initial": "initial surface",
@@ -92,6 +93,7 @@ LABELS = {
     "raw_dop_weight": "DoP weight not normalized",
     "least_squares_raw_weight": "least-squares E_pho and DoP weight not normalized",
     "no_relax": "no tangential relaxation",
+    "no_fairing": "no fairing",
 }
 ROWS = {
     "main": ("initial", "mvir", "full"),
@@ -102,6 +104,7 @@ ROWS = {
         "least_squares",
         "least_squares_raw_weight",
         "no_relax",
+        "no_fairing",
         "i_int",
         "mvir",
     ),

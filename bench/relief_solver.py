@@ -1,4 +1,4 @@
-"""The refinement's solver on fine relief: the preconditioner's strength and the iteration budget.
+"""The refinement on fine relief: the fairing, the preconditioner's strength and the iteration budget.
 
 A built-in relief capture (``pmvir synth``: rock, plastic, 24 views of 408x340, seed 5 by default) goes
 through the decode and geometry stages once (cached in ``--work``); the refinement then runs once per
@@ -8,7 +8,7 @@ accuracy, its gain over the initial surface, and the normal error (median and me
 truth, with the median's ratio to MVIR's (the variant named ``mvir``); writes bench/results/relief_solver.json.
 
 Run: .venv/bin/python bench/relief_solver.py [--shape rock] [--views 24] [--size 408x340] [--seed 5]
-     [--set KEY=VALUE ...] [--variant NAME KEY=VALUE ...] [--work DIR]
+     [--set KEY=VALUE ...] [--variant NAME KEY=VALUE ...] [--work DIR] [--capture DIR] [--results NAME]
 """
 
 from __future__ import annotations
@@ -28,10 +28,11 @@ from pmvir.evaluate import evaluate_paths
 from pmvir.pipeline import run
 
 PMVIR = str(Path(sys.executable).with_name("pmvir"))
-#: The variants measured without --variant: the defaults, two weaker preconditioners, a larger
-#: iteration budget, and MVIR (the peer of the normal error).
+#: The variants measured without --variant: the defaults, no fairing, two weaker preconditioners,
+#: a larger iteration budget, and MVIR (the peer of the normal error).
 DEFAULT_VARIANTS = [
     ["full"],
+    ["no-fairing", "refine.surface.fair_iterations=0"],
     ["lambda-5", "refine.solver.precondition_lambda=5"],
     ["lambda-2", "refine.solver.precondition_lambda=2"],
     ["iterations-40", "refine.solver.max_iterations=40"],
@@ -70,9 +71,12 @@ def main() -> None:
     ap.add_argument("--set", dest="common", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--variant", dest="variants", action="append", nargs="+", metavar="NAME [KEY=VALUE ...]")
     ap.add_argument("--work", type=Path, default=Path("/tmp/relief_solver"))
+    ap.add_argument("--capture", type=Path, help="an existing capture with gt/ (e.g. path-traced) instead of the "
+                    "built-in one rendered into --work")
+    ap.add_argument("--results", default="relief_solver", help="name of the results JSON under bench/results")
     args = ap.parse_args()
-    capture = args.work / "capture"
-    if not (capture / "capture.json").exists():
+    capture = args.capture or args.work / "capture"
+    if args.capture is None and not (capture / "capture.json").exists():
         subprocess.run([PMVIR, "synth", "--shape", args.shape, "--views", str(args.views), "--size", args.size,
                         "--material", "plastic", "--seed", str(args.seed), "--out", str(capture), "--force",
                         "--quiet"], check=True)
@@ -94,11 +98,11 @@ def main() -> None:
     note = (f"Capture: {capture_description(capture)}"
             + (f"; common options {', '.join(args.common)}" if args.common else "")
             + ". Every variant starts from the same initial surface; distances in GT bounding-box diagonals.")
-    tab = table("Solver variants on fine relief", columns, rows, note=note)
+    tab = table("Refinement variants on fine relief", columns, rows, note=note)
     print(" | ".join(columns))
     for row in rows:
         print(" | ".join(str(c) for c in row))
-    write_results("relief_solver", title="The refinement's solver on fine relief", tables=[tab],
+    write_results(args.results, title="The refinement on fine relief", tables=[tab],
                   peer="MVIR (refine.pol.enabled=false)", data={"runs": runs})
 
 

@@ -61,9 +61,27 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         "the CPU run on the same machine (for --device cuda)",
     ),
     "relief_solver": (
-        "The refinement's solver on fine relief",
+        "The refinement on fine relief: fairing, preconditioner, iterations",
         f"{PY} bench/relief_solver.py",
         "MVIR (refine.pol.enabled=false)",
+    ),
+    "relief_pathtraced": (
+        "Fine relief on a path-traced capture",
+        ".venv/bin/pmvir synth --shape rock --renderer mitsuba --spp 64 --lighting envmap --seed 11 --out CAPTURE; "
+        f"{PY} bench/relief_solver.py --capture CAPTURE --results relief_pathtraced",
+        "MVIR (refine.pol.enabled=false)",
+    ),
+    "fairing_knot": (
+        "Fairing on a torus knot (genus 1)",
+        f"{PY} bench/relief_solver.py --shape knot --results fairing_knot --variant full "
+        "--variant no-fairing refine.surface.fair_iterations=0",
+        None,
+    ),
+    "fairing_gear": (
+        "Fairing on a gear (thin teeth)",
+        f"{PY} bench/relief_solver.py --shape gear --results fairing_gear --variant full "
+        "--variant no-fairing refine.surface.fair_iterations=0",
+        None,
     ),
     "coarse_to_fine": (
         "Coarse to fine (refine.stages.coarse)",
