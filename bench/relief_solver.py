@@ -62,6 +62,20 @@ def _measure(capture: Path, work: Path, common: list[str], name: str, overrides:
     }
 
 
+def _forget_other_capture(args: argparse.Namespace) -> None:
+    """Clear ``--work`` of a rendered capture and cached stages that belong to another capture: the
+    stage cache's key covers the options, not the capture they were run on."""
+    identity = (f"capture {args.capture.resolve()}" if args.capture is not None
+                else f"builtin {args.shape} plastic {args.views} views {args.size} seed {args.seed}")
+    marker = args.work / "capture.id"
+    if marker.exists() and marker.read_text() == identity:
+        return
+    shutil.rmtree(args.work / "cache", ignore_errors=True)
+    shutil.rmtree(args.work / "capture", ignore_errors=True)
+    args.work.mkdir(parents=True, exist_ok=True)
+    marker.write_text(identity)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--shape", default="rock")
@@ -76,6 +90,7 @@ def main() -> None:
     ap.add_argument("--results", default="relief_solver", help="name of the results JSON under bench/results")
     args = ap.parse_args()
     capture = args.capture or args.work / "capture"
+    _forget_other_capture(args)
     if args.capture is None and not (capture / "capture.json").exists():
         subprocess.run([PMVIR, "synth", "--shape", args.shape, "--views", str(args.views), "--size", args.size,
                         "--material", "plastic", "--seed", str(args.seed), "--out", str(capture), "--force",
