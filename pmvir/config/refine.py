@@ -381,7 +381,7 @@ class SurfaceMoveOptions(_Options):
     fair_iterations: int = Field(
         default=16, ge=0, le=1000,
         description="Last move of the surface (after the hull and rim fits): pairs of Taubin fairing steps that "
-        "damp wrinkles one or two edges across, 0..1000; 0: off.",
+        "remove ripples shorter than about five edges, 0..1000; 0: off.",
         json_schema_extra=advanced(),
     )
     relax_iterations: int = Field(

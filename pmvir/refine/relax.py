@@ -77,7 +77,7 @@ def relax_tangentially(
 def fair_taubin(vertices: np.ndarray, faces: np.ndarray, iterations: int) -> np.ndarray:
     """Taubin's low-pass fairing: ``iterations`` pairs of umbrella steps (:data:`TAUBIN_STEPS`).
 
-    Noise in the images leaves wrinkles a few edges across that no view resolves: E_gsm, whose
+    Noise in the images leaves ripples a few edges long that no view resolves: E_gsm, whose
     cost grows as a power above 2 of the bend's angle, barely resists bends of a few degrees.
     Along a line of edges, one pair of steps keeps 0 % of a ripple two edges long, 45 % of one
     three edges long, 77 % at four, 95 % at six and 99.6 % at ten, without the shrinking of

@@ -27,7 +27,7 @@ per-view SH coefficients L_basis (9) and RGB scales L_scale (3).
 * Relaxation (``surface.relax_iterations``): after the last stage the vertices are spread evenly
   over the refined surface (:mod:`pmvir.refine.relax`) and the albedo solved there again.
 * Fairing (``surface.fair_iterations``): the last move of the surface, after the hull and rim
-  fits, damps wrinkles an edge or two across (:func:`pmvir.refine.relax.fair_taubin`).
+  fits, removes ripples shorter than about five edges (:func:`pmvir.refine.relax.fair_taubin`).
 * Stages: :func:`prepare_stage` fixes a stage's data at the current geometry (visibility,
   pairs, E_psm weights, E_pol's DoP mask and DoP weights, n0 and h), :func:`solve_stage`
   minimizes its cost; :func:`refine_surface` is the loop over the two.
