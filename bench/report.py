@@ -74,13 +74,13 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
     "fairing_knot": (
         "Fairing on a torus knot (genus 1)",
         f"{PY} bench/relief_solver.py --shape knot --results fairing_knot --variant full "
-        "--variant no-fairing refine.surface.fair_iterations=0",
+        "--variant no-fairing refine.surface.fair_iterations=0 --variant mvir refine.pol.enabled=false",
         None,
     ),
     "fairing_gear": (
         "Fairing on a gear (thin teeth)",
         f"{PY} bench/relief_solver.py --shape gear --results fairing_gear --variant full "
-        "--variant no-fairing refine.surface.fair_iterations=0",
+        "--variant no-fairing refine.surface.fair_iterations=0 --variant mvir refine.pol.enabled=false",
         None,
     ),
     "coarse_to_fine": (
