@@ -480,6 +480,7 @@ def refine_report(refined: RefineResult) -> dict:
         "offset_scans": [scan.to_dict() for scan in refined.offset_scans],
         "hull_fits": [fit.to_dict() for fit in refined.hull_fits],
         "rim_fit": None if refined.rim_fit is None else refined.rim_fit.to_dict(),
+        "fairing": None if refined.fairing is None else refined.fairing.to_dict(),
         "lighting_fit": None if refined.lighting_fit is None else _stage_report(refined.lighting_fit),
     }
 

@@ -380,9 +380,15 @@ class SurfaceMoveOptions(_Options):
     )
     fair_iterations: int = Field(
         default=16, ge=0, le=1000,
-        description="Last move of the surface (after the hull and rim fits): pairs of Taubin fairing steps that "
-        "remove ripples shorter than about five edges, 0..1000; 0: off.",
+        description="Last move of the surface (after the hull and rim fits): pairs of Taubin steps removing "
+        "ripples shorter than about 11 px (five edges at fair_reference_area_px), 0..1000; 0: off.",
         json_schema_extra=advanced(),
+    )
+    fair_reference_area_px: float = Field(
+        default=2.0, ge=0.0,
+        description="Median projected face area (px^2) at which fair_iterations apply as given; a finer mesh "
+        "gets up to 16x the pairs, removing ripples as long in pixels. 0: never scaled.",
+        json_schema_extra=advanced("px^2"),
     )
     relax_iterations: int = Field(
         default=20, ge=0, le=1000,

@@ -19,6 +19,8 @@ put.
 
 from __future__ import annotations
 
+from dataclasses import asdict, dataclass
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -30,6 +32,56 @@ RELAX_STEP = 0.5
 #: Taubin's shrinking and inflating umbrella steps (lambda, mu): the pass band ends at
 #: 1/lambda + 1/mu = 0.11, so shapes ten edges across are kept and the mesh does not shrink.
 TAUBIN_STEPS = (0.5, -0.53)
+#: The most a finer mesh scales the fairing by (the pass band by 1 / scale, the pairs by scale^2),
+#: bounding its cost to 16 times the reference's pairs.
+FAIR_MAX_SCALE = 4.0
+
+
+@dataclass(frozen=True)
+class Fairing:
+    """One fairing as run: the mesh's median projected face area, the scale taken from it, the
+    pairs of steps and the inflating step mu (``to_dict`` goes into report.json)."""
+
+    median_face_area_px: float
+    scale: float
+    pairs: int
+    mu: float
+
+    def to_dict(self) -> dict[str, float | int]:
+        return asdict(self)
+
+
+def fairing_scale(median_face_area_px: float, reference_area_px: float) -> float:
+    """How much finer than the reference a mesh is: ``reference_area_px`` (``surface.fair_reference_area_px``,
+    the median projected face area, pixels^2, at which ``surface.fair_iterations`` pairs of
+    :data:`TAUBIN_STEPS` apply as given) over the mesh's median projected face area, clamped to
+    [1, :data:`FAIR_MAX_SCALE`]. A coarser mesh is faired as given; 1 also with no face seen or a
+    reference of 0. With the default 2 px^2 five edges are about 11 pixels."""
+    if not (median_face_area_px > 0.0 and reference_area_px > 0.0):
+        return 1.0
+    return float(np.clip(reference_area_px / median_face_area_px, 1.0, FAIR_MAX_SCALE))
+
+
+def taubin_schedule(iterations: int, scale: float = 1.0) -> tuple[int, float]:
+    """The pairs of steps and the inflating step mu that fair a mesh ``scale`` times finer (in face
+    area) to the same ripple length as ``iterations`` pairs of :data:`TAUBIN_STEPS` on the reference.
+
+    A ripple L edges long has an umbrella eigenvalue k of about (2 pi / L)^2 / 2: on a mesh whose
+    faces are ``scale`` times smaller the same ripple in pixels is sqrt(scale) times more edges long
+    and its k ``scale`` times smaller. The pass band 1/lambda + 1/mu is divided by ``scale``; above
+    it one pair keeps about 1 - |lambda mu| k^2 of a ripple, so the pairs are multiplied by
+    ``scale``^2.
+
+    Raises:
+        ConfigError: negative ``iterations`` or ``scale`` below 1.
+    """
+    if iterations < 0:
+        raise ConfigError(f"fairing iterations must be >= 0, got {iterations}")
+    if not scale >= 1.0:
+        raise ConfigError(f"fairing scale must be >= 1, got {scale}")
+    lam, mu = TAUBIN_STEPS
+    band = (1.0 / lam + 1.0 / mu) / scale
+    return round(iterations * scale * scale), 1.0 / (band - 1.0 / lam)
 
 
 def relax_tangentially(
@@ -74,8 +126,9 @@ def relax_tangentially(
     return x, face_ids, bary
 
 
-def fair_taubin(vertices: np.ndarray, faces: np.ndarray, iterations: int) -> np.ndarray:
-    """Taubin's low-pass fairing: ``iterations`` pairs of umbrella steps (:data:`TAUBIN_STEPS`).
+def fair_taubin(vertices: np.ndarray, faces: np.ndarray, iterations: int, *, scale: float = 1.0) -> np.ndarray:
+    """Taubin's low-pass fairing: ``iterations`` pairs of umbrella steps (:data:`TAUBIN_STEPS`), or
+    with ``scale`` > 1 the pairs and pass band of :func:`taubin_schedule` for a mesh that much finer.
 
     Noise in the images leaves ripples a few edges long that no view resolves: E_gsm, whose
     cost grows as a power above 2 of the bend's angle, barely resists bends of a few degrees.
@@ -85,22 +138,22 @@ def fair_taubin(vertices: np.ndarray, faces: np.ndarray, iterations: int) -> np.
 
     Args:
         vertices: (N, 3) positions; faces: (F, 3) int64 indices.
-        iterations: pairs of steps (0: the vertices are returned unchanged).
+        iterations: pairs of steps on the reference mesh (0: the vertices are returned unchanged).
+        scale: how much finer the mesh is (:func:`fairing_scale`), >= 1.
 
     Returns:
         (N, 3) float64 positions.
 
     Raises:
-        ConfigError: negative ``iterations``.
+        ConfigError: negative ``iterations`` or ``scale`` below 1.
     """
-    if iterations < 0:
-        raise ConfigError(f"fairing iterations must be >= 0, got {iterations}")
+    pairs, mu = taubin_schedule(iterations, scale)
     v = np.asarray(vertices, dtype=np.float64)
     mean, pinned = _umbrella(np.asarray(faces, dtype=np.int64), len(v))
     free = (~pinned)[:, None].astype(np.float64)
     x = v.copy()
-    for _ in range(iterations):
-        for step in TAUBIN_STEPS:
+    for _ in range(pairs):
+        for step in (TAUBIN_STEPS[0], mu):
             x = x + step * free * (mean @ x - x)
     return x
 

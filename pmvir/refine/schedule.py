@@ -27,7 +27,8 @@ per-view SH coefficients L_basis (9) and RGB scales L_scale (3).
 * Relaxation (``surface.relax_iterations``): after the last stage the vertices are spread evenly
   over the refined surface (:mod:`pmvir.refine.relax`) and the albedo solved there again.
 * Fairing (``surface.fair_iterations``): the last move of the surface, after the hull and rim
-  fits, removes ripples shorter than about five edges (:func:`pmvir.refine.relax.fair_taubin`).
+  fits, removes ripples shorter than about 11 pixels: five edges where the median face projects to
+  2 px^2, more edges on a finer mesh (:func:`pmvir.refine.relax.fair_taubin`).
 * Stages: :func:`prepare_stage` fixes a stage's data at the current geometry (visibility,
   pairs, E_psm weights, E_pol's DoP mask and DoP weights, n0 and h), :func:`solve_stage`
   minimizes its cost; :func:`refine_surface` is the loop over the two.
@@ -54,6 +55,7 @@ from pmvir.refine.mesh_ops import (
     vertex_normals,
 )
 from pmvir.refine.offset import OffsetScan
+from pmvir.refine.relax import Fairing
 from pmvir.refine.sampling import (
     Observation,
 )
@@ -174,7 +176,7 @@ def refine_surface(
         timings[f"stage_{s + 1}"] = time.perf_counter() - t_stage
         stage_timings.append(parts)
 
-    state, scans, rim_fit = _final_moves(setup, state, masks, scans, hull_fits, timings, progress)
+    state, scans, rim_fit, fairing = _final_moves(setup, state, masks, scans, hull_fits, timings, progress)
     lighting_fit = None
     if opts.lighting.coupling > 0.0:
         t_fit = time.perf_counter()
@@ -199,6 +201,7 @@ def refine_surface(
         offset_scans=scans,
         hull_fits=hull_fits,
         rim_fit=rim_fit,
+        fairing=fairing,
         lighting_fit=lighting_fit,
         coarse_vertices=len(start) if lift is not None else 0,
     )
@@ -212,10 +215,10 @@ def _final_moves(
     hull_fits: list[HullFit],
     timings: dict[str, float],
     progress: Progress,
-) -> tuple[Unknowns, list[OffsetScan], RimFit | None]:
+) -> tuple[Unknowns, list[OffsetScan], RimFit | None, Fairing | None]:
     """The moves of the surface after the last stage, in order: the offset scan (``offset_scan.mode``
     "stages"), the hull fit and the rim fit (with masks), the fairing; each one's seconds go into
-    ``timings``. Returns the state, the scans so far and the rim fit (None when not run)."""
+    ``timings``. Returns the state, the scans so far, the rim fit and the fairing (None when not run)."""
     opts = setup.opts
     if opts.offset_scan.mode == "stages":
         t_scan = time.perf_counter()
@@ -231,11 +234,12 @@ def _final_moves(
         t_rim = time.perf_counter()
         state, rim_fit = move_to_rims(setup, state, masks)
         timings["rim_fit"] = time.perf_counter() - t_rim
+    fairing = None
     if opts.surface.fair_iterations > 0:
         t_fair = time.perf_counter()
-        state = fair_surface(setup, state)
+        state, fairing = fair_surface(setup, state)
         timings["fairing"] = time.perf_counter() - t_fair
-    return state, scans, rim_fit
+    return state, scans, rim_fit, fairing
 
 
 def _start_mesh(

@@ -21,6 +21,7 @@ from pmvir.refine.mesh_ops import (
     unique_edges,
 )
 from pmvir.refine.offset import OffsetScan
+from pmvir.refine.relax import Fairing
 from pmvir.refine.sampling import (
     Observation,
     PairSet,
@@ -104,6 +105,7 @@ class RefineResult:
             in order: after every applied offset scan but the last, and after the last stage and scan.
         rim_fit: the shoulders moved out to the masks' rims after the last hull fit (``surface.rim_fit_gain`` > 0
             with masks), else None.
+        fairing: the fairing as run (``surface.fair_iterations`` > 0), else None.
         lighting_fit: the final lighting fit's log (``lighting.coupling`` > 0; its time is
             ``timings["lighting"]``), else None.
         coarse_vertices: vertices of the surface the first ``stages.coarse`` stages ran on (0: none).
@@ -123,6 +125,7 @@ class RefineResult:
     offset_scans: list[OffsetScan] = field(default_factory=list)
     hull_fits: list[HullFit] = field(default_factory=list)
     rim_fit: RimFit | None = None
+    fairing: Fairing | None = None
     lighting_fit: StageLog | None = None
     coarse_vertices: int = 0
 

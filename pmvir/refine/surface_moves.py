@@ -12,9 +12,10 @@ import torch
 from pmvir.config import RefineOptions
 from pmvir.geometry.mesh_ops import vertex_normals as vertex_normals_np
 from pmvir.geometry.silhouette.hull_fit import HullFit, RimFit, fit_inside_hull, fit_to_rims
+from pmvir.geometry.surface.clean import facing_projected_areas
 from pmvir.progress import Progress
 from pmvir.refine.offset import OffsetScan, photo_consistent_offset
-from pmvir.refine.relax import fair_taubin
+from pmvir.refine.relax import Fairing, fair_taubin, fairing_scale, taubin_schedule
 from pmvir.refine.state import RefineSetup, Unknowns
 
 
@@ -98,10 +99,17 @@ def move_to_rims(
 
 
 
-def fair_surface(setup: RefineSetup, state: Unknowns) -> Unknowns:
-    """``state`` with its surface faired (``surface.fair_iterations`` pairs of Taubin steps,
-    :func:`pmvir.refine.relax.fair_taubin`); each vertex keeps its albedo (it moves by a fraction of
-    an edge)."""
+def fair_surface(setup: RefineSetup, state: Unknowns) -> tuple[Unknowns, Fairing]:
+    """``state`` with its surface faired (``surface.fair_iterations`` pairs of Taubin steps on the
+    reference mesh, scaled to the mesh's median projected face area: :func:`pmvir.refine.relax.fairing_scale`
+    with ``surface.fair_reference_area_px``);
+    each vertex keeps its albedo (it moves by a fraction of an edge)."""
     v = state.vertices.detach().cpu().numpy().astype(np.float64)
-    faired = fair_taubin(v, setup.faces_np, setup.opts.surface.fair_iterations)
-    return replace(state, vertices=torch.from_numpy(faired).to(device=setup.device, dtype=setup.dtype))
+    areas = facing_projected_areas(v, setup.faces_np, setup.cameras)
+    median = float(np.median(areas[areas > 0.0])) if (areas > 0.0).any() else 0.0
+    scale = fairing_scale(median, setup.opts.surface.fair_reference_area_px)
+    iterations = setup.opts.surface.fair_iterations
+    faired = fair_taubin(v, setup.faces_np, iterations, scale=scale)
+    pairs, mu = taubin_schedule(iterations, scale)
+    state = replace(state, vertices=torch.from_numpy(faired).to(device=setup.device, dtype=setup.dtype))
+    return state, Fairing(median_face_area_px=median, scale=scale, pairs=pairs, mu=mu)

@@ -1,4 +1,4 @@
-"""After the last stage: Taubin fairing (``refine.surface.fair_iterations``) damps wrinkles and keeps the shape;
+"""After the last stage: Taubin fairing (``refine.surface.fair_iterations``, scaled to the mesh's face size) damps wrinkles and keeps the shape;
 tangential relaxation (``refine.surface.relax_iterations``) spreads the vertices and keeps the surface."""
 
 from __future__ import annotations
@@ -11,12 +11,20 @@ from pmvir.config import RefineOptions
 from pmvir.errors import ConfigError
 from pmvir.evaluate import SurfaceQuery
 from pmvir.geometry.mesh_ops import ReferenceSurface, barycentric, edge_topology, vertex_normals
+from pmvir.geometry.surface.clean import facing_projected_areas
 from pmvir.progress import Progress
 from pmvir.refine import make_visibility_fn, observation_from_decoded
 from pmvir.refine.albedo import AlbedoSolver
 from pmvir.refine.energy import energy_terms
 from pmvir.refine.mesh_ops import unique_edges
-from pmvir.refine.relax import carry_values, fair_taubin, relax_tangentially
+from pmvir.refine.relax import (
+    FAIR_MAX_SCALE,
+    carry_values,
+    fair_taubin,
+    fairing_scale,
+    relax_tangentially,
+    taubin_schedule,
+)
 from pmvir.synth.shapes import geodesic_sphere
 
 ONE_STAGE = {"stages": {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]}}
@@ -239,7 +247,60 @@ def test_fairing_is_the_refinements_last_move_of_the_surface(scene_inputs) -> No
         return refine_surface(scene.vertices, faces, scene.cameras, obs, vis, options=opts)
 
     plain, faired = refined(0), refined(4)
-    np.testing.assert_allclose(faired.vertices, fair_taubin(plain.vertices, faces, 4), atol=1e-6)
+    assert plain.fairing is None and faired.fairing is not None
+    areas = facing_projected_areas(plain.vertices, faces, scene.cameras)
+    assert faired.fairing.median_face_area_px == pytest.approx(np.median(areas[areas > 0]), rel=1e-5)
+    assert faired.fairing.scale == pytest.approx(fairing_scale(faired.fairing.median_face_area_px, 2.0))
+    assert faired.fairing.pairs == round(4 * faired.fairing.scale**2)
+    np.testing.assert_allclose(
+        faired.vertices, fair_taubin(plain.vertices, faces, 4, scale=faired.fairing.scale), atol=1e-6
+    )
     assert np.abs(faired.vertices - plain.vertices).max() > 0
     np.testing.assert_array_equal(faired.albedo, plain.albedo)
     assert "fairing" in faired.timings and "fairing" not in plain.timings
+
+
+def _rippled_grid(n: int, wavelength: float) -> tuple[np.ndarray, np.ndarray]:
+    """The unit square as an n x n grid of right triangles, rippled in z with the given wavelength
+    (amplitude 1e-3, along x)."""
+    x, y = np.meshgrid(np.linspace(0.0, 1.0, n + 1), np.linspace(0.0, 1.0, n + 1))
+    v = np.stack([x.ravel(), y.ravel(), 1e-3 * np.sin(2 * np.pi * x.ravel() / wavelength)], axis=1)
+    k = (np.arange(n)[:, None] * (n + 1) + np.arange(n)[None, :]).ravel()
+    f = np.concatenate([np.stack([k, k + 1, k + n + 2], 1), np.stack([k, k + n + 2, k + n + 1], 1)])
+    return v, f
+
+
+def _kept(v: np.ndarray, faired: np.ndarray) -> float:
+    """Share of the ripple's amplitude left away from the pinned boundary."""
+    inner = (np.abs(v[:, :2] - 0.5) < 0.3).all(axis=1)
+    return float(np.abs(faired[inner, 2]).max() / np.abs(v[inner, 2]).max())
+
+
+def test_a_finer_mesh_is_faired_to_the_same_ripple_length() -> None:
+    """Ripples four and six edges long on a grid; on a grid with edges half as long (faces four times
+    smaller) the same ripples are eight and twelve edges long. The reference's pairs keep nearly all
+    of them there; the schedule scaled by 4 removes each as on the coarse grid."""
+    for coarse_edges in (4, 6):
+        coarse = _rippled_grid(40, coarse_edges / 40)
+        fine = _rippled_grid(80, coarse_edges / 40)
+        kept_coarse = _kept(coarse[0], fair_taubin(*coarse, 16))
+        assert kept_coarse < 0.8
+        assert _kept(fine[0], fair_taubin(*fine, 16)) > 0.9
+        assert _kept(fine[0], fair_taubin(*fine, 16, scale=4.0)) == pytest.approx(kept_coarse, abs=0.1)
+    wide = _rippled_grid(80, 20 / 40)
+    assert _kept(wide[0], fair_taubin(*wide, 16, scale=4.0)) > 0.95
+    assert taubin_schedule(16) == (16, pytest.approx(-0.53))
+    pairs, mu = taubin_schedule(16, 4.0)
+    assert pairs == 256 and 1 / 0.5 + 1 / mu == pytest.approx((1 / 0.5 - 1 / 0.53) / 4)
+    with pytest.raises(ConfigError, match="scale"):
+        taubin_schedule(16, 0.5)
+
+
+def test_fairing_scale_follows_the_median_face_area() -> None:
+    assert fairing_scale(2.0, 2.0) == 1.0
+    assert fairing_scale(0.5, 2.0) == pytest.approx(4.0)
+    assert fairing_scale(0.75, 1.5) == pytest.approx(2.0)
+    assert fairing_scale(8.0, 2.0) == 1.0  # a coarser mesh is faired as given
+    assert fairing_scale(1e-6, 2.0) == FAIR_MAX_SCALE
+    assert fairing_scale(0.0, 2.0) == 1.0  # no face seen
+    assert fairing_scale(0.5, 0.0) == 1.0  # scaling off
