@@ -92,7 +92,7 @@ def main() -> None:
         f" moved {args.offset:+g} diagonals along its normals" if args.offset else ""
     )
     write_results(
-        "refine_from_truth",
+        args.out.stem,  # the results file names its benchmark
         title="Refinement started from the true surface",
         path=args.out,
         peer="MVIR (the refinement without E_pol)" if "mvir" in {r["variant"] for r in rows} else None,

@@ -28,11 +28,13 @@ from pmvir.evaluate import evaluate_paths
 from pmvir.pipeline import run
 
 PMVIR = str(Path(sys.executable).with_name("pmvir"))
-#: The variants measured without --variant: the defaults, no fairing, two weaker preconditioners,
+#: The variants measured without --variant: the defaults, no fairing, fairing not scaled to the
+#: mesh's face size, two weaker preconditioners,
 #: a larger iteration budget, and MVIR (the peer of the normal error).
 DEFAULT_VARIANTS = [
     ["full"],
     ["no-fairing", "refine.surface.fair_iterations=0"],
+    ["fairing-in-edges", "refine.surface.fair_reference_area_px=0"],
     ["lambda-5", "refine.solver.precondition_lambda=5"],
     ["lambda-2", "refine.solver.precondition_lambda=2"],
     ["iterations-40", "refine.solver.max_iterations=40"],

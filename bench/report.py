@@ -50,6 +50,12 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/refine_from_truth.py CAPTURE --variant mvir pol.enabled=false --variant full",
         "MVIR",
     ),
+    "refine_from_truth_pathtraced": (
+        "Refinement started from the true surface of a path-traced capture",
+        f"{PY} bench/refine_from_truth.py CAPTURE --out bench/results/refine_from_truth_pathtraced.json "
+        "--variant full --variant mvir pol.enabled=false",
+        "MVIR",
+    ),
     "relief_aop": (
         "Decoded AoP at fine relief",
         f"{PY} bench/relief_aop.py CAPTURE",
@@ -71,17 +77,38 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/relief_solver.py --capture CAPTURE --results relief_pathtraced",
         "MVIR (refine.pol.enabled=false)",
     ),
+    "relief_pathtraced_fine": (
+        "Fine relief on a path-traced capture, finer mesh",
+        f"{PY} bench/relief_solver.py --capture CAPTURE --results relief_pathtraced_fine "
+        "--set geometry.subdivision.max_area_px=3 --variant full "
+        "--variant fairing-in-edges refine.surface.fair_reference_area_px=0 --variant mvir refine.pol.enabled=false",
+        "MVIR (refine.pol.enabled=false)",
+    ),
+    "tau_schedule_builtin": (
+        "The E_pol schedule on a built-in rock",
+        f"{PY} bench/relief_solver.py --results tau_schedule_builtin --variant full "
+        "--variant flat-15 'refine.stages.tau_pol=[15,15,15]' --variant mvir refine.pol.enabled=false",
+        "MVIR (refine.pol.enabled=false)",
+    ),
+    "tau_schedule_pathtraced": (
+        "The E_pol schedule on a path-traced rock",
+        f"{PY} bench/relief_solver.py --capture CAPTURE --results tau_schedule_pathtraced --variant full "
+        "--variant flat-15 'refine.stages.tau_pol=[15,15,15]' --variant mvir refine.pol.enabled=false",
+        "MVIR (refine.pol.enabled=false)",
+    ),
     "fairing_knot": (
         "Fairing on a torus knot (genus 1)",
         f"{PY} bench/relief_solver.py --shape knot --results fairing_knot --variant full "
-        "--variant no-fairing refine.surface.fair_iterations=0 --variant mvir refine.pol.enabled=false",
-        None,
+        "--variant no-fairing refine.surface.fair_iterations=0 --variant fairing-in-edges "
+        "refine.surface.fair_reference_area_px=0 --variant mvir refine.pol.enabled=false",
+        "MVIR (refine.pol.enabled=false)",
     ),
     "fairing_gear": (
         "Fairing on a gear (thin teeth)",
         f"{PY} bench/relief_solver.py --shape gear --results fairing_gear --variant full "
-        "--variant no-fairing refine.surface.fair_iterations=0 --variant mvir refine.pol.enabled=false",
-        None,
+        "--variant no-fairing refine.surface.fair_iterations=0 --variant fairing-in-edges "
+        "refine.surface.fair_reference_area_px=0 --variant mvir refine.pol.enabled=false",
+        "MVIR (refine.pol.enabled=false)",
     ),
     "coarse_to_fine": (
         "Coarse to fine (refine.stages.coarse)",
