@@ -1,4 +1,4 @@
-"""Moves of the whole surface between stages: the photo-consistent offset scan, the hull fit inside the masks, the fit out to the rims."""
+"""Moves of the whole surface between and after the stages: the photo-consistent offset scan, the hull fit inside the masks, the fit out to the rims, the fairing."""
 
 from __future__ import annotations
 
@@ -98,16 +98,18 @@ def move_to_rims(
     return replace(state, vertices=moved), fit
 
 
-
 def fair_surface(setup: RefineSetup, state: Unknowns) -> tuple[Unknowns, Fairing]:
-    """``state`` with its surface faired (``surface.fair_iterations`` pairs of Taubin steps on the
-    reference mesh, scaled to the mesh's median projected face area: :func:`pmvir.refine.relax.fairing_scale`
-    with ``surface.fair_reference_area_px``);
-    each vertex keeps its albedo (it moves by a fraction of an edge)."""
+    """``state`` with its surface faired: ``surface.fair_iterations`` pairs of Taubin steps on the
+    reference mesh, scaled to the mesh's median projected face area (:func:`pmvir.refine.relax.fairing_scale`
+    with ``surface.fair_reference_area_px``; the areas are not computed when that is 0). Each vertex
+    keeps its albedo (it moves by a fraction of an edge)."""
     v = state.vertices.detach().cpu().numpy().astype(np.float64)
-    areas = facing_projected_areas(v, setup.faces_np, setup.cameras)
-    median = float(np.median(areas[areas > 0.0])) if (areas > 0.0).any() else 0.0
-    scale = fairing_scale(median, setup.opts.surface.fair_reference_area_px)
+    reference = setup.opts.surface.fair_reference_area_px
+    median = 0.0
+    if reference > 0.0:
+        areas = facing_projected_areas(v, setup.faces_np, setup.cameras)
+        median = float(np.median(areas[areas > 0.0])) if (areas > 0.0).any() else 0.0
+    scale = fairing_scale(median, reference)
     iterations = setup.opts.surface.fair_iterations
     faired = fair_taubin(v, setup.faces_np, iterations, scale=scale)
     pairs, mu = taubin_schedule(iterations, scale)

@@ -233,17 +233,17 @@ def test_fairing_keeps_boundary_vertices_and_zero_iterations_is_the_input() -> N
 
 
 def test_fairing_is_the_refinements_last_move_of_the_surface(scene_inputs) -> None:
-    """One short stage refined with and without fairing: the faired result is the unfaired one faired,
-    each vertex keeping its albedo, and report.json's timings name the step."""
+    """One short stage refined with and without fairing: the faired result is the unfaired one faired
+    at the scale of its median projected face area (or unscaled, or at the largest scale, as the
+    reference area sets), each vertex keeping its albedo, and report.json's timings name the step."""
     from pmvir.refine import refine_surface
 
     scene, obs, vis = scene_inputs
     faces = scene.faces.astype(np.int64)
 
-    def refined(fair: int):
-        opts = RefineOptions.model_validate(
-            {"surface": {"fair_iterations": fair}, "solver": {"max_iterations": 5}, **ONE_STAGE}
-        )
+    def refined(fair: int, reference: float = 2.0):
+        surface = {"fair_iterations": fair, "fair_reference_area_px": reference}
+        opts = RefineOptions.model_validate({"surface": surface, "solver": {"max_iterations": 5}, **ONE_STAGE})
         return refine_surface(scene.vertices, faces, scene.cameras, obs, vis, options=opts)
 
     plain, faired = refined(0), refined(4)
@@ -258,6 +258,13 @@ def test_fairing_is_the_refinements_last_move_of_the_surface(scene_inputs) -> No
     assert np.abs(faired.vertices - plain.vertices).max() > 0
     np.testing.assert_array_equal(faired.albedo, plain.albedo)
     assert "fairing" in faired.timings and "fairing" not in plain.timings
+    # scaling off: no areas, the reference's 4 pairs; a reference far above the mesh's faces: the largest scale
+    unscaled, finest = refined(4, 0.0), refined(4, 1e3)
+    assert unscaled.fairing is not None and finest.fairing is not None
+    assert (unscaled.fairing.median_face_area_px, unscaled.fairing.scale, unscaled.fairing.pairs) == (0.0, 1.0, 4)
+    np.testing.assert_allclose(unscaled.vertices, fair_taubin(plain.vertices, faces, 4), atol=1e-6)
+    assert finest.fairing.scale == FAIR_MAX_SCALE and finest.fairing.pairs == 4 * round(FAIR_MAX_SCALE**2)
+    np.testing.assert_allclose(finest.vertices, fair_taubin(plain.vertices, faces, 4, scale=FAIR_MAX_SCALE), atol=1e-6)
 
 
 def _rippled_grid(n: int, wavelength: float) -> tuple[np.ndarray, np.ndarray]:
