@@ -15,7 +15,7 @@ import httpx
 import numpy as np
 import pytest
 
-from service.testing import ServiceStack
+from service.testing import ServiceStack, write_noise_capture
 
 from svc_helpers import KEY, LIMITS, client_for, finished, new_job, wait_for
 
@@ -164,9 +164,14 @@ def test_delete_of_a_running_job_stops_it_and_leaves_no_files(
         assert not folder.exists()
 
 
-def test_job_over_its_soft_time_limit_fails(tmp_path: Path, long_capture: Path) -> None:
+def test_job_over_its_soft_time_limit_fails(tmp_path: Path) -> None:
+    # 64 frames of 512x512 decode for several seconds even on a fast machine: well over the 1-s limit
+    # (the 256x256 capture of the other fault tests can finish inside it).
+    capture = write_noise_capture(tmp_path / "cap", frames=64, width=512, height=512, seed=3)
     env = {
         **LIMITS,
+        "PMVIR_MAX_FRAME_BYTES": str(1024 * 1024),
+        "PMVIR_MAX_JOB_BYTES": str(64 * 1024 * 1024),
         "PMVIR_JOB_SOFT_TIME_LIMIT": "1",
         "PMVIR_JOB_HARD_TIME_LIMIT": "20",
         "PMVIR_VISIBILITY_TIMEOUT": "60",
@@ -174,7 +179,7 @@ def test_job_over_its_soft_time_limit_fails(tmp_path: Path, long_capture: Path) 
     with ServiceStack(tmp_path / "st", api_keys=(KEY,), env=env) as st:
         st.start_worker()
         with client_for(st) as c:
-            job_id = new_job(c, long_capture)
+            job_id = new_job(c, capture)
             c.post(f"/v1/jobs/{job_id}/start")
             job = wait_for(c, job_id, finished, timeout=60)
             assert job["status"] == "failed" and job["error"] == "time limit exceeded (1 s)"
