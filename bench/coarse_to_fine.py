@@ -2,11 +2,12 @@
 
 A built-in capture (``pmvir synth``, the demo's by default: blob, plastic, 24 views of 408x340) goes
 through the decode and geometry stages once (cached in ``--work``); the refinement then runs once per
-value of ``refine.stages.coarse`` (``--values``) with the same options (``--set KEY=VALUE``). Prints
-per run the refinement's seconds (the coarse stages and the rest), its cost evaluations, and the
-result's accuracy, completeness and normal error against the ground truth; writes
-bench/results/coarse_to_fine.json. The first value is the peer: times and errors are also given as
-ratios to it.
+value of ``refine.stages.coarse`` (``--values``) with the same options (``--set KEY=VALUE``), and once
+more as MVIR (``refine.pol.enabled=false``, ``refine.stages.coarse`` 0). Prints per run the
+refinement's seconds (the coarse stages and the rest), its cost evaluations, and the result's
+accuracy, completeness and normal error against the ground truth; writes
+bench/results/coarse_to_fine.json. The first value is the peer: times and accuracy are also given as
+ratios to it, and the median normal error as a ratio to MVIR's.
 
 Run: .venv/bin/python bench/coarse_to_fine.py [--values 0 1 2] [--shape blob] [--views 24]
      [--size 408x340] [--set KEY=VALUE ...] [--work DIR]
@@ -31,17 +32,23 @@ from pmvir.pipeline import run
 PMVIR = str(Path(sys.executable).with_name("pmvir"))
 
 
-def _config(overrides: list[str], coarse: int) -> PipelineConfig:
+#: MVIR, the peer of the normal error: the refinement without the polarimetric term.
+MVIR = "refine.pol.enabled=false"
+
+
+def _config(overrides: list[str], coarse: int, mvir: bool) -> PipelineConfig:
     tree = merge_options(parse_overrides(overrides), {"refine": {"stages": {"coarse": coarse}}})
+    if mvir:
+        tree = merge_options(tree, parse_overrides([MVIR]))
     return PipelineConfig.model_validate(tree)
 
 
-def _measure(capture: Path, work: Path, overrides: list[str], coarse: int) -> dict:
-    out = work / f"result-coarse{coarse}"
+def _measure(capture: Path, work: Path, overrides: list[str], coarse: int, *, mvir: bool = False) -> dict:
+    out = work / ("result-mvir" if mvir else f"result-coarse{coarse}")
     shutil.rmtree(out, ignore_errors=True)
     cache = work / "cache"
     resume = "refine" if (cache / "geometry.pkl").exists() else None
-    run(_config(overrides, coarse), capture, out, cache=cache, resume_from=resume)
+    run(_config(overrides, coarse, mvir), capture, out, cache=cache, resume_from=resume)
     report = json.loads((out / "report.json").read_text())["refine"]
     stages = report["stages"]
     timings = report["timings"]
@@ -49,6 +56,7 @@ def _measure(capture: Path, work: Path, overrides: list[str], coarse: int) -> di
     metrics = evaluate_paths(out, capture / "gt").to_dict()
     return {
         "coarse": coarse,
+        "mvir": mvir,
         "vertices": report["vertices"],
         "coarse_vertices": report["coarse_vertices"],
         "refine_s": timings["total"],
@@ -72,21 +80,24 @@ def main() -> None:
         subprocess.run([PMVIR, "synth", "--shape", args.shape, "--views", str(args.views), "--size", args.size,
                         "--material", "plastic", "--out", str(capture), "--force", "--quiet"], check=True)
     runs = [_measure(capture, args.work, args.overrides, c) for c in args.values]
-    peer = runs[0]
+    runs.append(_measure(capture, args.work, args.overrides, 0, mvir=True))
+    peer, mvir = runs[0], runs[-1]
     columns = ["stages.coarse", "vertices (coarse)", "refine s", "of it coarse stages s", "evaluations",
                "time / first", "accuracy x1e-2", "accuracy / first", "completeness x1e-2",
-               "normal error median deg"]
+               "normal error median deg", "median / MVIR's"]
     rows = [
-        [r["coarse"], f"{r['vertices']:,}" + (f" ({r['coarse_vertices']:,})" if r["coarse_vertices"] else ""),
+        [f"{r['coarse']}, MVIR ({MVIR})" if r["mvir"] else r["coarse"],
+         f"{r['vertices']:,}" + (f" ({r['coarse_vertices']:,})" if r["coarse_vertices"] else ""),
          round(r["refine_s"], 1), round(r["coarse_stages_s"], 1), r["evaluations"],
          round(r["refine_s"] / peer["refine_s"], 2), round(100 * r["accuracy"], 4),
          round(r["accuracy"] / peer["accuracy"], 2), round(100 * r["completeness"], 4),
-         round(r["normal_error_median"], 2)]
+         round(r["normal_error_median"], 2), round(r["normal_error_median"] / mvir["normal_error_median"], 2)]
         for r in runs
     ]
     title = f"{args.shape}, plastic, {args.views} views of {args.size}" + (
         f" ({', '.join(args.overrides)})" if args.overrides else "")
-    tab = table(title, columns, rows, note="the first row is the peer; distances in GT bounding-box diagonals")
+    tab = table(title, columns, rows, note="the first row is the peer, MVIR (the last row) that of the "
+                "normal error; distances in GT bounding-box diagonals")
     print(" | ".join(columns))
     for row in rows:
         print(" | ".join(str(c) for c in row))

@@ -7,7 +7,8 @@ Usage: .venv/bin/python bench/nomask.py [--shape blob] [--views 24] [--size 320x
 Per scene and renderer one capture is rendered with ``pmvir synth --scene S --no-masks``; a copy
 names its true masks (gt/masks/) in capture.json. Both are reconstructed with ``pmvir reconstruct``
 (by default the geometric stage only) and the initial (or refined) mesh compared with the object
-alone: accuracy and completeness (pmvir.evaluate, GT diagonals), the largest vertex distance and
+alone: accuracy and completeness (pmvir.evaluate, GT diagonals), the median normal error (the
+angle between each vertex's normal and the true surface's, degrees), the largest vertex distance and
 the share of vertices farther than 2 % of the diagonal, the largest distance of the vertices within
 2 % of the diagonal above the table (the table left in the mesh), the masks' IoU against the true
 ones (no-mask runs) and the time. Prints a table and writes bench/results/nomask.json.
@@ -83,6 +84,7 @@ def _measure(capture: Path, result: Path, stop_after: str) -> dict:
     return {
         "accuracy": r.accuracy,
         "completeness": r.completeness,
+        "normal_error_median": r.normal_error_median,
         "max_vertex_distance": float(far.max()),
         "share_beyond_2pct": float((far > 0.02).mean()),
         "max_distance_near_table": float(far[near_table].max(initial=0.0)),
@@ -95,15 +97,17 @@ def _measure(capture: Path, result: Path, stop_after: str) -> dict:
 
 def _write(runs: list[dict], args: argparse.Namespace) -> Path:
     """Print the table of the runs so far and write bench/results/nomask.json."""
-    columns = ["scene", "renderer", "masks", "accuracy (1e-2)", "completeness (1e-2)", "max dist (diag)",
-               "> 2 % diag", "max dist near table", "mask IoU", "time (s)"]
+    columns = ["scene", "renderer", "masks", "accuracy (1e-2)", "completeness (1e-2)",
+               "normal error median deg", "max dist (diag)", "> 2 % diag", "max dist near table", "mask IoU",
+               "time (s)"]
     rows = []
     for r in runs:
         if "error" in r:
-            rows.append([r["scene"], r["renderer"], r["masks"], *[None] * 6, round(r["seconds"], 1)])
+            rows.append([r["scene"], r["renderer"], r["masks"], *[None] * 7, round(r["seconds"], 1)])
             continue
         rows.append([
             r["scene"], r["renderer"], r["masks"], round(100 * r["accuracy"], 3), round(100 * r["completeness"], 3),
+            None if r.get("normal_error_median") is None else round(r["normal_error_median"], 2),
             round(r["max_vertex_distance"], 4), f"{100 * r['share_beyond_2pct']:.2f} %",
             round(r["max_distance_near_table"], 4),
             None if r["mask_iou"] is None else round(r["mask_iou"], 3), round(r["seconds"], 1),
