@@ -82,6 +82,7 @@ VARIANTS: dict[str, dict] = {
     "least_squares_raw_weight": {"pho": {"robust": "none"}, "pol": {"dop_weight_normalized": False}},
     "no_relax": {"surface": {"relax_iterations": 0}},
     "no_fairing": {"surface": {"fair_iterations": 0}},
+    "aop_noise_weight": {"pol": {"aop_noise_scale_deg": 4.0}},
 }
 LABELS = {
     "initial": "initial surface",
@@ -94,6 +95,7 @@ LABELS = {
     "least_squares_raw_weight": "least-squares E_pho and DoP weight not normalized",
     "no_relax": "no tangential relaxation",
     "no_fairing": "no fairing",
+    "aop_noise_weight": "E_pol weighted by absolute AoP noise (pol.aop_noise_scale_deg 4)",
 }
 ROWS = {
     "main": ("initial", "mvir", "full"),
@@ -105,6 +107,7 @@ ROWS = {
         "least_squares_raw_weight",
         "no_relax",
         "no_fairing",
+        "aop_noise_weight",
         "i_int",
         "mvir",
     ),

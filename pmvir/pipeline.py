@@ -456,6 +456,7 @@ def _stage_report(st: StageLog) -> dict:
         "observed_vertices": st.n_observed,
         "pol_pairs": st.pol_pairs,
         "dop_floor": st.dop_floor,
+        "pol_weight_mean": st.pol_weight_mean,
         "iterations": len(st.energies) - 1,
         "evaluations": st.evaluations,
         "stop_reason": st.stop_reason,

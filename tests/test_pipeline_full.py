@@ -57,6 +57,7 @@ def test_result_files_follow_the_spec(result) -> None:
     assert {"pho", "pol", "gsm", "psm", "total"} <= set(energies[0])
     for stage in report["refine"]["stages"]:  # a plastic capture: E_pol has pairs above its floor
         assert stage["dop_floor"] >= 0.05 and 0 < stage["pol_pairs"] < stage["vertex_view_pairs"]
+        assert stage["pol_weight_mean"] == pytest.approx(1.0)  # the DoP weights, normalized over those pairs
     # the photo-consistent offsets: before each stage and after the last; the first scan covers
     # +-1.5 px, the later ones +-0.75 px, in 0.25 px steps
     scans = report["refine"]["offset_scans"]

@@ -90,6 +90,12 @@ class PolOptions(_Options):
         "variance of the AoP).",
         json_schema_extra=advanced(),
     )
+    aop_noise_scale_deg: float = Field(
+        default=0.0, ge=0.0, le=90.0,
+        description="> 0: E_pol weights each pair by 1 / (1 + (nu / this)^2), nu its AoP noise (deg) from the "
+        "closure residual, not normalized per capture; 0: the DoP weights above.",
+        json_schema_extra=advanced("deg"),
+    )
     aop_noise: Literal["closure", "uniform"] = Field(
         default="closure",
         description="AoP noise model: 'closure' measures it per pixel from the raw mosaic (closure residual) "

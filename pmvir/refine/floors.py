@@ -36,6 +36,16 @@ def pol_pair_count(samples: PairSamples, problem: StageProblem) -> int:
 
 
 
+def pol_weight_mean(samples: PairSamples, problem: StageProblem) -> float | None:
+    """E_pol's mean pair weight over the pairs it uses at the stage's start (see :func:`pol_pair_count`);
+    None without weights or without such pairs."""
+    if problem.pol_weight is None or samples.aop_defined is None:
+        return None
+    used = samples.aop_defined if problem.pol_mask is None else samples.aop_defined & problem.pol_mask
+    return float(problem.pol_weight[used].mean()) if bool(used.any()) else None
+
+
+
 def floor_summary(floor: torch.Tensor | float | None) -> float | None:
     """The stage's DoP floor as one number for the log: 0 (every pair kept), the floor, its median
     (per-pair floors), or None (no pair is evidence: E_pol off)."""
@@ -67,6 +77,62 @@ def pol_evidence(samples: PairSamples) -> torch.Tensor | None:
     noise = torch.where(measured, noise, ref).clamp_min(0.25 * ref)
     return samples.dop * (ref / noise)
 
+
+
+def aop_noise_deg(samples: PairSamples) -> torch.Tensor | None:
+    """(P,) each pair's AoP noise in degrees as the raw mosaic predicts it: ``sigma / (2 sqrt(2) rho)``.
+
+    sigma is the closure noise (:func:`pmvir.polarization.noise.closure_noise`, the noise of r / s0
+    with r = (I0 + I90) - (I45 + I135)); s1 / s0 and s2 / s0 each carry sigma / sqrt(2) of it, and the
+    AoP, half the angle of (s1, s2), turns by that over 2 rho. Unmeasured (NaN) noise counts as the
+    median of the measured pairs'. None without DoP or noise maps, or where no pair is measured.
+    """
+    if samples.dop is None or samples.aop_noise is None:
+        return None
+    noise = samples.aop_noise
+    measured = torch.isfinite(noise) & (noise >= 0)
+    if not bool(measured.any()):
+        return None
+    noise = torch.where(measured, noise, noise[measured].median())
+    return torch.rad2deg(noise / (2.0 * math.sqrt(2.0) * samples.dop.clamp_min(1e-3)))
+
+
+def aop_noise_weight(samples: PairSamples, scale_deg: float) -> torch.Tensor | None:
+    """(P,) E_pol's absolute pair weights ``1 / (1 + (nu / scale_deg)^2)``, nu from :func:`aop_noise_deg`.
+
+    The inverse of the AoP's error variance when that is ``a^2 + (b nu)^2`` (a floor a the noise does
+    not explain: demosaicing, the renderer's mixing of diffuse and specular), scaled to 1 at nu = 0,
+    with ``scale_deg = a / b``. Not normalized: a noisier capture weighs E_pol less. None where
+    :func:`aop_noise_deg` is.
+    """
+    nu = aop_noise_deg(samples)
+    if nu is None:
+        return None
+    return 1.0 / (1.0 + (nu / scale_deg) ** 2)
+
+
+def pol_pair_weights(
+    samples: PairSamples, evidence: torch.Tensor | None, pol_mask: torch.Tensor | None, opts: RefineOptions
+) -> torch.Tensor | None:
+    """(P,) E_pol's pair weights for a stage, None for none (every pair weighs 1).
+
+    With ``pol.aop_noise_scale_deg`` > 0 and noise maps: :func:`aop_noise_weight`, absolute. Otherwise,
+    with ``pol.dop_weight``: the evidence (:func:`pol_evidence`) to ``pol.dop_weight_power``, divided by
+    its mean over the pairs ``pol_mask`` keeps when ``pol.dop_weight_normalized``.
+    """
+    if opts.pol.aop_noise_scale_deg > 0:
+        absolute = aop_noise_weight(samples, opts.pol.aop_noise_scale_deg)
+        if absolute is not None:
+            return absolute
+    if evidence is None or not opts.pol.dop_weight:
+        return None
+    weight = evidence
+    if opts.pol.dop_weight_power != 1.0:
+        weight = weight.clamp_min(0.0) ** opts.pol.dop_weight_power
+    if opts.pol.dop_weight_normalized:
+        used = weight if pol_mask is None else weight[pol_mask]
+        weight = weight / (used.mean() if used.numel() else weight.new_tensor(1.0)).clamp_min(1e-6)
+    return weight
 
 
 def above_floor(

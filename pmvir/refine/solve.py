@@ -258,6 +258,7 @@ def solve_stage(
         n_observed=stage.n_observed,
         pol_pairs=stage.pol_pairs,
         dop_floor=floor_summary(stage.dop_floor) if opts.pol.enabled else None,
+        pol_weight_mean=stage.pol_weight_mean,
         energies=log.energies,
         grad_max=log.grad_max,
         evaluations=res.evaluations,

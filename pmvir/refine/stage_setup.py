@@ -18,7 +18,14 @@ from pmvir.refine.energy import (
     pair_light,
     psm_weights,
 )
-from pmvir.refine.floors import above_floor, pol_evidence, pol_pair_count, stage_dop_floor
+from pmvir.refine.floors import (
+    above_floor,
+    pol_evidence,
+    pol_pair_count,
+    pol_pair_weights,
+    pol_weight_mean,
+    stage_dop_floor,
+)
 from pmvir.refine.mesh_ops import (
     GraphSmoother,
     mean_edge_length,
@@ -136,6 +143,7 @@ def prepare_stage(
         h=mean_edge_length(cur_np, setup.topo.edges_np),
         dop_floor=floor,
         pol_pairs=pol_pair_count(samples, problem) if opts.pol.enabled else 0,
+        pol_weight_mean=pol_weight_mean(samples, problem) if opts.pol.enabled else None,
         pho_signal=_pho_signal(samples, problem),
     )
     return stage, state
@@ -195,14 +203,7 @@ def stage_problem(
     pol_mask = None
     if samples.dop is not None and evidence is not None and floor is not None:
         pol_mask = above_floor(samples.dop, evidence, floor, opts)
-    pol_weight = evidence if opts.pol.dop_weight else None
-    if pol_weight is not None and opts.pol.dop_weight_power != 1.0:
-        pol_weight = pol_weight.clamp_min(0.0) ** opts.pol.dop_weight_power
-    if pol_weight is not None and opts.pol.dop_weight_normalized:
-        used = pol_weight if pol_mask is None else pol_weight[pol_mask]
-        pol_weight = pol_weight / (used.mean() if used.numel() else pol_weight.new_tensor(1.0)).clamp_min(
-            1e-6
-        )
+    pol_weight = pol_pair_weights(samples, evidence, pol_mask, opts)
     return StageProblem(
         faces=topo.faces,
         face_pairs=topo.face_pairs,

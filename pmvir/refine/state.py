@@ -46,6 +46,8 @@ class StageLog:
             every pair is kept; None when no pair was evidence and E_pol was off). With measured
             noise (``pol.aop_noise`` 'closure') an 'evidence' floor is on :func:`pol_evidence`'s scale,
             the DoP at the stage's median noise.
+        pol_weight_mean: E_pol's mean pair weight over the pairs it used (1 with the default
+            normalized DoP weights; below 1 with ``pol.aop_noise_scale_deg``); None without weights.
         energies: per iteration (0 = the stage's start), the unweighted terms
             ``pho``, ``pol`` (only with E_pol), ``gsm``, ``psm`` and the weighted ``total``.
         grad_max: per iteration, the largest gradient component (preconditioned unknowns).
@@ -64,6 +66,7 @@ class StageLog:
     n_observed: int
     pol_pairs: int
     dop_floor: float | None
+    pol_weight_mean: float | None
     energies: list[dict[str, float]]
     grad_max: list[float]
     evaluations: int
@@ -257,4 +260,5 @@ class StageData:
     h: float
     dop_floor: torch.Tensor | float | None
     pol_pairs: int
+    pol_weight_mean: float | None  # E_pol's mean pair weight over the pairs it uses (None: unweighted)
     pho_signal: float  # E_pho's value with nothing rendered, at the stage's start (E_light's scale)

@@ -824,3 +824,63 @@ def test_lighting_coupling_recovers_the_shading_of_normals_a_view_does_not_see(p
     fit = coupled.lighting_fit
     assert free.lighting_fit is None and fit is not None and "lighting" in coupled.timings
     assert "light" in fit.energies[-1] and fit.energies[-1]["light"] < fit.energies[0]["light"]
+
+
+def test_aop_noise_deg_is_the_spread_of_the_aop_the_closure_residual_predicts() -> None:
+    """Blocks of four polarizer samples (0, 45, 90, 135 deg) with Gaussian noise: the closure
+    residual's RMS over s0, divided by 2 sqrt(2) rho, is the AoP's standard deviation (degrees),
+    at two DoPs and two noise levels."""
+    import torch
+
+    from pmvir.refine.floors import aop_noise_deg
+
+    rng = np.random.default_rng(7)
+    angles = np.radians([0.0, 45.0, 90.0, 135.0])
+    for rho, sd in ((0.3, 0.01), (0.1, 0.004)):
+        phi = np.radians(30.0)
+        clean = 0.5 * (1.0 + rho * np.cos(2.0 * (angles - phi)))  # s0 = 1
+        samples = clean + rng.normal(0.0, sd, size=(200_000, 4))
+        s0 = 0.5 * samples.sum(axis=1)
+        s1, s2 = samples[:, 0] - samples[:, 2], samples[:, 1] - samples[:, 3]
+        aop = 0.5 * np.arctan2(s2, s1)
+        spread = np.degrees(np.std(aop - phi))
+        sigma = np.sqrt(np.mean(((samples[:, 0] + samples[:, 2] - samples[:, 1] - samples[:, 3]) / s0) ** 2))
+        base = _evidence_samples(1, 0.0)
+        one = replace(base, dop=torch.tensor([rho], dtype=torch.float64), aop_noise=torch.tensor([sigma]))
+        nu = aop_noise_deg(one)
+        assert nu is not None
+        assert float(nu[0]) == pytest.approx(spread, rel=0.03)
+
+
+def test_aop_noise_weight_is_absolute_and_replaces_the_normalized_dop_weights() -> None:
+    """refine.pol.aop_noise_scale_deg > 0: a pair weighs 1 / (1 + (nu / scale)^2), unmeasured noise
+    counts as the median; a capture with twice the noise weighs E_pol less overall (no normalization),
+    where the default DoP weights of both captures average 1."""
+    import torch
+
+    from pmvir.refine.floors import aop_noise_deg, aop_noise_weight, pol_evidence, pol_pair_weights
+
+    base = _evidence_samples(6, 0.0)
+    assert aop_noise_weight(base, 20.0) is None  # no noise maps
+    noise = torch.tensor([0.02, 0.04, float("nan"), 0.02, 0.08, 0.04], dtype=torch.float64)
+    samples = replace(base, aop_noise=noise)
+    nu = aop_noise_deg(samples)
+    assert nu is not None
+    assert float(nu[2] * base.dop[2]) == pytest.approx(float(nu[1] * base.dop[1]))  # NaN -> median 0.04
+    w = aop_noise_weight(samples, 20.0)
+    assert w is not None
+    torch.testing.assert_close(w, 1.0 / (1.0 + (nu / 20.0) ** 2))
+    loud_samples = replace(samples, aop_noise=2 * noise)
+
+    def weights(s, opts):
+        return pol_pair_weights(s, pol_evidence(s), None, opts)
+
+    default = RefineOptions()
+    assert float(weights(samples, default).mean()) == pytest.approx(1.0)  # normalized DoP weights
+    assert float(weights(loud_samples, default).mean()) == pytest.approx(1.0)
+    absolute = RefineOptions(pol={"aop_noise_scale_deg": 20.0})
+    torch.testing.assert_close(weights(samples, absolute), w)
+    assert float(weights(loud_samples, absolute).mean()) < 0.9 * float(w.mean())
+    assert bool((weights(loud_samples, absolute) < w).all())
+    assert weights(base, absolute) is not None  # no noise maps: the DoP weights
+    assert pol_pair_weights(base, base.dop, None, RefineOptions(pol={"dop_weight": False})) is None
