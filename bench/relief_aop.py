@@ -29,8 +29,11 @@ from pmvir.capture import open_capture
 from pmvir.config import DecodeOptions
 from pmvir.decode import decode_frame
 from pmvir.polarization.azimuth import perspective_azimuth
+from pmvir.polarization.noise import closure_noise
 
 ROOT = Path(__file__).resolve().parent
+#: The "polarized" pixels: a decoded DoP at least this (E_pol's default floor, refine.pol.dop_min).
+POL_DOP = 0.05
 
 
 def err_mod_90(aop: np.ndarray, alpha: np.ndarray) -> np.ndarray:
@@ -63,25 +66,37 @@ def measure(capture: Path, sigma_px: float, min_deg: float) -> dict:
             regions = {"relief": relief_pixels(normal.astype(np.float32), mask, sigma_px, min_deg) & defined,
                        "all": cv2.erode(mask.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool) & defined}
             raw = cap.read_raw(i)
-            images = {"noise-free (renderer)": (true_aop, None)}
+            images = {"noise-free (renderer)": (true_aop, None, None)}
             for name, opts in decodings.items():
                 d = decode_frame(raw.mosaic, cap.layout, saturated=raw.saturated, mask=cap.read_mask(i),
                                  options=opts)
-                images[name] = (d.aop, d.dop)
+                # the AoP noise E_pol's absolute weight predicts (refine.pol.aop_noise_scale_deg)
+                sigma = closure_noise(raw.mosaic, cap.layout, valid=d.valid, sigma_px=3.0)
+                nu = np.degrees(sigma / (2.0 * np.sqrt(2.0) * np.maximum(d.dop, 1e-3)))
+                images[name] = (d.aop, d.dop, nu)
                 for region in regions:
                     regions[region] &= d.valid
-            for name, (aop, dop) in images.items():
+            for name, (aop, dop, nu) in images.items():
                 err = err_mod_90(aop, alpha)
-                for region, sel in regions.items():
-                    a = acc.setdefault(f"{name}|{region}", {"err": [], "dop": []})
+                polarized = regions["all"] & (np.ones_like(err, bool) if dop is None else dop >= POL_DOP)
+                for region, sel in (*regions.items(), ("polarized", polarized)):
+                    a = acc.setdefault(f"{name}|{region}", {"err": [], "dop": [], "nu": []})
                     a["err"].append(err[sel])
                     a["dop"].append(np.ones(int(sel.sum())) if dop is None else dop[sel].astype(np.float64))
+                    a["nu"].append(np.full(int(sel.sum()), np.nan) if nu is None else nu[sel].astype(np.float64))
     out = {}
     for key, a in acc.items():
-        err, w = np.concatenate(a["err"]), np.concatenate(a["dop"])
+        err, w, nu = np.concatenate(a["err"]), np.concatenate(a["dop"]), np.concatenate(a["nu"])
+        finite = nu[np.isfinite(nu)]
         out[key] = {"mean_deg": float(err.mean()), "median_deg": float(np.median(err)),
-                    "dop_weighted_deg": float((err * w).sum() / max(w.sum(), 1e-12)), "pixels": int(err.size)}
+                    "dop_weighted_deg": float((err * w).sum() / max(w.sum(), 1e-12)), "pixels": int(err.size),
+                    "predicted_noise_median_deg": float(np.median(finite)) if finite.size else None}
     return out
+
+
+def dop_free(name: str) -> bool:
+    """The renderer's AoP comes without a decoded DoP: no "polarized" row for it."""
+    return name.startswith("noise-free")
 
 
 def main() -> None:
@@ -98,18 +113,24 @@ def main() -> None:
         data[str(capture)] = res
         rows = []
         for name in ("noise-free (renderer)", "decoded (default)", "decoded, unbiased DoP"):
-            for region in ("relief", "all"):
+            for region in ("relief", "all") if dop_free(name) else ("relief", "all", "polarized"):
                 r = res[f"{name}|{region}"]
+                nu = r["predicted_noise_median_deg"]
                 rows.append([name, region, r["pixels"], round(r["mean_deg"], 2), round(r["median_deg"], 2),
-                             round(r["dop_weighted_deg"], 2)])
-        print(f"{capture}\n{'AoP':<24} {'pixels':<7} {'count':>8} {'mean':>6} {'median':>6} {'DoP-w':>6}  (deg, mod 90)")
+                             round(r["dop_weighted_deg"], 2), None if nu is None else round(nu, 2)])
+        print(f"{capture}\n{'AoP':<24} {'pixels':<9} {'count':>8} {'mean':>6} {'median':>6} {'DoP-w':>6} {'nu':>6}"
+              "  (deg, mod 90)")
         for row in rows:
-            print(f"{row[0]:<24} {row[1]:<7} {row[2]:8d} {row[3]:6.2f} {row[4]:6.2f} {row[5]:6.2f}")
+            print(f"{row[0]:<24} {row[1]:<9} {row[2]:8d} {row[3]:6.2f} {row[4]:6.2f} {row[5]:6.2f} "
+                  f"{'-' if row[6] is None else format(row[6], '6.2f')}")
         made = capture_description(capture)
         tables.append(table(f"{capture.name} ({made}): AoP error modulo 90 deg against the true normal's azimuth",
-                            ["AoP", "pixels", "count", "mean deg", "median deg", "DoP-weighted deg"], rows,
+                            ["AoP", "pixels", "count", "mean deg", "median deg", "DoP-weighted deg",
+                             "predicted noise median deg"], rows,
                             note=f"relief: the true normal turns > {args.relief_deg} deg from its blur over "
-                            f"{args.relief_px} px"))
+                            f"{args.relief_px} px; polarized: all pixels with a decoded DoP of at least "
+                            f"{POL_DOP}; predicted noise: closure residual / (2 sqrt(2) DoP), the nu of "
+                            "refine.pol.aop_noise_scale_deg"))
     write_results(
         "relief_aop", title="Decoded AoP against the true azimuth at relief pixels", path=args.out,
         peer="the renderer's noise-free AoP", tables=tables,

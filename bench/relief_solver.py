@@ -98,6 +98,11 @@ def main() -> None:
                         "--material", "plastic", "--seed", str(args.seed), "--out", str(capture), "--force",
                         "--quiet"], check=True)
     runs = [_measure(capture, args.work, args.common, v[0], v[1:]) for v in (args.variants or DEFAULT_VARIANTS)]
+    write_table(runs, capture_description(capture), args.common, args.results)
+
+
+def write_table(runs: list[dict], capture: str, common: list[str], results: str, extra_note: str = "") -> None:
+    """Print the variants' table and write bench/results/<results>.json (``capture``: its description)."""
     mvir = next((r for r in runs if r["variant"] == "mvir"), None)
     initial = runs[0]["initial"]
     columns = ["variant", "refine s", "evaluations", "accuracy x1e-2", "accuracy gain over initial",
@@ -112,14 +117,15 @@ def main() -> None:
             round(r["normal_error_median"], 2), round(r["normal_error"], 2),
             None if mvir is None else round(r["normal_error_median"] / mvir["normal_error_median"], 2),
         ])
-    note = (f"Capture: {capture_description(capture)}"
-            + (f"; common options {', '.join(args.common)}" if args.common else "")
-            + ". Every variant starts from the same initial surface; distances in GT bounding-box diagonals.")
+    note = (f"Capture: {capture}"
+            + (f"; common options {', '.join(common)}" if common else "")
+            + ". Every variant starts from the same initial surface; distances in GT bounding-box diagonals."
+            + extra_note)
     tab = table("Refinement variants on fine relief", columns, rows, note=note)
     print(" | ".join(columns))
     for row in rows:
         print(" | ".join(str(c) for c in row))
-    write_results(args.results, title="The refinement on fine relief", tables=[tab],
+    write_results(results, title="The refinement on fine relief", tables=[tab],
                   peer="MVIR (refine.pol.enabled=false)", data={"runs": runs})
 
 

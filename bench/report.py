@@ -98,18 +98,40 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         "MVIR (refine.pol.enabled=false)",
     ),
     "fairing_knot": (
-        "Fairing on a torus knot (genus 1)",
+        "Fairing and E_pol's weights on a torus knot (genus 1)",
         f"{PY} bench/relief_solver.py --shape knot --results fairing_knot --variant full "
         "--variant no-fairing refine.surface.fair_iterations=0 --variant fairing-in-edges "
-        "refine.surface.fair_reference_area_px=0 --variant mvir refine.pol.enabled=false",
+        "refine.surface.fair_reference_area_px=0 --variant abs-4 refine.pol.aop_noise_scale_deg=4 "
+        "--variant mvir refine.pol.enabled=false",
         "MVIR (refine.pol.enabled=false)",
     ),
     "fairing_gear": (
-        "Fairing on a gear (thin teeth)",
+        "Fairing and E_pol's weights on a gear (thin teeth)",
         f"{PY} bench/relief_solver.py --shape gear --results fairing_gear --variant full "
         "--variant no-fairing refine.surface.fair_iterations=0 --variant fairing-in-edges "
-        "refine.surface.fair_reference_area_px=0 --variant mvir refine.pol.enabled=false",
+        "refine.surface.fair_reference_area_px=0 --variant abs-4 refine.pol.aop_noise_scale_deg=4 "
+        "--variant mvir refine.pol.enabled=false",
         "MVIR (refine.pol.enabled=false)",
+    ),
+    "aop_noise_weight_pathtraced": (
+        "E_pol weighted by the AoP's absolute noise: path-traced rock, 80 iterations",
+        f"{PY} bench/relief_solver.py --capture CAPTURE --results aop_noise_weight_pathtraced "
+        "--set geometry.subdivision.max_area_px=8 --set refine.offset_scan.mode=start --variant full "
+        "--variant abs-4 refine.pol.aop_noise_scale_deg=4 ... --variant mvir refine.pol.enabled=false",
+        "MVIR (refine.pol.enabled=false)",
+    ),
+    "aop_noise_weight_builtin": (
+        "E_pol weighted by the AoP's absolute noise: built-in rock, 80 iterations",
+        f"{PY} bench/relief_solver.py --results aop_noise_weight_builtin "
+        "--set geometry.subdivision.max_area_px=8 --set refine.offset_scan.mode=start --variant full "
+        "--variant abs-4 refine.pol.aop_noise_scale_deg=4 ... --variant mvir refine.pol.enabled=false",
+        "MVIR (refine.pol.enabled=false)",
+    ),
+    "aop_noise_weight_stanford": (
+        "E_pol weighted by the AoP's absolute noise: Stanford models",
+        f"{PY} bench/refine.py --tables ablation --ablation-rows full aop_noise_weight mvir "
+        "--out bench/results/aop_noise_weight_stanford.json",
+        "MVIR (--no-polarimetric)",
     ),
     "coarse_to_fine": (
         "Coarse to fine (refine.stages.coarse)",

@@ -94,7 +94,7 @@ class PolOptions(_Options):
         default=0.0, ge=0.0, le=90.0,
         description="> 0: E_pol weights each pair by 1 / (1 + (nu / this)^2), nu its AoP noise (deg) from the "
         "closure residual, not normalized per capture; 0: the DoP weights above.",
-        json_schema_extra=advanced("deg"),
+        json_schema_extra=basic("deg"),
     )
     aop_noise: Literal["closure", "uniform"] = Field(
         default="closure",
