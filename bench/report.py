@@ -54,7 +54,7 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         "Refinement started from the true surface of a path-traced capture",
         f"{PY} bench/refine_from_truth.py CAPTURE --out bench/results/refine_from_truth_pathtraced.json "
         "--variant full --variant mvir pol.enabled=false --variant flat-15 'stages.tau_pol=[15,15,15]' "
-        "--variant flat-5 'stages.tau_pol=[5,5,5]'",
+        "--variant flat-5 'stages.tau_pol=[5,5,5]' --variant abs-4 pol.aop_noise_scale_deg=4",
         "MVIR",
     ),
     "relief_aop": (
