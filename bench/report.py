@@ -120,6 +120,15 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         "--variant abs-4 refine.pol.aop_noise_scale_deg=4 ... --variant mvir refine.pol.enabled=false",
         "MVIR (refine.pol.enabled=false)",
     ),
+    "aop_noise_weight_knot_pathtraced": (
+        "E_pol weighted by the AoP's absolute noise: path-traced torus knot, 80 iterations",
+        ".venv/bin/pmvir synth --shape knot --renderer mitsuba --spp 64 --lighting envmap --views 36 --size 612x512 "
+        f"--seed 13 --out CAPTURE; {PY} bench/relief_solver.py --capture CAPTURE "
+        "--results aop_noise_weight_knot_pathtraced --set geometry.subdivision.max_area_px=8 "
+        "--set refine.offset_scan.mode=start --variant full --variant abs-4 refine.pol.aop_noise_scale_deg=4 "
+        "--variant mvir refine.pol.enabled=false",
+        "MVIR (refine.pol.enabled=false)",
+    ),
     "aop_noise_weight_builtin": (
         "E_pol weighted by the AoP's absolute noise: built-in rock, 80 iterations",
         f"{PY} bench/relief_solver.py --results aop_noise_weight_builtin "
