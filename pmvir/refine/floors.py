@@ -27,22 +27,28 @@ def stage_dop_floor(samples: PairSamples, opts: RefineOptions) -> torch.Tensor |
 
 
 
-def pol_pair_count(samples: PairSamples, problem: StageProblem) -> int:
-    """The pairs E_pol uses at the stage's start (defined AoP, DoP at or above the floor)."""
+def _pol_used(samples: PairSamples, problem: StageProblem) -> torch.Tensor | None:
+    """(P,) bool: the pairs E_pol uses at the stage's start (defined AoP, DoP at or above the floor);
+    None without AoP samples."""
     if samples.aop_defined is None:
-        return 0
-    used = samples.aop_defined if problem.pol_mask is None else samples.aop_defined & problem.pol_mask
-    return int(used.sum())
+        return None
+    return samples.aop_defined if problem.pol_mask is None else samples.aop_defined & problem.pol_mask
+
+
+def pol_pair_count(samples: PairSamples, problem: StageProblem) -> int:
+    """The number of pairs E_pol uses at the stage's start (:func:`_pol_used`)."""
+    used = _pol_used(samples, problem)
+    return 0 if used is None else int(used.sum())
 
 
 
 def pol_weight_mean(samples: PairSamples, problem: StageProblem) -> float | None:
-    """E_pol's mean pair weight over the pairs it uses at the stage's start (see :func:`pol_pair_count`);
+    """E_pol's mean pair weight over the pairs it uses at the stage's start (:func:`_pol_used`);
     None without weights or without such pairs."""
-    if problem.pol_weight is None or samples.aop_defined is None:
+    used = _pol_used(samples, problem)
+    if problem.pol_weight is None or used is None or not bool(used.any()):
         return None
-    used = samples.aop_defined if problem.pol_mask is None else samples.aop_defined & problem.pol_mask
-    return float(problem.pol_weight[used].mean()) if bool(used.any()) else None
+    return float(problem.pol_weight[used].mean())
 
 
 
