@@ -67,6 +67,18 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/refine_speed.py",
         "the CPU run on the same machine (for --device cuda)",
     ),
+    "refine_speed_gpu": (
+        "Refinement speed on a GPU, beside the same machine's CPU",
+        f"{PY} bench/refine_speed.py --device cuda --peer cpu --max-iterations 20 --results refine_speed_gpu "
+        "(on a GPU machine: bash tools/device/gpu_check.sh)",
+        "the CPU run on the same machine",
+    ),
+    "refine_speed_cuda": (
+        "Refinement speed on a GPU at the default iterations",
+        f"{PY} bench/refine_speed.py --device cuda --results refine_speed_cuda "
+        "(on a GPU machine: bash tools/device/gpu_check.sh)",
+        None,
+    ),
     "relief_solver": (
         "The refinement on fine relief: fairing, preconditioner, iterations",
         f"{PY} bench/relief_solver.py",

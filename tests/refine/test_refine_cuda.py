@@ -1,6 +1,7 @@
 """The refinement on CUDA: the CPU's energies, gradients and result (skipped where torch sees no GPU).
 
-CI has no GPU; these run on a machine with one (the README's Benchmarks say when they last did).
+CI has no GPU; these run on a machine with one (``bash tools/device/gpu_check.sh``; the benchmarks
+page's GPU sections say when they last did).
 """
 
 from __future__ import annotations

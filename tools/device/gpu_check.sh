@@ -1,6 +1,7 @@
 #!/bin/bash
 # The refinement's CUDA path on a lent GPU machine: tests/refine/test_refine_cuda.py (with the CPU
-# tests of the energy beside it) and bench/refine_speed.py on the GPU against the same machine's CPU.
+# tests of the energy beside it), bench/refine_speed.py on the GPU beside the same machine's CPU (20
+# iterations, one run, as a ratio) and on the GPU alone at the default iterations.
 # Needs .dev/ from tools/device/gpu_payload.sh (carried). NO_BENCH=1: the tests only; PYTEST_ARGS: other tests.
 cd "$(dirname "$0")/../.." || exit 1
 OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"; LOG=$OUT/run.log
@@ -15,8 +16,9 @@ python3 -c "import torch, open3d, pydantic, cv2, scipy; print('torch', torch.__v
 python3 -c "import open3d" || exit 1
 python3 -m pytest -p no:cacheprovider -q -o addopts="-ra --timeout=300" ${PYTEST_ARGS:-tests/refine/test_refine_cuda.py tests/refine/test_refine_energy.py} 2>&1 | tail -n 30 | tee -a "$LOG"
 [ "${NO_BENCH:-0}" = 1 ] && exit 0
-for run in "cuda 20" "cpu 20" "cuda 80"; do
-  set -- $run
-  echo "== refine_speed --device $1 --max-iterations $2" | tee -a "$LOG"
-  timeout 400 python3 bench/refine_speed.py --device $1 --max-iterations $2 --out "$OUT/refine_speed_$1_$2.json" 2>>"$OUT/errors.log" | tee -a "$LOG"
-done
+echo "== refine_speed --device cuda --peer cpu --max-iterations 20" | tee -a "$LOG"
+timeout 420 python3 bench/refine_speed.py --device cuda --peer cpu --max-iterations 20 --results refine_speed_gpu \
+  --out "$OUT/refine_speed_gpu.json" 2>>"$OUT/errors.log" | tee -a "$LOG"
+echo "== refine_speed --device cuda (default iterations)" | tee -a "$LOG"
+timeout 200 python3 bench/refine_speed.py --device cuda --results refine_speed_cuda \
+  --out "$OUT/refine_speed_cuda.json" 2>>"$OUT/errors.log" | tee -a "$LOG"
