@@ -83,6 +83,7 @@ VARIANTS: dict[str, dict] = {
     "no_relax": {"surface": {"relax_iterations": 0}},
     "no_fairing": {"surface": {"fair_iterations": 0}},
     "aop_noise_weight": {"pol": {"aop_noise_scale_deg": 4.0}},
+    "absolute_intensity": {"pho": {"intensity_scale": "absolute", "intensity_units": 32.0}},
 }
 LABELS = {
     "initial": "initial surface",
@@ -96,6 +97,7 @@ LABELS = {
     "no_relax": "no tangential relaxation",
     "no_fairing": "no fairing",
     "aop_noise_weight": "E_pol weighted by absolute AoP noise (pol.aop_noise_scale_deg 4)",
+    "absolute_intensity": "E_pho in fixed units (pho.intensity_scale absolute, units 32)",
 }
 ROWS = {
     "main": ("initial", "mvir", "full"),
@@ -108,6 +110,7 @@ ROWS = {
         "no_relax",
         "no_fairing",
         "aop_noise_weight",
+        "absolute_intensity",
         "i_int",
         "mvir",
     ),
@@ -728,7 +731,7 @@ def main() -> None:
         f"load average {os.getloadavg()[0]:.1f}; wall {doc['wall_s']:.0f} s"
     )
     tmp = write_results(
-        "refine",
+        args.out.stem,  # the page's section: refine.json, or another --out's name
         title="Refinement against ground truth",
         path=args.out.with_suffix(".json.tmp"),
         peer="MVIR (the same refinement without E_pol)",

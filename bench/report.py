@@ -154,6 +154,28 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         "--out bench/results/aop_noise_weight_stanford.json",
         "MVIR (--no-polarimetric)",
     ),
+    "median_intensity_pathtraced": (
+        "E_pho in multiples of the median intensity: path-traced rock, 80 iterations",
+        f"{PY} bench/relief_solver.py --capture CAPTURE --results median_intensity_pathtraced "
+        "--set geometry.subdivision.max_area_px=8 --set refine.offset_scan.mode=start "
+        "--set refine.pho.intensity_scale=median --set refine.pho.intensity_units=6.4 "
+        "--variant full --variant mvir refine.pol.enabled=false",
+        "MVIR (refine.pol.enabled=false)",
+    ),
+    "median_intensity_builtin": (
+        "E_pho in multiples of the median intensity: built-in rock, 80 iterations",
+        f"{PY} bench/relief_solver.py --results median_intensity_builtin "
+        "--set geometry.subdivision.max_area_px=8 --set refine.offset_scan.mode=start "
+        "--set refine.pho.intensity_scale=median --set refine.pho.intensity_units=6.4 "
+        "--variant full --variant mvir refine.pol.enabled=false",
+        "MVIR (refine.pol.enabled=false)",
+    ),
+    "median_intensity_stanford": (
+        "E_pho in multiples of the median intensity: Stanford models",
+        f"{PY} bench/refine.py --tables ablation --ablation-rows full absolute_intensity mvir "
+        "--out bench/results/median_intensity_stanford.json",
+        "MVIR (--no-polarimetric)",
+    ),
     "coarse_to_fine": (
         "Coarse to fine (refine.stages.coarse)",
         f"{PY} bench/coarse_to_fine.py",

@@ -149,15 +149,15 @@ class PhoOptions(_Options):
         json_schema_extra=advanced(),
     )
     intensity_scale: Literal["median", "absolute"] = Field(
-        default="absolute",
-        description="Unit of E_pho and E_psm intensities: 'absolute' (normalized units times "
-        "intensity_units) or 'median' (multiples of the capture's median intensity).",
+        default="median",
+        description="Unit of E_pho and E_psm intensities: 'median' (multiples of the capture's median "
+        "intensity, independent of exposure) or 'absolute' (normalized units times intensity_units).",
         json_schema_extra=advanced(),
     )
     intensity_units: float = Field(
-        default=32.0, gt=0.0,
+        default=6.4, gt=0.0,
         description="Intensities and albedos are multiplied by this in E_pho and E_psm: the balance between "
-        "them and E_pol / E_gsm (use about 6.4 with intensity_scale 'median').",
+        "them and E_pol / E_gsm (about 32 with intensity_scale 'absolute').",
         json_schema_extra=advanced(),
     )
     diffuse_fresnel_ior: float = Field(

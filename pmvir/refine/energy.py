@@ -6,9 +6,9 @@ E_light (not the paper's, ``RefineOptions.lighting.coupling``) ties the views' l
 
 All functions are pure, vectorized over every (vertex, view) pair / face /
 edge, and differentiable with autograd. Intensities and albedos are in the
-capture's normalized units times ``units`` (the configured default is 32,
-``RefineOptions.pho.intensity_units``: the paper's weights assume an intensity scale
-its text does not fix, and 32 measured best; see :class:`pmvir.config.RefineOptions`).
+capture's normalized units times ``units`` (by default 6.4 over the capture's median
+intensity, ``RefineOptions.pho.intensity_scale`` and ``intensity_units``: the paper's weights
+assume an intensity scale its text does not fix; see :class:`pmvir.config.RefineOptions`).
 """
 
 from __future__ import annotations
