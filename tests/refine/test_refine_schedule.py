@@ -391,6 +391,8 @@ def test_median_intensity_units_follow_the_observations() -> None:
         intensity_units(obs, RefineOptions(pho={"intensity_units": 4.0, "intensity_scale": "absolute"}))
         == 4.0
     )
+    # the default follows the capture's median: 6.4 over it, whatever the exposure
+    assert intensity_units(obs, RefineOptions()) == pytest.approx(6.4 / 0.4)
     dark = [Observation(np.zeros((2, 3, 3), np.float32), np.zeros((2, 3)), np.zeros((2, 3)), valid)]
     with pytest.raises(ReconstructionError, match="no view has a valid pixel"):
         intensity_units(dark, RefineOptions(pho={"intensity_scale": "median"}))
