@@ -70,7 +70,8 @@ class AlbedoSolver:
         self.degree = torch.from_numpy(np.bincount(edges[:, 0], w, n) + np.bincount(edges[:, 1], w, n)).to(
             device
         )[:, None]
-        self.adjacency = adjacency_csr(edges, w, n, device=device, dtype=torch.float64)
+        # 2 tau3 W: the off-diagonal part of the system's matrix, scaled once.
+        self.adjacency = adjacency_csr(edges, 2.0 * self.tau * w, n, device=device, dtype=torch.float64)
         self.iterations = 0
         w_pair = pairs.weight if pair_weight is None else pairs.weight * pair_weight
         self._pair_weight = w_pair.detach().to(torch.float64)[:, None]
@@ -86,15 +87,15 @@ class AlbedoSolver:
             mean_diag = float(diag.mean()) if float(diag.mean()) > 0 else 1.0
             ridge = self.ridge * mean_diag
             rhs = rhs + ridge * self._x
-            d = diag + ridge
-            lap = 2.0 * self.tau
+            # The system's diagonal D + 2 tau3 deg (also the Jacobi preconditioner's inverse).
+            diagonal = diag + ridge + (2.0 * self.tau) * self.degree
+            coupled = self.tau != 0.0
 
             def matvec(x: torch.Tensor) -> torch.Tensor:
-                if lap == 0.0:
-                    return d * x
-                return d * x + lap * (self.degree * x - self.adjacency @ x)
+                ax = diagonal * x
+                return ax.sub_(self.adjacency @ x) if coupled else ax
 
-            precond = 1.0 / (d + lap * self.degree)
+            precond = 1.0 / diagonal
             x = self._x.clone()
             r = rhs - matvec(x)
             rhs_norm = rhs.norm(dim=0).clamp_min(1e-300)
@@ -108,11 +109,11 @@ class AlbedoSolver:
                     break
                 ap = matvec(p)
                 alpha = rz / (p * ap).sum(0).clamp_min(1e-300)
-                x = x + alpha * p
-                r = r - alpha * ap
-                z = precond * r
+                x.addcmul_(p, alpha)
+                r.addcmul_(ap, alpha, value=-1.0)
+                torch.mul(precond, r, out=z)
                 rz_new = (r * z).sum(0)
-                p = z + (rz_new / rz.clamp_min(1e-300)) * p
+                p = p.mul_(rz_new / rz.clamp_min(1e-300)).add_(z)
                 rz = rz_new
             self.iterations = it
             self._x = x

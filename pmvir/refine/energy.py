@@ -61,7 +61,9 @@ def azimuth_distance(alpha: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
 
     The seven terms |alpha - phi + o|, o in ``ETA_OFFSETS``, with alpha in [0, 2 pi) and
     phi in [0, pi] put alpha - phi in (-pi, 2 pi); the seven candidates are spaced
-    pi/2 over [-pi, 2 pi], so eta <= pi/4 always (theta in [0, 1]).
+    pi/2 over [-pi, 2 pi], so eta <= pi/4 always (theta in [0, 1]). Their minimum is the distance
+    from alpha - phi to the nearest multiple of pi/2, computed as such (one remainder instead of
+    seven candidates; the same value and derivative).
 
     Args:
         alpha: (...) azimuth, radians in [0, 2 pi).
@@ -70,8 +72,8 @@ def azimuth_distance(alpha: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
     Returns:
         (...) eta in [0, pi/4].
     """
-    d = alpha - phi
-    return torch.stack([(d + o).abs() for o in ETA_OFFSETS], dim=0).amin(dim=0)
+    quarter = 0.5 * math.pi
+    return (torch.remainder(alpha - phi + 0.5 * quarter, quarter) - 0.5 * quarter).abs()
 
 
 def polarimetric_cost(eta: torch.Tensor, *, k: float) -> torch.Tensor:

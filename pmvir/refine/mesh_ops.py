@@ -144,12 +144,21 @@ def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 
 
 def adjacency_csr(
-    edges: np.ndarray, weights: np.ndarray, n_vertices: int, *, device: torch.device, dtype: torch.dtype
+    edges: np.ndarray,
+    weights: np.ndarray,
+    n_vertices: int,
+    *,
+    device: torch.device,
+    dtype: torch.dtype,
+    row_scale: np.ndarray | None = None,
 ) -> torch.Tensor:
-    """Symmetric (N, N) sparse CSR matrix with ``weights[e]`` at (i, j) and (j, i) of every edge (i, j)."""
+    """Symmetric (N, N) sparse CSR matrix with ``weights[e]`` at (i, j) and (j, i) of every edge (i, j);
+    with ``row_scale`` (N,), row i is multiplied by ``row_scale[i]`` (then no longer symmetric)."""
     rows = np.concatenate([edges[:, 0], edges[:, 1]])
     cols = np.concatenate([edges[:, 1], edges[:, 0]])
     vals = np.concatenate([weights, weights]).astype(np.float64)
+    if row_scale is not None:
+        vals = vals * np.asarray(row_scale, dtype=np.float64)[rows]
     order = np.lexsort((cols, rows))
     crow = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=n_vertices))])
     with warnings.catch_warnings():  # sparse CSR is "beta" in torch; matrix-vector products are all we use
@@ -193,8 +202,11 @@ class GraphSmoother:
     ):
         self.lam, self.iterations = lam, iterations
         deg = np.bincount(edges.reshape(-1), minlength=n_vertices).astype(np.float64)
-        self.dinv = torch.from_numpy(1.0 / (1.0 + lam * deg)).to(device=device, dtype=dtype)
-        self.w = adjacency_csr(edges, np.full(len(edges), lam), n_vertices, device=device, dtype=dtype)
+        dinv = 1.0 / (1.0 + lam * deg)
+        self.dinv = torch.from_numpy(dinv).to(device=device, dtype=dtype)
+        # D^-1 lam W as one matrix (row i scaled by dinv_i): one sparse product per term, no extra scaling.
+        self.w = adjacency_csr(edges, np.full(len(edges), lam), n_vertices, device=device, dtype=dtype,
+                               row_scale=dinv)
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         """M @ x for x of shape (N,) or (N, k)."""
@@ -202,10 +214,9 @@ class GraphSmoother:
             return x
         vec = x.ndim == 1
         y = x[:, None] if vec else x
-        d = self.dinv[:, None]
-        term = d * y
+        term = self.dinv[:, None] * y
         acc = term.clone()
         for _ in range(self.iterations):
-            term = d * (self.w @ term)
-            acc = acc + term
+            term = self.w @ term
+            acc.add_(term)
         return acc[:, 0] if vec else acc

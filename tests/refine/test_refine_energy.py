@@ -130,10 +130,14 @@ def test_polarimetric_term_matches_figure_through_camera_normals() -> None:
 
 
 def test_eta_is_at_most_quarter_pi_over_the_whole_range() -> None:
-    """alpha in [0, 2 pi) (as azimuth() returns) and phi in [0, pi]: the seven offsets cover every case."""
+    """alpha in [0, 2 pi) (as azimuth() returns) and phi in [0, pi]: the seven offsets cover every case,
+    and the closed form azimuth_distance computes equals the paper's minimum over the seven terms."""
     a, p = np.meshgrid(np.linspace(0, 2 * np.pi, 721)[:-1], np.linspace(0, np.pi, 361), indexing="ij")
+    a = a + 1e-3 * np.sin(7 * p)  # off the grid of exact ties between two candidates
     eta = azimuth_distance(torch.from_numpy(a), torch.from_numpy(p)).numpy()
     assert eta.max() <= np.pi / 4 + 1e-12
+    literal = np.min([np.abs(a - p + o) for o in ETA_OFFSETS], axis=0)
+    np.testing.assert_allclose(eta, literal, atol=1e-12)
     periodic = np.abs(np.mod(a - p + np.pi / 4, np.pi / 2) - np.pi / 4)
     np.testing.assert_allclose(eta, periodic, atol=1e-12)
     theta = 1 - 4 * eta / np.pi
