@@ -170,6 +170,24 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         "--variant full --variant mvir refine.pol.enabled=false",
         "MVIR (refine.pol.enabled=false)",
     ),
+    "median_intensity_knot": (
+        "E_pho in multiples of the median intensity: built-in knot, 15 iterations",
+        f"{PY} bench/relief_solver.py --shape knot --results median_intensity_knot "
+        "--set geometry.subdivision.max_area_px=8 --set refine.solver.max_iterations=15 "
+        "--set refine.offset_scan.mode=start --variant full "
+        "--variant absolute-32 refine.pho.intensity_scale=absolute refine.pho.intensity_units=32 "
+        "--variant mvir refine.pol.enabled=false",
+        "MVIR (refine.pol.enabled=false)",
+    ),
+    "median_intensity_gear": (
+        "E_pho in multiples of the median intensity: built-in gear, 15 iterations",
+        f"{PY} bench/relief_solver.py --shape gear --results median_intensity_gear "
+        "--set geometry.subdivision.max_area_px=8 --set refine.solver.max_iterations=15 "
+        "--set refine.offset_scan.mode=start --variant full "
+        "--variant absolute-32 refine.pho.intensity_scale=absolute refine.pho.intensity_units=32 "
+        "--variant mvir refine.pol.enabled=false",
+        "MVIR (refine.pol.enabled=false)",
+    ),
     "median_intensity_stanford": (
         "E_pho in multiples of the median intensity: Stanford models",
         f"{PY} bench/refine.py --tables ablation --ablation-rows full absolute_intensity mvir "
