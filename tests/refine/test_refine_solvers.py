@@ -159,3 +159,10 @@ def test_projected_albedo_solves_the_normal_equations() -> None:
     )
     (g,) = torch.autograd.grad(energy, kk)
     assert float(g.abs().max()) < 1e-6 * float(energy.detach())
+    # The refinement's float32: the same CG in single precision reaches the default tolerance and
+    # the float64 solution to single precision's accuracy.
+    pairs32 = PairSet(pairs.vertex, pairs.view, pairs.offsets, pairs.weight.float(), count, pairs.flat)
+    single = AlbedoSolver(pairs32, e, w, tau, torch.full((n, 3), 0.5))
+    k32 = single(observed.float(), light.float())
+    assert k32.dtype == torch.float32 and single.iterations < 500
+    np.testing.assert_allclose(k32.numpy(), k.numpy(), atol=2e-5)
