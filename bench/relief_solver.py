@@ -126,7 +126,8 @@ def write_table(runs: list[dict], capture: str, common: list[str], results: str,
     for row in rows:
         print(" | ".join(str(c) for c in row))
     write_results(results, title="The refinement on fine relief", tables=[tab],
-                  peer="MVIR (refine.pol.enabled=false)", data={"runs": runs})
+                  peer="MVIR (refine.pol.enabled=false)" if mvir is not None else f"the variant {runs[0]['variant']}",
+                  data={"runs": runs})
 
 
 if __name__ == "__main__":

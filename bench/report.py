@@ -162,6 +162,13 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         "--variant full --variant mvir refine.pol.enabled=false",
         "MVIR (refine.pol.enabled=false)",
     ),
+    "median_abs_noise_pathtraced": (
+        "The absolute-noise weight on top of the median intensity scale: path-traced rock, 80 iterations",
+        f"{PY} bench/relief_solver.py --capture CAPTURE --results median_abs_noise_pathtraced "
+        "--set geometry.subdivision.max_area_px=8 --set refine.offset_scan.mode=start "
+        "--variant full --variant abs-4 refine.pol.aop_noise_scale_deg=4",
+        None,
+    ),
     "median_intensity_builtin": (
         "E_pho in multiples of the median intensity: built-in rock, 80 iterations",
         f"{PY} bench/relief_solver.py --results median_intensity_builtin "
