@@ -84,6 +84,7 @@ VARIANTS: dict[str, dict] = {
     "no_fairing": {"surface": {"fair_iterations": 0}},
     "aop_noise_weight": {"pol": {"aop_noise_scale_deg": 4.0}},
     "absolute_intensity": {"pho": {"intensity_scale": "absolute", "intensity_units": 32.0}},
+    "intensity_units_9_6": {"pho": {"intensity_units": 9.6}},
 }
 LABELS = {
     "initial": "initial surface",
@@ -98,6 +99,7 @@ LABELS = {
     "no_fairing": "no fairing",
     "aop_noise_weight": "E_pol weighted by absolute AoP noise (pol.aop_noise_scale_deg 4)",
     "absolute_intensity": "E_pho in fixed units (pho.intensity_scale absolute, units 32)",
+    "intensity_units_9_6": "E_pho in 9.6 (not 6.4) times the median intensity (pho.intensity_units 9.6)",
 }
 ROWS = {
     "main": ("initial", "mvir", "full"),
@@ -111,6 +113,7 @@ ROWS = {
         "no_fairing",
         "aop_noise_weight",
         "absolute_intensity",
+        "intensity_units_9_6",
         "i_int",
         "mvir",
     ),

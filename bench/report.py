@@ -169,6 +169,26 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         "--variant full --variant abs-4 refine.pol.aop_noise_scale_deg=4",
         None,
     ),
+    "intensity_units_pathtraced": (
+        "More E_pho weight in median units: path-traced rock, 80 iterations",
+        f"{PY} bench/relief_solver.py --capture CAPTURE --results intensity_units_pathtraced "
+        "--set geometry.subdivision.max_area_px=8 --set refine.offset_scan.mode=start "
+        "--variant units-9.6 refine.pho.intensity_units=9.6 --variant units-12.8 refine.pho.intensity_units=12.8",
+        None,
+    ),
+    "intensity_units_builtin": (
+        "More E_pho weight in median units: built-in rock, 80 iterations",
+        f"{PY} bench/relief_solver.py --results intensity_units_builtin "
+        "--set geometry.subdivision.max_area_px=8 --set refine.offset_scan.mode=start "
+        "--variant units-9.6 refine.pho.intensity_units=9.6",
+        None,
+    ),
+    "intensity_units_stanford": (
+        "More E_pho weight in median units: Stanford models",
+        f"{PY} bench/refine.py --tables ablation --ablation-rows full intensity_units_9_6 mvir "
+        "--out bench/results/intensity_units_stanford.json",
+        "MVIR (--no-polarimetric)",
+    ),
     "median_intensity_builtin": (
         "E_pho in multiples of the median intensity: built-in rock, 80 iterations",
         f"{PY} bench/relief_solver.py --results median_intensity_builtin "
