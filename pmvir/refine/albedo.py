@@ -24,8 +24,7 @@ from pmvir.refine.sampling import PairSet
 
 class AlbedoSolver:
     """Solves for K*(X, L) by Jacobi-preconditioned conjugate gradients, warm-started, in the dtype of
-    ``initial`` (float32 reaches the default tolerance of 1e-5 with float64's iterations and solution
-    to about 2e-7, in half the memory traffic).
+    ``initial`` (the refinement's float32).
 
     Args:
         pairs: the stage's pairs.
@@ -86,7 +85,8 @@ class AlbedoSolver:
             a = light.to(self.dtype)
             diag = torch.zeros_like(self._x).index_add_(0, pv, wgt * a * a)
             rhs = torch.zeros_like(self._x).index_add_(0, pv, wgt * a * observed.to(self.dtype))
-            mean_diag = float(diag.mean()) if float(diag.mean()) > 0 else 1.0
+            mean_diag = float(diag.mean())
+            mean_diag = mean_diag if mean_diag > 0 else 1.0
             ridge = self.ridge * mean_diag
             rhs = rhs + ridge * self._x
             # The system's diagonal D + 2 tau3 deg (also the Jacobi preconditioner's inverse).

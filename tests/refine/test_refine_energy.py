@@ -138,8 +138,6 @@ def test_eta_is_at_most_quarter_pi_over_the_whole_range() -> None:
     assert eta.max() <= np.pi / 4 + 1e-12
     literal = np.min([np.abs(a - p + o) for o in ETA_OFFSETS], axis=0)
     np.testing.assert_allclose(eta, literal, atol=1e-12)
-    periodic = np.abs(np.mod(a - p + np.pi / 4, np.pi / 2) - np.pi / 4)
-    np.testing.assert_allclose(eta, periodic, atol=1e-12)
     theta = 1 - 4 * eta / np.pi
     assert theta.min() >= -1e-12 and theta.max() <= 1 + 1e-12
 
