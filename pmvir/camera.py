@@ -74,12 +74,18 @@ class Camera:
             directions: (H, W, 3) unit directions.
         """
         cols, rows = np.meshgrid(np.arange(self.width) + 0.5, np.arange(self.height) + 0.5)
-        pix = np.stack([cols, rows, np.ones_like(cols)], axis=-1)
-        d_cam = pix @ np.linalg.inv(self.K).T
-        d_world = d_cam @ self.R  # R.T @ d for each row vector
-        d_world /= np.linalg.norm(d_world, axis=-1, keepdims=True)
+        d_world = self.ray_directions(np.stack([cols, rows], axis=-1))
         origins = np.broadcast_to(self.center, d_world.shape).copy()
         return origins, d_world
+
+    def ray_directions(self, uv: np.ndarray) -> np.ndarray:
+        """(..., 3) unit world-space directions of the rays through pixel positions ``uv`` (..., 2)
+        (COLMAP convention: (0.5, 0.5) is the first pixel's centre)."""
+        uv = np.asarray(uv, dtype=np.float64)
+        pix = np.concatenate([uv, np.ones_like(uv[..., :1])], axis=-1)
+        d_world = pix @ np.linalg.inv(self.K).T @ self.R  # R.T @ (K^-1 p) for each row vector
+        d_world /= np.linalg.norm(d_world, axis=-1, keepdims=True)
+        return d_world
 
 
 def look_at(

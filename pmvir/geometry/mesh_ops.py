@@ -232,7 +232,9 @@ def euler_characteristic(faces: np.ndarray, n_vertices: int | None = None) -> in
     f = np.asarray(faces, dtype=np.int64)
     n = int(f.max()) + 1 if n_vertices is None else int(n_vertices)
     topo = edge_topology(f, n)
-    n_used = len(np.unique(f))
+    used = np.zeros(n, dtype=bool)
+    used[f.reshape(-1)] = True
+    n_used = int(used.sum())
     return n_used - topo.n_edges + len(f)
 
 
@@ -330,19 +332,40 @@ class ReferenceSurface:
             raise MeshError("a reference surface needs at least one face")
         self._scene = raycasting_scene(self.vertices, self.faces)
 
-    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def project(self, points: np.ndarray, near: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Closest points on the surface.
 
         Args:
             points: (M, 3) float.
+            near: (M,) int faces to try first, for points that moved a little since they lay on
+                them: a point whose foot on its face's plane falls inside that face, at most
+                sqrt(face area) from the point, is projected there without the global search (exact
+                unless another part of the surface is nearer than that plane); the others are
+                searched as without ``near``.
 
         Returns:
             projected: (M, 3) float64 points on the surface.
             face_ids: (M,) int64 the face each lies on.
         """
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if near is None or len(p) == 0:
+            return self._closest(p)
+        ids = np.array(near, dtype=np.int64).reshape(-1)  # a copy: the far points' faces are written in
+        tri = self.faces[ids]
+        a, b, c = (self.vertices[tri[:, k]] for k in range(3))
+        bary = barycentric(p, a, b, c)
+        n = np.cross(b - a, c - a)  # |n| = twice the area
+        height = _dot(p - a, n)  # the distance from the plane times |n|
+        inside = (bary >= 0.0).all(axis=1) & (height * height <= 0.5 * _dot(n, n) * np.sqrt(_dot(n, n)))
+        projected = bary[:, :1] * a + bary[:, 1:2] * b + bary[:, 2:] * c
+        if not inside.all():
+            projected[~inside], ids[~inside] = self._closest(p[~inside])
+        return projected, ids
+
+    def _closest(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`project` by Embree's closest-face search over the whole mesh."""
         import open3d as o3d
 
-        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         if len(p) == 0:
             return p.copy(), np.zeros(0, dtype=np.int64)
         query = o3d.core.Tensor(self._scene.local(p))

@@ -109,16 +109,17 @@ def relax_tangentially(
     mean, pinned = _umbrella(f, n)
     reference = ReferenceSurface(v, f)
     x = v.copy()
-    face_ids = np.empty(0, dtype=np.int64)
+    own_face, own_bary = _own_corners(f, n)
+    face_ids = own_face
     for _ in range(iterations):
         normal = vertex_normals(x, f)
         step = mean @ x - x
         step -= np.einsum("ij,ij->i", step, normal)[:, None] * normal
         step[pinned] = 0.0
-        x, face_ids = reference.project(x + RELAX_STEP * step)
+        # A step is a fraction of an edge: most vertices stay on the face they lay on.
+        x, face_ids = reference.project(x + RELAX_STEP * step, near=face_ids)
         x[pinned] = v[pinned]
-    own_face, own_bary = _own_corners(f, n)
-    if iterations == 0 or len(face_ids) != n:
+    if iterations == 0:
         return v.copy(), own_face, own_bary
     bary = barycentric(x, v[f[face_ids, 0]], v[f[face_ids, 1]], v[f[face_ids, 2]])
     # A pinned vertex is its own value: point it at a face it is a corner of.

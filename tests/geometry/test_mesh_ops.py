@@ -28,3 +28,17 @@ def test_vertex_normals_are_the_normalised_sum_of_adjacent_face_cross_products()
     used = np.linalg.norm(expected, axis=1) > 0
     expected[used] /= np.linalg.norm(expected[used], axis=1, keepdims=True)
     assert np.allclose(vertex_normals(v, f), expected, atol=1e-12)
+
+
+def test_ray_directions_point_back_through_their_pixels() -> None:
+    from pmvir.synth.rig import ring_cameras
+
+    cam = ring_cameras(3, 64, 48, object_radius=1.0)[1]
+    uv = np.random.default_rng(0).uniform([0.0, 0.0], [64.0, 48.0], size=(50, 2))
+    d = cam.ray_directions(uv)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
+    back, z = cam.project(cam.center + 2.5 * d)
+    assert np.all(z > 0)
+    np.testing.assert_allclose(back, uv, atol=1e-9)
+    _, grid = cam.pixel_rays()  # every pixel centre
+    np.testing.assert_allclose(grid[7, 11], cam.ray_directions(np.array([11.5, 7.5])), atol=1e-15)

@@ -78,6 +78,7 @@ def _on_some_face(points: np.ndarray, v: np.ndarray, f: np.ndarray, tol: float =
 def test_closed_mesh_counts_topology_orientation_and_surface():
     v0, f0 = _sphere()
     chi = euler_characteristic(f0, len(v0))
+    assert chi == 2 and euler_characteristic(f0, len(v0) + 5) == chi  # unused vertices do not count
     v, f = v0, f0
     for r in range(3):
         step = sqrt3_subdivide(v, f, split_boundary=r % 2 == 1)
@@ -143,6 +144,33 @@ def test_reference_surface_projection_lands_on_faces():
     every = closest_points_on_triangles(np.repeat(p, len(f), 0), *corners).reshape(len(p), len(f), 3)
     brute = np.linalg.norm(p[:, None] - every, axis=2).min(axis=1)
     np.testing.assert_allclose(np.linalg.norm(q - p, axis=1), brute, atol=1e-5)
+
+
+def test_projection_from_nearby_faces_matches_the_global_search():
+    """``near``: points that moved a little off their faces, and points given a wrong face, land
+    where the global search puts them."""
+    v, f = _sphere(8)
+    surface = ReferenceSurface(v, f)
+    rng = np.random.default_rng(1)
+    faces = rng.integers(0, len(f), size=300)
+    w = rng.dirichlet(np.ones(3), size=300)
+    on = np.einsum("nk,nkd->nd", w, v[f[faces]])
+    h = np.linalg.norm(v[f[:, 0]] - v[f[:, 1]], axis=1).mean()
+    moved = on + rng.normal(scale=0.02 * h, size=on.shape)
+    near = faces.copy()
+    centroids = v[f].mean(axis=1)
+    near[:50] = [rng.choice(np.flatnonzero(centroids @ x < -0.5)) for x in on[:50]]  # wrong hints: across the sphere
+    q_near, ids_near = surface.project(moved, near=near)
+    q, _ = surface.project(moved)
+    assert _on_some_face(q_near, v, f, tol=1e-9).all()
+    np.testing.assert_allclose(q_near[:50], q[:50], atol=1e-12)  # searched as without hints
+    # the nearby hints: the closest point, or one as near within a fraction of the distance (a point
+    # moved inside, near an edge, may be nearer the other face's plane)
+    dist_near, dist = np.linalg.norm(q_near - moved, axis=1), np.linalg.norm(q - moved, axis=1)
+    assert np.all(dist_near >= dist - 1e-12)
+    assert np.all(dist_near <= 1.5 * dist + 1e-12)
+    assert np.mean(np.abs(q_near - q).max(axis=1) < 1e-9) > 0.95
+    assert (ids_near[50:] == faces[50:]).mean() > 0.5  # most stay on their face, found without a search
 
 
 def test_new_edges_join_adjacent_centroids():

@@ -54,6 +54,17 @@ def _crowded_sphere() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return v, crowded, f
 
 
+def test_unique_edges_lists_each_undirected_edge_once_in_order() -> None:
+    rng = np.random.default_rng(3)
+    f = rng.integers(0, 40, size=(300, 3))
+    f[:5, 1] = f[:5, 0]  # degenerate faces: their zero-length edge is left out
+    sides = [(tri[k], tri[(k + 1) % 3]) for tri in f.tolist() for k in range(3)]
+    expected = sorted({(min(a, b), max(a, b)) for a, b in sides if a != b})
+    e = unique_edges(f)
+    assert e.dtype == np.int64 and e.tolist() == [list(x) for x in expected]
+    assert unique_edges(np.zeros((0, 3), dtype=np.int64)).shape == (0, 2)
+
+
 def test_relaxation_evens_out_crowded_vertices_and_keeps_them_on_the_surface() -> None:
     even, crowded, f = _crowded_sphere()
     assert _edge_cv(crowded, f) > 1.5 * _edge_cv(even, f)

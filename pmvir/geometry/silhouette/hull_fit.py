@@ -153,6 +153,10 @@ def fit_inside_hull(
     least, _ = hull_depth(v0, cams, dists)
     # only these can move (a vertex's violation depends on its own position alone)
     idx = np.flatnonzero(least < -tolerance_px)
+    # their normals need only the faces around them (the same sums, in the same order)
+    movable = np.zeros(len(v0), dtype=bool)
+    movable[idx] = True
+    around = f[movable[f].any(axis=1)]
     x = v0.copy()
     moved_px = np.zeros(len(idx))
     for _ in range(iterations):
@@ -164,7 +168,7 @@ def fit_inside_hull(
             np.minimum(0.5 * (-least_i[out] - tolerance_px), 1.0), max_move_px - moved_px[out]
         )
         step_px = np.maximum(step_px, 0.01)  # halving toward the tolerance converges slowly at the end
-        normals = vertex_normals(x, f).astype(np.float64)[idx[out]]
+        normals = vertex_normals(x, around).astype(np.float64)[idx[out]]
         x[idx[out]] -= (step_px * gsd[out])[:, None] * normals
         moved_px[out] += step_px
     least_i, _ = hull_depth(x[idx], cams, dists)
@@ -248,27 +252,36 @@ def _rim_distances(
         rays = np.concatenate([np.broadcast_to(origins - origin, dirs.shape), dirs], -1).astype(np.float32)
         return scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
 
-    _, dirs = cam.pixel_rays()
-    free = mask & ~np.isfinite(cast(cam.center, dirs))  # mask pixels the mesh leaves uncovered
+    # Rays are cast only where their answer can count. A march is read for "free" at mask pixels and
+    # ends within reach_px at a pixel outside the mask, so only mask pixels within reach of the
+    # boundary matter (a band; the rest of the mask stays "not free"), and only the vertices that pass
+    # the other rim tests need their own ray. The result is the same as casting every ray.
+    h, w = mask.shape
+    r = int(np.ceil(reach_px)) + 1
+    band = mask & ~cv2.erode(mask.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8),
+                             borderType=cv2.BORDER_REPLICATE).astype(bool)
+    rows, cols = np.nonzero(band)
+    dirs = cam.ray_directions(np.stack([cols + 0.5, rows + 0.5], axis=-1))
+    free = np.zeros_like(mask)
+    free[rows, cols] = ~np.isfinite(cast(cam.center, dirs))  # band pixels the mesh leaves uncovered
     to_v = vertices - cam.center
     dist = np.linalg.norm(to_v, axis=1)
     to_v /= np.maximum(dist, 1e-300)[:, None]
-    hit = cast(cam.center, to_v)
     uv, z = cam.project(vertices)
-    step, _ = cam.project(vertices + 1e-4 * dist[:, None] * normals)
-    direction = step - uv
-    direction /= np.maximum(np.linalg.norm(direction, axis=1), 1e-12)[:, None]
-    h, w = mask.shape
-    near = (
+    candidate = np.flatnonzero(
         (np.abs((normals * to_v).sum(1)) < rim_cos)
         & (z > 0)
-        & (np.abs(hit - dist) < 3e-3 * dist)
         & (uv[:, 0] >= 0)
         & (uv[:, 0] < w)
         & (uv[:, 1] >= 0)
         & (uv[:, 1] < h)
     )
-    idx = np.flatnonzero(near)
+    hit = cast(cam.center, to_v[candidate])
+    idx = candidate[np.abs(hit - dist[candidate]) < 3e-3 * dist[candidate]]
+    step, _ = cam.project(vertices[idx] + 1e-4 * dist[idx, None] * normals[idx])
+    direction = np.zeros_like(uv)
+    direction[idx] = step - uv[idx]
+    direction[idx] /= np.maximum(np.linalg.norm(direction[idx], axis=1), 1e-12)[:, None]
     inside = np.full(len(idx), np.nan)
     alive = np.ones(len(idx), dtype=bool)
     for s in np.arange(0.25, reach_px + 1e-9, 0.25):
