@@ -31,10 +31,13 @@ The same function serves NumPy arrays (the renderers, checks) and torch tensors
 from __future__ import annotations
 
 import math
-from typing import TypeVar
+import sys
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:  # torch is imported by the refinement that passes tensors; the renderers need not load it
+    import torch
 
 __all__ = ["AZIMUTH_EPS", "orthographic_azimuth", "perspective_azimuth"]
 
@@ -42,18 +45,23 @@ __all__ = ["AZIMUTH_EPS", "orthographic_azimuth", "perspective_azimuth"]
 #: the normal points along the ray and its azimuth is undefined.
 AZIMUTH_EPS = 1e-12
 
-Array = TypeVar("Array", np.ndarray, torch.Tensor)
+Array = TypeVar("Array", np.ndarray, "torch.Tensor")
 
 
-def _atan2(y: Array, x: Array) -> Array:
-    if isinstance(y, torch.Tensor):
-        return torch.atan2(y, x)
+def _is_tensor(x: Any) -> bool:
+    torch = sys.modules.get("torch")  # not imported: x is no tensor
+    return torch is not None and isinstance(x, torch.Tensor)
+
+
+def _atan2(y: Any, x: Any) -> Any:
+    if _is_tensor(y):
+        return y.atan2(x)
     return np.arctan2(y, x)
 
 
-def _where(cond: Array, a: Array, b: Array) -> Array:
-    if isinstance(cond, torch.Tensor):
-        return torch.where(cond, a, b)
+def _where(cond: Any, a: Any, b: Any) -> Any:
+    if _is_tensor(cond):
+        return a.where(cond, b)  # torch.where(cond, a, b)
     return np.where(cond, a, b)
 
 

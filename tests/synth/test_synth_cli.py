@@ -188,3 +188,13 @@ def test_mitsuba_max_depth_two_drops_the_interreflected_light(tmp_path: Path) ->
     assert inside.sum() > 500 and 0.9 < ratio < 0.99
     with pytest.raises(ConfigError, match="max_depth"):
         synthesize(tmp_path / "bad", shape="sphere", views=1, size=(32, 32), renderer="mitsuba", max_depth=1)
+
+
+def test_the_built_in_renderer_does_not_load_torch() -> None:
+    """``make demo`` renders its capture while the service's processes start on the same cores: the
+    renderer's imports stay light (torch alone took 2 s of them)."""
+    import subprocess
+
+    code = "import sys, pmvir.cli, pmvir.synth.generate; print('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
