@@ -13,6 +13,7 @@ from pmvir.geometry.mesh_ops import edge_topology, face_areas, face_normals, is_
 from pmvir.geometry.surface.clean import (
     bisect_faces,
     clean_mesh,
+    clean_topology,
     facing_projected_areas,
     orient_outward,
     remove_slivers,
@@ -142,6 +143,27 @@ def test_clean_mesh_keeps_one_manifold_component_without_slivers():
     assert vc[:, 0].max() < 2.0  # the small sphere at x = 3 is gone
     assert slivers >= 1
     assert triangle_min_angles(vc, fc).min() >= np.radians(2.0)
+
+
+def test_clean_topology_stops_at_a_pass_another_pass_would_not_change():
+    """Its passes end once the mesh is manifold and consistently oriented: cleaning the result again
+    changes nothing (a duplicated face, a fin and a bow-tie vertex are removed on the way)."""
+    v, f = _icosphere(2, 1.0)
+    v2, f2 = _icosphere(1, 1.0)
+    v = np.concatenate([v, v2 + np.array([2.0, 0.0, 0.0])])  # a second sphere touching the first
+    f = np.concatenate([f, f2 + len(v) - len(v2)])
+    touch = int(np.argmax(v[: len(v) - len(v2), 0]))  # the first sphere's point at x = 1
+    f[f == len(v) - len(v2) + int(np.argmin(v2[:, 0]))] = touch  # the spheres share one vertex: a bow tie
+    v = np.concatenate([v, [[0.0, 0.0, 2.0]]])
+    f = np.concatenate([f, [f[0]], [[f[0, 0], f[0, 1], len(v) - 1]]])  # a duplicated face and a fin
+    vc, fc = clean_topology(v, f)
+    topo = edge_topology(fc, len(vc))
+    assert np.all(topo.interior | topo.boundary)
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vc), o3d.utility.Vector3iVector(fc))
+    assert mesh.is_vertex_manifold() and len(fc) < len(f)
+    again_v, again_f = clean_topology(vc, fc)
+    np.testing.assert_array_equal(again_f, fc)
+    np.testing.assert_array_equal(again_v, vc)
 
 
 def test_remove_slivers_repairs_caps_and_needles_and_stays_manifold():
