@@ -355,8 +355,10 @@ class ReferenceSurface:
         a, b, c = (self.vertices[tri[:, k]] for k in range(3))
         bary = barycentric(p, a, b, c)
         n = np.cross(b - a, c - a)  # |n| = twice the area
+        nn = _dot(n, n)
         height = _dot(p - a, n)  # the distance from the plane times |n|
-        inside = (bary >= 0.0).all(axis=1) & (height * height <= 0.5 * _dot(n, n) * np.sqrt(_dot(n, n)))
+        # a degenerate face (nn = 0) has no plane to drop a foot on: searched
+        inside = (bary >= 0.0).all(axis=1) & (nn > 0.0) & (height * height <= 0.5 * nn * np.sqrt(nn))
         projected = bary[:, :1] * a + bary[:, 1:2] * b + bary[:, 2:] * c
         if not inside.all():
             projected[~inside], ids[~inside] = self._closest(p[~inside])

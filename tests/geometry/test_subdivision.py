@@ -171,6 +171,13 @@ def test_projection_from_nearby_faces_matches_the_global_search():
     assert np.all(dist_near <= 1.5 * dist + 1e-12)
     assert np.mean(np.abs(q_near - q).max(axis=1) < 1e-9) > 0.95
     assert (ids_near[50:] == faces[50:]).mean() > 0.5  # most stay on their face, found without a search
+    # a zero-area face (three points on a line) as the hint: the point is searched for
+    flat_v = np.concatenate([v, [[0.0, 0.0, 3.0], [1.0, 0.0, 3.0], [2.0, 0.0, 3.0]]])
+    flat_f = np.concatenate([f, [[len(v), len(v) + 1, len(v) + 2]]])
+    point = np.array([[0.0, 0.0, 1.05]])
+    q_flat, ids_flat = ReferenceSurface(flat_v, flat_f).project(point, near=np.array([len(f)]))
+    np.testing.assert_allclose(q_flat, surface.project(point)[0], atol=1e-12)
+    assert ids_flat[0] != len(f)
 
 
 def test_new_edges_join_adjacent_centroids():
