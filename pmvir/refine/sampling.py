@@ -25,7 +25,7 @@ Conventions (capture spec, sections 1-2):
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -218,10 +218,49 @@ class PairSet:
     weight: torch.Tensor
     count: np.ndarray
     flat: torch.Tensor
+    _lookups: list[tuple[ViewStack, PairLookup]] = field(
+        default_factory=list, init=False, repr=False, compare=False
+    )
 
     @property
     def size(self) -> int:
         return int(self.vertex.shape[0])
+
+    def lookup(self, views: ViewStack) -> PairLookup:
+        """The pairs' camera constants and image rows in ``views``, gathered once per (pairs, views):
+        every energy evaluation of a stage would otherwise gather the same (P, 5) and 3 (P,) values."""
+        for known, found in self._lookups:
+            if known is views:
+                return found
+        fx, fy, cx, cy, skew = (c.contiguous() for c in views.intrinsics.index_select(0, self.view).unbind(1))
+        found = PairLookup(
+            fx, fy, cx, cy, skew,
+            base=views.base.index_select(0, self.view),
+            width=views.width.index_select(0, self.view),
+            height=views.height.index_select(0, self.view),
+        )
+        self._lookups[:] = [(views, found)]  # one stage has one view stack: keep only the latest
+        return found
+
+
+@dataclass(frozen=True)
+class PairLookup:
+    """Per-pair copies of each pair's view constants (:meth:`PairSet.lookup`), each (P,) and contiguous.
+
+    Attributes:
+        fx, fy, cx, cy, skew: the view's intrinsics.
+        base: int64 row of the view's first pixel in ``ViewStack.table``.
+        width, height: int64 the view's image size.
+    """
+
+    fx: torch.Tensor
+    fy: torch.Tensor
+    cx: torch.Tensor
+    cy: torch.Tensor
+    skew: torch.Tensor
+    base: torch.Tensor
+    width: torch.Tensor
+    height: torch.Tensor
 
 
 def select_pairs(
@@ -340,11 +379,14 @@ class _Bilinear(torch.autograd.Function):
     Coordinates are clamped to the image (zero derivative where clamped). The
     backward pass returns gradients for x and y only; it reuses the per-pair
     derivatives saved by the forward pass instead of recording a graph over the
-    (P, 4, C) corner values.
+    (P, 4, C) corner values. The (P, C) result comes as the column groups ``groups``
+    (e.g. (3, 1, 1, 1): RGB, cos 2 phi, sin 2 phi, DoP): slicing one output instead
+    would make every slice's backward fill a zero (P, C) gradient, and autograd add them.
     """
 
     @staticmethod
-    def forward(ctx, x, y, table, base, width, height):
+    def forward(ctx, x, y, table, base, width, height, groups):
+        ctx.groups = groups
         wf, hf = width.to(x.dtype), height.to(x.dtype)
         xc = torch.minimum(x.clamp_min(0.0), wf - 1.0)
         yc = torch.minimum(y.clamp_min(0.0), hf - 1.0)
@@ -365,12 +407,18 @@ class _Bilinear(torch.autograd.Function):
         dx = torch.lerp(c01 - c00, c11 - c10, fy) * inside_x
         dy = (bottom - top) * inside_y
         ctx.save_for_backward(dx, dy)
-        return out
+        ctx.set_materialize_grads(False)
+        return out.split(groups, dim=1)
 
     @staticmethod
-    def backward(ctx, grad):
+    def backward(ctx, *grads):
         dx, dy = ctx.saved_tensors
-        return (grad * dx).sum(-1), (grad * dy).sum(-1), None, None, None, None
+        if all(g is None for g in grads):
+            return (None,) * 7
+        parts = [dx.new_zeros(dx.shape[0], size) if g is None else g
+                 for g, size in zip(grads, ctx.groups, strict=True)]
+        grad = torch.cat(parts, dim=1)
+        return (grad * dx).sum(-1), (grad * dy).sum(-1), None, None, None, None, None
 
 
 def sample_pairs(
@@ -401,25 +449,24 @@ def sample_pairs(
     pc = torch.cat([x @ rot[c].T + trans[c] for c, x in enumerate(xs)])
     normal_cam = torch.cat([n @ rot[c].T for c, n in enumerate(ns)])
     ray_cam = pc / torch.linalg.vector_norm(pc, dim=1, keepdim=True).clamp_min(1e-12)
-    intr = views.intrinsics.index_select(0, pairs.view)
-    inv_z = 1.0 / pc[:, 2].clamp_min(1e-9)
-    xn, yn = pc[:, 0] * inv_z, pc[:, 1] * inv_z
-    u = intr[:, 0] * xn + intr[:, 4] * yn + intr[:, 2]
-    v = intr[:, 1] * yn + intr[:, 3]
-    lookup = (
-        views.base.index_select(0, pairs.view),
-        views.width.index_select(0, pairs.view),
-        views.height.index_select(0, pairs.view),
-    )
-    smp = _Bilinear.apply(u - 0.5, v - 0.5, views.table, *lookup)
+    per_pair = pairs.lookup(views)
+    px, py, pz = pc.unbind(1)  # (indexing columns would zero-fill a (P, 3) gradient per column)
+    inv_z = 1.0 / pz.clamp_min(1e-9)
+    xn, yn = px * inv_z, py * inv_z
+    u = per_pair.fx * xn + per_pair.skew * yn + per_pair.cx
+    v = per_pair.fy * yn + per_pair.cy
+    lookup = (per_pair.base, per_pair.width, per_pair.height)
     if not views.polarimetric:
-        return PairSamples(smp[:, :3], normal_cam, ray_cam, None, None, None)
-    cos2, sin2 = smp[:, 3], smp[:, 4]
+        (rgb,) = _Bilinear.apply(u - 0.5, v - 0.5, views.table, *lookup, (3,))
+        return PairSamples(rgb, normal_cam, ray_cam, None, None, None)
+    rgb, cos2, sin2, dop = _Bilinear.apply(u - 0.5, v - 0.5, views.table, *lookup, (3, 1, 1, 1))
+    cos2, sin2 = cos2.squeeze(1), sin2.squeeze(1)
     defined = cos2 * cos2 + sin2 * sin2 > 1e-12
     cos_safe = torch.where(defined, cos2, torch.ones_like(cos2))
     phi = torch.remainder(0.5 * torch.atan2(sin2, cos_safe), torch.pi)
     noise = None
     if with_noise and views.noise is not None:
         with torch.no_grad():
-            noise = _Bilinear.apply(u.detach() - 0.5, v.detach() - 0.5, views.noise, *lookup)[:, 0]
-    return PairSamples(smp[:, :3], normal_cam, ray_cam, phi, smp[:, 5], defined, noise)
+            (noise,) = _Bilinear.apply(u.detach() - 0.5, v.detach() - 0.5, views.noise, *lookup, (1,))
+            noise = noise[:, 0]
+    return PairSamples(rgb, normal_cam, ray_cam, phi, dop.squeeze(1), defined, noise)

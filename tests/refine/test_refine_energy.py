@@ -205,6 +205,42 @@ def test_bilinear_sampling_is_exact_on_a_linear_image() -> None:
     np.testing.assert_allclose(smp.dop.numpy(), expect, atol=1e-6)
 
 
+def test_sampling_gradients_match_finite_differences_whichever_samples_are_used() -> None:
+    """The lookup's grouped outputs (RGB, cos 2 phi, sin 2 phi, DoP) differentiate like one sample, also
+    when only some of them reach the cost; the pairs' per-view constants follow the view stack given."""
+    cam, ramp = _flat_view()
+    rows, cols = np.mgrid[0 : cam.height, 0 : cam.width].astype(np.float64)
+    curved = 0.3 + 0.002 * (cols - 9.0) ** 2 + 0.03 * np.sin(0.4 * rows)
+    intensity = np.stack([ramp, curved, 0.5 * ramp * curved], axis=-1).astype(np.float32)
+    obs = Observation(intensity, np.clip(curved + 0.5 * ramp, 0, 3.0), curved, np.ones(ramp.shape, bool))
+    views = build_view_stack([cam], [obs], polarimetric=True, device="cpu", dtype=F64)
+    rng = np.random.default_rng(1)
+    uv = rng.uniform([2.0, 2.0], [cam.width - 2.0, cam.height - 2.0], (12, 2))
+    pts = np.concatenate([(uv - cam.K[:2, 2]) / 50.0 * 2.0, np.full((12, 1), 2.0)], axis=1)
+    pairs = select_pairs(pts, np.ones((12, 1), bool), [cam], [obs], device="cpu", dtype=F64)
+    normals = torch.zeros(12, 3, dtype=F64)
+    costs = {
+        "rgb": lambda s: (s.intensity**2).sum(),
+        "aop": lambda s: (s.aop**2).sum(),
+        "all": lambda s: (s.intensity**2).sum() + (s.aop**2).sum() + s.dop.sum(),
+    }
+    for name, cost in costs.items():
+        x = torch.from_numpy(pts).requires_grad_(True)
+        assert torch.autograd.gradcheck(
+            lambda x, cost=cost: cost(sample_pairs(x, normals, views, pairs)), (x,), eps=1e-6, atol=1e-5
+        ), name
+    assert pairs.lookup(views) is pairs.lookup(views)  # gathered once per stage
+    wide = Camera.from_intrinsics(40.0, 40.0, cam.width / 2, cam.height / 2, cam.width, cam.height,
+                                  np.eye(3), np.zeros(3))
+    other = build_view_stack([wide], [obs], polarimetric=True, device="cpu", dtype=F64)
+    assert float(pairs.lookup(other).fx[0]) == 40.0
+    x = torch.from_numpy(pts)
+    u = (40.0 * pts[:, 0] / pts[:, 2] + cam.width / 2)[pairs.vertex.numpy()]
+    v = (40.0 * pts[:, 1] / pts[:, 2] + cam.height / 2)[pairs.vertex.numpy()]
+    expect = 0.01 * (u - 0.5) + 0.02 * (v - 0.5) + 0.1
+    np.testing.assert_allclose(sample_pairs(x, normals, other, pairs).intensity[:, 0].numpy(), expect, atol=1e-6)
+
+
 def test_aop_is_interpolated_as_an_axial_angle() -> None:
     """Across the 0/pi wrap the sampled AoP stays near 0 (mod pi), never near pi/2."""
     cam, ramp = _flat_view()
