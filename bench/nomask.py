@@ -97,32 +97,33 @@ def _measure(capture: Path, result: Path, stop_after: str) -> dict:
 
 def _write(runs: list[dict], args: argparse.Namespace) -> Path:
     """Print the table of the runs so far and write bench/results/nomask.json."""
-    columns = ["scene", "renderer", "masks", "accuracy (1e-2)", "completeness (1e-2)",
+    columns = ["scene", "views x size", "renderer", "masks", "accuracy (1e-2)", "completeness (1e-2)",
                "normal error median deg", "max dist (diag)", "> 2 % diag", "max dist near table", "mask IoU",
                "time (s)"]
     rows = []
     for r in runs:
         if "error" in r:
-            rows.append([r["scene"], r["renderer"], r["masks"], *[None] * 7, round(r["seconds"], 1)])
+            rows.append([r["scene"], r.get("capture"), r["renderer"], r["masks"], *[None] * 7, round(r["seconds"], 1)])
             continue
         rows.append([
-            r["scene"], r["renderer"], r["masks"], round(100 * r["accuracy"], 3), round(100 * r["completeness"], 3),
+            r["scene"], r.get("capture"), r["renderer"], r["masks"], round(100 * r["accuracy"], 3), round(100 * r["completeness"], 3),
             None if r.get("normal_error_median") is None else round(r["normal_error_median"], 2),
             round(r["max_vertex_distance"], 4), f"{100 * r['share_beyond_2pct']:.2f} %",
             round(r["max_distance_near_table"], 4),
             None if r["mask_iou"] is None else round(r["mask_iou"], 3), round(r["seconds"], 1),
         ])
+    arguments = list(dict.fromkeys(r.get("arguments", "") for r in runs))
     print(" | ".join(columns))
     for row in rows:
         print(" | ".join("-" if v is None else str(v) for v in row))
     out = write_results(
         "nomask",
-        title=f"Object isolation without masks ({args.shape}, {args.views} views of {args.size}, "
-        f"stop after {args.stop_after})",
+        title=f"Object isolation without masks ({args.shape}, stop after {args.stop_after})",
         tables=[table("With the true masks and without masks", columns, rows,
                       note="masks 'none': pmvir finds the object itself (geometry.isolate); distances in "
                       "GT bounding-box diagonals; 'near table': vertices within 2 % of the diagonal above "
-                      "the table")],
+                      "the table; the rows come from bench/nomask.py with "
+                      + " and with ".join(f"'{a}'" for a in arguments))],
         data={"options": vars(args) | {"work": str(args.work)}, "runs": runs},
     )
     print(f"wrote {out}")
@@ -155,7 +156,8 @@ def main() -> int:
             synth_s = time.perf_counter() - t0
             masked = _with_true_masks(cap, args.work / f"{scene}-{renderer}-masks")
             for masks, capture in (("true", masked), ("none", cap)):
-                row = {"scene": scene, "renderer": renderer, "masks": masks, "synth_seconds": synth_s}
+                row = {"scene": scene, "capture": f"{args.views} x {args.size}", "renderer": renderer,
+                       "masks": masks, "synth_seconds": synth_s, "arguments": " ".join(sys.argv[1:])}
                 row |= _measure(capture, args.work / f"result-{scene}-{renderer}-{masks}", args.stop_after)
                 runs.append(row)
                 print(json.dumps(row), flush=True)
