@@ -25,7 +25,7 @@ Conventions (capture spec, sections 1-2):
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -218,49 +218,10 @@ class PairSet:
     weight: torch.Tensor
     count: np.ndarray
     flat: torch.Tensor
-    _lookups: list[tuple[ViewStack, PairLookup]] = field(
-        default_factory=list, init=False, repr=False, compare=False
-    )
 
     @property
     def size(self) -> int:
         return int(self.vertex.shape[0])
-
-    def lookup(self, views: ViewStack) -> PairLookup:
-        """The pairs' camera constants and image rows in ``views``, gathered once per (pairs, views):
-        every energy evaluation of a stage would otherwise gather the same (P, 5) and 3 (P,) values."""
-        for known, found in self._lookups:
-            if known is views:
-                return found
-        fx, fy, cx, cy, skew = (c.contiguous() for c in views.intrinsics.index_select(0, self.view).unbind(1))
-        found = PairLookup(
-            fx, fy, cx, cy, skew,
-            base=views.base.index_select(0, self.view),
-            width=views.width.index_select(0, self.view),
-            height=views.height.index_select(0, self.view),
-        )
-        self._lookups[:] = [(views, found)]  # one stage has one view stack: keep only the latest
-        return found
-
-
-@dataclass(frozen=True)
-class PairLookup:
-    """Per-pair copies of each pair's view constants (:meth:`PairSet.lookup`), each (P,) and contiguous.
-
-    Attributes:
-        fx, fy, cx, cy, skew: the view's intrinsics.
-        base: int64 row of the view's first pixel in ``ViewStack.table``.
-        width, height: int64 the view's image size.
-    """
-
-    fx: torch.Tensor
-    fy: torch.Tensor
-    cx: torch.Tensor
-    cy: torch.Tensor
-    skew: torch.Tensor
-    base: torch.Tensor
-    width: torch.Tensor
-    height: torch.Tensor
 
 
 def select_pairs(
@@ -449,13 +410,17 @@ def sample_pairs(
     pc = torch.cat([x @ rot[c].T + trans[c] for c, x in enumerate(xs)])
     normal_cam = torch.cat([n @ rot[c].T for c, n in enumerate(ns)])
     ray_cam = pc / torch.linalg.vector_norm(pc, dim=1, keepdim=True).clamp_min(1e-12)
-    per_pair = pairs.lookup(views)
+    fx, fy, cx, cy, skew = views.intrinsics.index_select(0, pairs.view).unbind(1)
     px, py, pz = pc.unbind(1)  # (indexing columns would zero-fill a (P, 3) gradient per column)
     inv_z = 1.0 / pz.clamp_min(1e-9)
     xn, yn = px * inv_z, py * inv_z
-    u = per_pair.fx * xn + per_pair.skew * yn + per_pair.cx
-    v = per_pair.fy * yn + per_pair.cy
-    lookup = (per_pair.base, per_pair.width, per_pair.height)
+    u = fx * xn + skew * yn + cx
+    v = fy * yn + cy
+    lookup = (
+        views.base.index_select(0, pairs.view),
+        views.width.index_select(0, pairs.view),
+        views.height.index_select(0, pairs.view),
+    )
     if not views.polarimetric:
         (rgb,) = _Bilinear.apply(u - 0.5, v - 0.5, views.table, *lookup, (3,))
         return PairSamples(rgb, normal_cam, ray_cam, None, None, None)
