@@ -10,7 +10,9 @@
    ``isolation`` (a capture without masks, ``geometry.isolate``):
    :func:`pmvir.geometry.silhouette.isolate.isolate_object` finds the object
    (support plane removed, the cluster the views aim at kept), draws its masks
-   and keeps its dense points; the steps below use those masks as given ones;
+   and its dense points are the depth maps fused again within those masks
+   (:func:`object_dense_points`); the steps below use the masks as given ones,
+   with 2 px more slack in the surface's silhouette trimming;
 3. ``surface``: :func:`pmvir.geometry.surface.initial_surface` (screened
    Poisson, trimmed, simplified, cleaned to one manifold component);
 4. ``visibility``: :func:`pmvir.geometry.visibility.vertex_visibility`;
@@ -18,7 +20,8 @@
    (sqrt(3) steps until every visible triangle is below
    ``subdivision.max_area_px`` pixels^2);
 6. ``silhouettes``: :func:`pmvir.geometry.silhouette.hull_fit.fit_inside_hull` (vertices
-   that project outside a mask move inward: ``surface.hull_tolerance_px``).
+   that project outside a mask move inward: ``surface.hull_tolerance_px``); not on the
+   masks the isolation drew, which are not exact to the pixel.
 
 :func:`write_geometry` writes a result folder's ``initial.ply`` (the subdivided
 initial surface), ``poses/`` (a COLMAP model, binary and text, of the registered
@@ -51,13 +54,15 @@ from pmvir.geometry.export import (
     write_points_ply,
 )
 from pmvir.geometry.mesh_ops import vertex_normals
-from pmvir.geometry.mvs.dense import DenseResult, dense_stereo
+from pmvir.geometry.mvs.dense import DenseResult, dense_stereo, fuse_within_masks
+from pmvir.geometry.mvs.fusion import DensePoints
 from pmvir.geometry.sfm.poses import SparseModel, estimate_poses
 from pmvir.geometry.silhouette.hull_fit import HullFit, fit_inside_hull
 from pmvir.geometry.silhouette.isolate import (
     Isolation,
     isolate_object,
     kept_points,
+    on_object,
     wants_isolation,
     write_masks,
 )
@@ -71,6 +76,12 @@ from pmvir.result import ResultFolder
 
 #: Share of the stage's progress bar given to each step (they sum to 1).
 _STEP_WEIGHTS = {"poses": 0.25, "dense": 0.42, "isolation": 0.03, "surface": 0.1, "visibility": 0.1, "subdivision": 0.08, "silhouettes": 0.02}
+#: The surface's silhouette trimming dilates the masks by this many pixels.
+_SILHOUETTE_PX = 2
+#: Masks the isolation drew end up to 2 px inside the outline here and there (GrabCut gives the pixels
+#: the demosaicing mixes with the background to the background): the trimming takes this many pixels
+#: more, and the hull fit, which trusts a mask to half a pixel, does not run on them.
+_DRAWN_MASK_SLACK_PX = 2
 
 
 @dataclass(frozen=True)
@@ -210,7 +221,7 @@ def run_geometry(
                 dense.points.points, cameras, viewable_images(images), settings=options.isolate
             )
             masks = isolation.masks
-            dense = replace(dense, points=kept_points(dense.points, isolation.keep))
+            dense = replace(dense, points=object_dense_points(dense, isolation, cameras, options))
     else:  # masks given, or isolation off: the step's share of the bar passes at once
         with progress.step("isolation", _STEP_WEIGHTS["isolation"]):
             pass
@@ -223,6 +234,7 @@ def run_geometry(
             masks=[masks[i] for i in reg],
             options=options.surface,
             max_area_px=options.surface.split_factor * options.subdivision.max_area_px,
+            silhouette_px=_SILHOUETTE_PX if isolation is None else _SILHOUETTE_PX + _DRAWN_MASK_SLACK_PX,
         )
 
     with progress.step("visibility", _STEP_WEIGHTS["visibility"]):
@@ -246,7 +258,7 @@ def run_geometry(
         )
     vertices, hull = sub.vertices, None
     with progress.step("silhouettes", _STEP_WEIGHTS["silhouettes"]):
-        if options.surface.hull_tolerance_px is not None:
+        if options.surface.hull_tolerance_px is not None and isolation is None:  # drawn masks: no fit
             hull = fit_inside_hull(
                 sub.vertices, sub.faces, reg_cams, [masks[i] for i in reg],
                 tolerance_px=options.surface.hull_tolerance_px,
@@ -282,6 +294,24 @@ def run_geometry(
         isolation=isolation,
         coarse=coarse,
     )
+
+
+def object_dense_points(
+    dense: DenseResult, isolation: Isolation, cameras: Sequence[Camera | None], options: GeometryOptions
+) -> DensePoints:
+    """The isolated object's dense points: the depth maps fused again within its masks, thinned at its
+    extent (:func:`~pmvir.geometry.mvs.dense.fuse_within_masks`), those inside every view's mask and
+    above the support plane (:func:`~pmvir.geometry.silhouette.isolate.on_object`); the points the
+    isolation kept where stereo kept no depth maps (COLMAP's fusion) or the fusion found none."""
+    kept = kept_points(dense.points, isolation.keep)
+    if len(kept) < 2:
+        return kept
+    extent = float(np.linalg.norm(np.percentile(kept.points, 99, 0) - np.percentile(kept.points, 1, 0)))
+    fused = fuse_within_masks(dense, isolation.masks, cameras, options.mvs, extent=extent)
+    if fused is None:
+        return kept
+    fused = kept_points(fused, on_object(fused.points, cameras, isolation))
+    return fused if len(fused) else kept
 
 
 def _k_matrix(intr: Any) -> np.ndarray:

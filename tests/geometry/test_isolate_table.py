@@ -84,6 +84,7 @@ def test_without_masks_within_1_5x_of_the_true_masks(table_runs):
     r_bare = evaluate(Mesh(bare.vertices, bare.faces), gt, n_samples=100_000)
     r_masked = evaluate(Mesh(masked.vertices, masked.faces), gt, n_samples=100_000)
     assert masked.isolation is None  # given masks: nothing to isolate
+    assert bare.hull_fit is None and masked.hull_fit is not None  # drawn masks: no fit to the half pixel
     assert r_bare.accuracy <= 1.5 * r_masked.accuracy, (r_bare.to_dict(), r_masked.to_dict())
     assert r_bare.completeness <= 1.5 * r_masked.completeness, (r_bare.to_dict(), r_masked.to_dict())
 

@@ -25,9 +25,10 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from pmvir.camera import Camera
@@ -267,13 +268,7 @@ def _dense_cpu(
         valid[i] = int(depth.valid.sum())
     t1 = time.perf_counter()
     progress.update(1.0, "fusing depth maps")
-    pts_f, views_f, counts_f = filter_and_fuse(
-        depth_maps,
-        neighbours,
-        max_reproj_px=options.consistency_px,
-        max_rel_depth=options.consistency_depth,
-        min_consistent=1 if len(registered) <= options.sparse_rig_views else options.min_consistent,
-    )
+    pts_f, views_f, counts_f = _fuse(depth_maps, neighbours, options, len(registered))
     consistent = np.bincount(views_f, minlength=n)
     fraction = [-1.0] * n
     for i, view in enumerate(views):
@@ -298,6 +293,66 @@ def _dense_cpu(
     )
     _check_enough(result, names, registered, options)
     return result
+
+
+def _fuse(
+    depth_maps: Sequence[DepthMap | None], neighbours: Sequence[Sequence[int]], options: MvsOptions, registered: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`filter_and_fuse` with the stereo options (one confirming view on sparse rigs)."""
+    return filter_and_fuse(
+        depth_maps,
+        neighbours,
+        max_reproj_px=options.consistency_px,
+        max_rel_depth=options.consistency_depth,
+        min_consistent=1 if registered <= options.sparse_rig_views else options.min_consistent,
+    )
+
+
+def fuse_within_masks(
+    dense: DenseResult,
+    masks: Sequence[np.ndarray | None],
+    cameras: Sequence[Camera | None],
+    options: MvsOptions,
+    *,
+    extent: float,
+) -> DensePoints | None:
+    """The CPU stereo's depth maps fused again, each view's depths kept inside its mask.
+
+    A capture without masks is fused over whole images and thinned at the scene's extent (the
+    table's as well as the object's). Once the object's masks are drawn, its depths are fused
+    again alone, each mask grown by one pixel of the stereo grid (a mask drawn from the images
+    may end a pixel inside the outline), and thinned at the object's ``extent``: the object
+    keeps the point density a masked capture gives it.
+
+    Args:
+        dense: the result of :func:`dense_stereo` (its depth maps and neighbours).
+        masks: per view its (H, W) bool object mask, None where none.
+        cameras: per view its camera, None where the view is not registered.
+        options: the ``geometry.mvs`` options of that run.
+        extent: the object's bounding-box diagonal, world units; points are thinned to one per
+            cube of ``options.voxel`` times it.
+
+    Returns:
+        The fused, oriented points, or None where ``dense`` kept no depth maps (COLMAP's fusion).
+    """
+    if not any(dm is not None for dm in dense.depth_maps):
+        return None
+    maps: list[DepthMap | None] = []
+    grow = np.ones((3, 3), np.uint8)
+    for dm, mask in zip(dense.depth_maps, masks, strict=True):
+        if dm is None or mask is None:
+            maps.append(dm)
+            continue
+        h, w = dm.depth.shape
+        covered = cv2.resize(np.asarray(mask, np.float32), (w, h), interpolation=cv2.INTER_AREA) > 0
+        inside = cv2.dilate(covered.astype(np.uint8), grow).astype(bool)
+        maps.append(replace(dm, depth=np.where(inside, dm.depth, 0).astype(dm.depth.dtype)))
+    registered = sum(cam is not None for cam in cameras)
+    pts, views, counts = _fuse(maps, dense.neighbours, options, registered)
+    if options.voxel > 0 and len(pts):
+        keep = voxel_thin(pts, options.voxel * extent)
+        pts, views, counts = pts[keep], views[keep], counts[keep]
+    return DensePoints(points=pts, normals=estimate_normals(pts, views, cameras), views=views, consistent=counts)
 
 
 def _dense_colmap(
@@ -423,4 +478,4 @@ def _check_enough(
     )
 
 
-__all__ = ["DenseResult", "dense_stereo", "resolve_backend"]
+__all__ = ["DenseResult", "dense_stereo", "fuse_within_masks", "resolve_backend"]

@@ -161,6 +161,7 @@ def initial_surface(
     masks: Sequence[np.ndarray | None] | None = None,
     options: SurfaceOptions | None = None,
     max_area_px: float | None = None,
+    silhouette_px: int = 2,
 ) -> SurfaceResult:
     """Screened Poisson, trimming, simplification and cleaning (module docstring).
 
@@ -174,6 +175,8 @@ def initial_surface(
             :func:`~pmvir.geometry.surface.clean.clean_mesh`).
         max_area_px: with ``cameras``, faces projecting larger than this (pixels^2, in a view
             they face) are bisected afterwards (:func:`split_large_faces`).
+        silhouette_px: the masks are dilated by this many pixels before the silhouette trimming
+            (more for masks drawn from the images, which miss a pixel or two of the outline).
 
     Returns:
         :class:`SurfaceResult`.
@@ -203,7 +206,7 @@ def initial_surface(
     trim = max(opts.trim_distance * diag, _TRIM_SPACINGS * spacing)  # sparse points: no holes between them
     keep &= dist <= trim
     if cameras is not None and masks is not None:
-        keep &= ~off_silhouette(v, cameras, masks)
+        keep &= ~off_silhouette(v, cameras, masks, dilate_px=silhouette_px)
     v, f = _keep_vertices(v, f, keep)
     counts.update(trimmed_vertices=len(v), trimmed_faces=len(f))
     if len(f) == 0:
