@@ -182,9 +182,15 @@ def mask_margin_warning(fit: RimFit | None) -> str | None:
     )
 
 
-def refinement_options(options: RefineOptions, median_dop: float | None) -> RefineOptions:
+def refinement_options(options: RefineOptions, median_dop: float | None, *, drawn_masks: bool = False) -> RefineOptions:
     """The refinement's options for a capture of this median DoP inside the masks: a specular-dominated
-    one is refined without the offset scan unless ``refine.offset_scan.specular`` is 'same'."""
+    one is refined without the offset scan unless ``refine.offset_scan.specular`` is 'same'. On masks
+    the isolation drew (``drawn_masks``) the hull and rim fits do not run: they move the surface to a
+    mask's outline to the pixel, and a drawn mask misses or adds a pixel or two of it here and there
+    (the columns down to the support, too)."""
+    if drawn_masks:
+        fits = {"hull_tolerance_px": None, "rim_fit_gain": 0.0}
+        options = options.model_copy(update={"surface": options.surface.model_copy(update=fits)})
     if is_specular(median_dop) and options.offset_scan.specular == "off" and options.offset_scan.mode != "off":
         return options.model_copy(update={"offset_scan": options.offset_scan.model_copy(update={"mode": "off"})})
     return options
@@ -343,10 +349,15 @@ def run(
                 sections["geometry"] = geometry_report(geometry)
         if Stage.REFINE in stages:
             with progress.step(Stage.REFINE, weight[Stage.REFINE]) as p:
-                refine_options = refinement_options(config.refine, median_dop)
+                drawn = geometry.isolation is not None
+                refine_options = refinement_options(config.refine, median_dop, drawn_masks=drawn)
                 refined, registered = _refine_stage(work_cap, views, geometry, config, refine_options, p, share=0.85)
                 mesh = _write_refined(result, geometry, refined, [views[i].file for i in registered])
-                sections["refine"] = {**refine_report(refined), "offset_scan": refine_options.offset_scan.mode}
+                sections["refine"] = {
+                    **refine_report(refined),
+                    "offset_scan": refine_options.offset_scan.mode,
+                    "masks": "drawn" if drawn else "given" if any(m is not None for m in geometry.masks) else "none",
+                }
                 if (warning := mask_margin_warning(refined.rim_fit)) is not None:
                     warnings.append(warning)
                 with p.step("exports", 0.15) as q:

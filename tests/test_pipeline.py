@@ -119,6 +119,18 @@ def test_specular_captures_are_refined_without_the_offset_scan() -> None:
     assert specular_warning(0.1, default) is None
 
 
+def test_masks_the_isolation_drew_get_no_silhouette_fits() -> None:
+    """refinement_options with drawn_masks: the hull and rim fits are off (the rest as set, the
+    specular rule too); given masks keep them."""
+    default = RefineOptions()
+    assert default.surface.hull_tolerance_px is not None and default.surface.rim_fit_gain > 0
+    drawn = refinement_options(default, 0.05, drawn_masks=True)
+    assert drawn.surface.hull_tolerance_px is None and drawn.surface.rim_fit_gain == 0.0
+    assert drawn.surface.fair_iterations == default.surface.fair_iterations and drawn.pol == default.pol
+    assert refinement_options(default, SPECULAR_MEDIAN_DOP + 0.05, drawn_masks=True).offset_scan.mode == "off"
+    assert refinement_options(default, 0.05, drawn_masks=False) is default
+
+
 def test_masks_past_every_rim_are_warned_about() -> None:
     """An estimated mask margin of 0.5 px or more (the rim fit found the masks past every rim) is warned
     about, saying whether the fit discounted it; a small estimate, one a set margin accounts for, or no fit
