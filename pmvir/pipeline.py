@@ -30,7 +30,7 @@ from pmvir import __version__, stage_cache
 from pmvir.capture import MANIFEST_NAME, Capture, RawFrame, open_capture
 from pmvir.config import DecodeOptions, PipelineConfig, RefineOptions
 from pmvir.decode import decode_frame, write_decoded, write_previews
-from pmvir.errors import ConfigError, PmvirError
+from pmvir.errors import ConfigError, PmvirError, ShapeError
 from pmvir.export import write_previews as write_view_previews
 from pmvir.export import write_refined_outputs
 from pmvir.geometry.silhouette.hull_fit import RimFit
@@ -407,6 +407,8 @@ def _refine_stage(
         with progress.step("images", decode_share) as q:
             observations = refinement_observations(cap, views, registered, config.decode, options, q)
     masks = [geometry.masks[i] if geometry.masks else cap.read_mask(i) for i in registered]  # given or isolated
+    if geometry.isolation is not None:
+        observations = [within_mask(obs, mask) for obs, mask in zip(observations, masks, strict=True)]
     visibility_fn = make_visibility_fn(
         cameras, masks, min_cos=config.geometry.visibility.min_cos, rel_tol=config.geometry.visibility.rel_tol
     )
@@ -425,6 +427,21 @@ def _refine_stage(
             coarse=coarse,
         )
     return refined, registered
+
+
+def within_mask(obs: Observation, mask: np.ndarray | None) -> Observation:
+    """The observation with its pixels outside ``mask`` invalid, as the decode stage makes them for a
+    given mask: a mask the isolation drew keeps the table and the room out of E_pho, E_pol and the
+    intensity scale, as a given one does.
+
+    Raises:
+        ShapeError: a mask of another size than the observation's images.
+    """
+    if mask is None:
+        return obs
+    if mask.shape != obs.valid.shape:
+        raise ShapeError(f"a {mask.shape} mask for a {obs.valid.shape} observation")
+    return replace(obs, valid=obs.valid & mask.astype(bool))
 
 
 def coarse_surface(geometry: GeometryResult, registered: list[int]) -> CoarseMesh | None:

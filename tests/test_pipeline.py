@@ -13,7 +13,7 @@ from pmvir.capture import CaptureManifest, FrameEntry, SensorSpec, open_capture,
 from pmvir.cli import main
 from pmvir.config import DecodeOptions, PipelineConfig, RefineOptions
 from pmvir.decode import decode_frame
-from pmvir.errors import CanceledError, ConfigError
+from pmvir.errors import CanceledError, ConfigError, ShapeError
 from pmvir.geometry.silhouette.hull_fit import RimFit
 from pmvir.io.frames import write_frame
 from pmvir.pipeline import (
@@ -24,6 +24,7 @@ from pmvir.pipeline import (
     refinement_options,
     run,
     specular_warning,
+    within_mask,
 )
 from pmvir.polarization.layout import ANGLES_DEG, IMX250MYR, mosaic
 from pmvir.polarization.noise import closure_noise
@@ -129,6 +130,27 @@ def test_masks_the_isolation_drew_get_no_silhouette_fits() -> None:
     assert drawn.surface.fair_iterations == default.surface.fair_iterations and drawn.pol == default.pol
     assert refinement_options(default, SPECULAR_MEDIAN_DOP + 0.05, drawn_masks=True).offset_scan.mode == "off"
     assert refinement_options(default, 0.05, drawn_masks=False) is default
+
+
+def test_a_drawn_mask_limits_the_observations_as_a_given_one(tmp_path: Path) -> None:
+    """within_mask on a capture decoded without masks gives the observations the same capture decodes
+    to with its masks given: the pixels outside are invalid, the rest as decoded; a mask of another
+    size is refused."""
+    masked = _write_capture(tmp_path / "masked", masks=True)
+    bare = _write_capture(tmp_path / "bare")
+    config = PipelineConfig()
+    with open_capture(masked) as cap_m, open_capture(bare) as cap_b:
+        given = refinement_observations(cap_m, decode_views(cap_m, config), [0, 1], config.decode, config.refine)
+        bare_obs = refinement_observations(cap_b, decode_views(cap_b, config), [0, 1], config.decode, config.refine)
+        for k in (0, 1):
+            mask = cap_m.read_mask(k)
+            assert mask is not None and 0 < mask.mean() < 1 and bare_obs[k].valid[~mask].any()
+            drawn = within_mask(bare_obs[k], mask)
+            np.testing.assert_array_equal(drawn.valid, given[k].valid)
+            np.testing.assert_array_equal(drawn.intensity, bare_obs[k].intensity)
+        assert within_mask(bare_obs[0], None) is bare_obs[0]
+        with pytest.raises(ShapeError, match="mask"):
+            within_mask(bare_obs[0], np.ones((4, 4), bool))
 
 
 def test_masks_past_every_rim_are_warned_about() -> None:
