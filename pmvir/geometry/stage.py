@@ -76,11 +76,10 @@ from pmvir.result import ResultFolder
 
 #: Share of the stage's progress bar given to each step (they sum to 1).
 _STEP_WEIGHTS = {"poses": 0.25, "dense": 0.42, "isolation": 0.03, "surface": 0.1, "visibility": 0.1, "subdivision": 0.08, "silhouettes": 0.02}
-#: The surface's silhouette trimming dilates the masks by this many pixels.
-_SILHOUETTE_PX = 2
 #: Masks the isolation drew end up to 2 px inside the outline here and there (GrabCut gives the pixels
-#: the demosaicing mixes with the background to the background): the trimming takes this many pixels
-#: more, and the hull fit, which trusts a mask to half a pixel, does not run on them.
+#: the demosaicing mixes with the background to the background): the silhouette trimming takes this
+#: many pixels more than for given masks, and the hull fit, which trusts a mask to half a pixel, does
+#: not run on them.
 _DRAWN_MASK_SLACK_PX = 2
 
 
@@ -234,7 +233,7 @@ def run_geometry(
             masks=[masks[i] for i in reg],
             options=options.surface,
             max_area_px=options.surface.split_factor * options.subdivision.max_area_px,
-            silhouette_px=_SILHOUETTE_PX if isolation is None else _SILHOUETTE_PX + _DRAWN_MASK_SLACK_PX,
+            mask_slack_px=0 if isolation is None else _DRAWN_MASK_SLACK_PX,
         )
 
     with progress.step("visibility", _STEP_WEIGHTS["visibility"]):

@@ -47,6 +47,9 @@ _EPS = 1e-12
 #: Poisson vertices are trimmed beyond the larger of ``trim_distance`` and this many typical point
 #: spacings (the median distance to a point's 4th nearest neighbour) from every dense point.
 _TRIM_SPACINGS = 2.5
+#: The silhouette trimming dilates the masks by this many pixels (a vertex on the outline projects up
+#: to a pixel or so outside a mask cut to the pixel grid).
+SILHOUETTE_PX = 2
 
 
 @dataclass(frozen=True)
@@ -125,7 +128,7 @@ def auto_poisson_depth(
 
 
 def off_silhouette(
-    vertices: np.ndarray, cameras: Sequence[Camera], masks: Sequence[np.ndarray | None], *, dilate_px: int = 2
+    vertices: np.ndarray, cameras: Sequence[Camera], masks: Sequence[np.ndarray | None], *, dilate_px: int = SILHOUETTE_PX
 ) -> np.ndarray:
     """(N,) bool: the vertex projects inside a view's image but outside its mask dilated by ``dilate_px``."""
     v = np.asarray(vertices, np.float64)
@@ -161,7 +164,7 @@ def initial_surface(
     masks: Sequence[np.ndarray | None] | None = None,
     options: SurfaceOptions | None = None,
     max_area_px: float | None = None,
-    silhouette_px: int = 2,
+    mask_slack_px: int = 0,
 ) -> SurfaceResult:
     """Screened Poisson, trimming, simplification and cleaning (module docstring).
 
@@ -175,8 +178,8 @@ def initial_surface(
             :func:`~pmvir.geometry.surface.clean.clean_mesh`).
         max_area_px: with ``cameras``, faces projecting larger than this (pixels^2, in a view
             they face) are bisected afterwards (:func:`split_large_faces`).
-        silhouette_px: the masks are dilated by this many pixels before the silhouette trimming
-            (more for masks drawn from the images, which miss a pixel or two of the outline).
+        mask_slack_px: pixels the masks are dilated by in the silhouette trimming beyond
+            ``SILHOUETTE_PX`` (for masks drawn from the images, which miss a pixel or two of the outline).
 
     Returns:
         :class:`SurfaceResult`.
@@ -206,7 +209,7 @@ def initial_surface(
     trim = max(opts.trim_distance * diag, _TRIM_SPACINGS * spacing)  # sparse points: no holes between them
     keep &= dist <= trim
     if cameras is not None and masks is not None:
-        keep &= ~off_silhouette(v, cameras, masks, dilate_px=silhouette_px)
+        keep &= ~off_silhouette(v, cameras, masks, dilate_px=SILHOUETTE_PX + mask_slack_px)
     v, f = _keep_vertices(v, f, keep)
     counts.update(trimmed_vertices=len(v), trimmed_faces=len(f))
     if len(f) == 0:
