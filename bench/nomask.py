@@ -11,7 +11,8 @@ alone: accuracy and completeness (pmvir.evaluate, GT diagonals), the median norm
 angle between each vertex's normal and the true surface's, degrees), the largest vertex distance and
 the share of vertices farther than 2 % of the diagonal, the largest distance of the vertices within
 2 % of the diagonal above the table (the table left in the mesh), the masks' IoU against the true
-ones (no-mask runs) and the time. Prints a table and writes bench/results/nomask.json.
+ones (no-mask runs) and the time. Prints a table and writes bench/results/nomask.json (the initial
+surface) or bench/results/nomask_refine.json (``--stop-after refine``: the refined mesh).
 """
 
 from __future__ import annotations
@@ -95,8 +96,13 @@ def _measure(capture: Path, result: Path, stop_after: str) -> dict:
     }
 
 
+def _name(stop_after: str) -> str:
+    """The result's name: the initial surface's runs and the refined mesh's are kept apart."""
+    return "nomask" if stop_after == "geometry" else "nomask_refine"
+
+
 def _write(runs: list[dict], args: argparse.Namespace) -> Path:
-    """Print the table of the runs so far and write bench/results/nomask.json."""
+    """Print the table of the runs so far and write bench/results/<_name>.json."""
     columns = ["scene", "views x size", "renderer", "masks", "accuracy (1e-2)", "completeness (1e-2)",
                "normal error median deg", "max dist (diag)", "> 2 % diag", "max dist near table", "mask IoU",
                "time (s)"]
@@ -117,7 +123,7 @@ def _write(runs: list[dict], args: argparse.Namespace) -> Path:
     for row in rows:
         print(" | ".join("-" if v is None else str(v) for v in row))
     out = write_results(
-        "nomask",
+        _name(args.stop_after),
         title=f"Object isolation without masks ({args.shape}, stop after {args.stop_after})",
         tables=[table("With the true masks and without masks", columns, rows,
                       note="masks 'none': pmvir finds the object itself (geometry.isolate); distances in "
@@ -140,10 +146,10 @@ def main() -> int:
     ap.add_argument("--spp", type=int, default=32)
     ap.add_argument("--stop-after", choices=["geometry", "refine"], default="geometry")
     ap.add_argument("--work", type=Path, default=Path("/tmp/nomask"))
-    ap.add_argument("--append", action="store_true", help="keep the runs already in bench/results/nomask.json")
+    ap.add_argument("--append", action="store_true", help="keep the runs already in the result file")
     args = ap.parse_args()
 
-    earlier = RESULTS / "nomask.json"
+    earlier = RESULTS / f"{_name(args.stop_after)}.json"
     runs = json.loads(earlier.read_text())["runs"] if args.append and earlier.exists() else []
     for scene in args.scenes.split(","):
         for renderer in args.renderers.split(","):

@@ -39,6 +39,11 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
     ),
     "geometry": ("Geometric stage (initial surface)", f"{PY} bench/geometry.py", None),
     "nomask": ("The object found without masks", f"{PY} bench/nomask.py", "the same captures with their true masks"),
+    "nomask_refine": (
+        "The object found without masks: the refined mesh",
+        f"{PY} bench/nomask.py --stop-after refine",
+        "the same captures with their true masks",
+    ),
     "subdivision": ("Visibility and subdivision", f"{PY} bench/subdivision.py", None),
     "refine": (
         "Refinement against ground truth (the paper's Tables 3 and 4)",
