@@ -20,6 +20,7 @@ from __future__ import annotations
 import platform
 import tempfile
 import time
+from collections.abc import Sequence
 from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -208,6 +209,7 @@ def refinement_observations(
     decode: DecodeOptions,
     refine: RefineOptions,
     progress: Progress | None = None,
+    masks: Sequence[np.ndarray | None] | None = None,
 ) -> list[Observation]:
     """The images the refinement fits, for the views ``indices`` of an open capture.
 
@@ -218,7 +220,9 @@ def refinement_observations(
     frame's polarization noise (:func:`pmvir.polarization.noise.closure_noise` over its valid
     pixels), measured from the raw mosaic read once more. A :class:`~pmvir.working.BinnedCapture`
     gives observations binned as its decoded ``views`` are (the noise measured at full
-    resolution inside the binned valid pixels, then binned).
+    resolution inside the binned valid pixels, then binned). ``masks`` (one per index, e.g. the ones
+    the isolation drew) limit each observation as a given mask does (:func:`within_mask`), before
+    its noise is measured.
     """
     progress = progress or Progress.none()
     factor = cap.factor if isinstance(cap, BinnedCapture) else 1
@@ -231,8 +235,9 @@ def refinement_observations(
         raw = cap.read_raw(i) if redecode or noise else None
         images = bin_images(_decode_frame(cap, i, options, raw), factor) if redecode else views[i].images
         obs = observation_from_decoded(vars(images), intensity=refine.pho.intensity)
+        obs = within_mask(obs, masks[k] if masks is not None else None)
         if raw is not None and noise:
-            valid = unbin_mask(images.valid, factor, raw.mosaic.shape)
+            valid = unbin_mask(obs.valid, factor, raw.mosaic.shape)
             sigma = closure_noise(raw.mosaic, cap.layout, valid=valid, sigma_px=refine.pol.aop_noise_px)
             sigma = bin_noise(sigma, factor)
             obs = replace(obs, aop_noise=sigma)
@@ -399,16 +404,15 @@ def _refine_stage(
     """
     registered = [i for i, cam in enumerate(geometry.cameras) if cam is not None]
     cameras = [cam for cam in geometry.cameras if cam is not None]  # in the order of registered
+    masks = [geometry.masks[i] if geometry.masks else cap.read_mask(i) for i in registered]  # given or isolated
+    drawn = masks if geometry.isolation is not None else None  # given masks are in the decoded views already
     decode_share = 0.0
     if not redecodes_for_refinement(config.decode, options):
-        observations = refinement_observations(cap, views, registered, config.decode, options)
+        observations = refinement_observations(cap, views, registered, config.decode, options, masks=drawn)
     else:  # the frames are decoded once more: a timed step of its own
         decode_share = 0.1 * share
         with progress.step("images", decode_share) as q:
-            observations = refinement_observations(cap, views, registered, config.decode, options, q)
-    masks = [geometry.masks[i] if geometry.masks else cap.read_mask(i) for i in registered]  # given or isolated
-    if geometry.isolation is not None:
-        observations = [within_mask(obs, mask) for obs, mask in zip(observations, masks, strict=True)]
+            observations = refinement_observations(cap, views, registered, config.decode, options, q, masks=drawn)
     visibility_fn = make_visibility_fn(
         cameras, masks, min_cos=config.geometry.visibility.min_cos, rel_tol=config.geometry.visibility.rel_tol
     )

@@ -133,21 +133,24 @@ def test_masks_the_isolation_drew_get_no_silhouette_fits() -> None:
 
 
 def test_a_drawn_mask_limits_the_observations_as_a_given_one(tmp_path: Path) -> None:
-    """within_mask on a capture decoded without masks gives the observations the same capture decodes
-    to with its masks given: the pixels outside are invalid, the rest as decoded; a mask of another
-    size is refused."""
+    """Masks handed to refinement_observations for a capture decoded without masks give the
+    observations the same capture decodes to with its masks given: the pixels outside invalid, the
+    polarization noise measured inside only, the rest as decoded; a mask of another size is refused."""
     masked = _write_capture(tmp_path / "masked", masks=True)
     bare = _write_capture(tmp_path / "bare")
     config = PipelineConfig()
+    assert config.refine.pol.aop_noise == "closure"
     with open_capture(masked) as cap_m, open_capture(bare) as cap_b:
         given = refinement_observations(cap_m, decode_views(cap_m, config), [0, 1], config.decode, config.refine)
-        bare_obs = refinement_observations(cap_b, decode_views(cap_b, config), [0, 1], config.decode, config.refine)
-        for k in (0, 1):
-            mask = cap_m.read_mask(k)
+        masks = [cap_m.read_mask(k) for k in (0, 1)]
+        views_b = decode_views(cap_b, config)
+        bare_obs = refinement_observations(cap_b, views_b, [0, 1], config.decode, config.refine)
+        drawn = refinement_observations(cap_b, views_b, [0, 1], config.decode, config.refine, masks=masks)
+        for k, mask in enumerate(masks):
             assert mask is not None and 0 < mask.mean() < 1 and bare_obs[k].valid[~mask].any()
-            drawn = within_mask(bare_obs[k], mask)
-            np.testing.assert_array_equal(drawn.valid, given[k].valid)
-            np.testing.assert_array_equal(drawn.intensity, bare_obs[k].intensity)
+            np.testing.assert_array_equal(drawn[k].valid, given[k].valid)
+            np.testing.assert_array_equal(drawn[k].aop_noise, given[k].aop_noise)
+            np.testing.assert_array_equal(drawn[k].intensity, bare_obs[k].intensity)
         assert within_mask(bare_obs[0], None) is bare_obs[0]
         with pytest.raises(ShapeError, match="mask"):
             within_mask(bare_obs[0], np.ones((4, 4), bool))
