@@ -441,8 +441,10 @@ def register_from_silhouettes(
     centre = np.median(np.stack([p.xyz for p in rec.points3D.values()]), axis=0)
     Rr = np.stack([rec.images[names[n]].cam_from_world().rotation.matrix() for n in reg])
     Cr = np.stack([rec.images[names[n]].projection_center() for n in reg])
-    hulls = [_contour_rays(masks[n], rec.cameras[rec.images[names[n]].camera_id].calibration_matrix())[0] @ Rr[k]
-             for k, n in enumerate(reg)]  # world directions
+    hulls = _padded([
+        _contour_rays(masks[n], rec.cameras[rec.images[names[n]].camera_id].calibration_matrix())[0] @ Rr[k]
+        for k, n in enumerate(reg)
+    ])  # world directions
     distance = float(np.median(np.linalg.norm(Cr - centre, axis=1)))
     out = []
     for name in sorted(intrinsics):
@@ -467,36 +469,54 @@ def register_from_silhouettes(
     return out
 
 
+def _padded(hulls: list[np.ndarray]) -> np.ndarray:
+    """The registered views' hull rays as one (J, M, 3) array, each padded with copies of its first
+    ray (a repeated ray leaves a view's extreme angles as they are)."""
+    m = max(len(h) for h in hulls)
+    return np.stack([np.concatenate([h, np.repeat(h[:1], m - len(h), axis=0)]) for h in hulls])
+
+
+def _pair_frames(
+    C: np.ndarray, centre: np.ndarray, Cr: np.ndarray, hulls: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The epipolar frames of a camera at C paired with registered cameras at Cr (J, 3): per pair
+    the sine of the angle at C between the baseline and the object's centre, two unit axes (J, 3)
+    normal to the baseline (a1 towards the centre, a2 = b x a1), and the highest and lowest angle
+    about the baseline of the registered view's hull rays ``hulls`` (J, M, 3)."""
+    b = Cr - C
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    to_centre = centre - C
+    a1 = to_centre - (b @ to_centre)[:, None] * b
+    sin = np.linalg.norm(a1, axis=1) / np.linalg.norm(to_centre)
+    a1 /= np.linalg.norm(a1, axis=1, keepdims=True)
+    a2 = np.cross(b, a1)
+    pj = np.arctan2(np.einsum("jmi,ji->jm", hulls, a2), np.einsum("jmi,ji->jm", hulls, a1))  # (J, M)
+    return sin, a1, a2, pj.max(axis=1), pj.min(axis=1)
+
+
 def _frontier_vector(
-    R: np.ndarray, C: np.ndarray, hull: np.ndarray, centre: np.ndarray, Cr: np.ndarray, hulls: list[np.ndarray],
-    f: float, pairs: list[int] | None,
-) -> tuple[np.ndarray, list[int]]:
-    """A view's frontier residuals (px) against the registered views (``pairs``: which; None: every
-    pair that has frontier points), and the pairs used."""
+    R: np.ndarray, C: np.ndarray, hull: np.ndarray, centre: np.ndarray, Cr: np.ndarray, hulls: np.ndarray,
+    f: float, pairs: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A view's frontier residuals (px) against the registered views (``hulls``: their padded
+    (J, M, 3) world hull rays, :func:`_padded`; ``pairs``: which; None: every pair that has frontier
+    points), the high and low extremes' residuals of each pair in turn, and the pairs used."""
     d = hull @ R  # world directions of the view's hull rays
-    res, used = [], []
-    for k in range(len(Cr)) if pairs is None else pairs:
-        b = Cr[k] - C
-        b = b / np.linalg.norm(b)
-        to_centre = centre - C
-        a1 = to_centre - (to_centre @ b) * b
-        sin = np.linalg.norm(a1) / np.linalg.norm(to_centre)
-        a1 = a1 / np.linalg.norm(a1)
-        a2 = np.cross(b, a1)
-        pv = np.arctan2(d @ a2, d @ a1)
-        pj = np.arctan2(hulls[k] @ a2, hulls[k] @ a1)
-        if pairs is None and (
-            max(np.abs(pv).max(), np.abs(pj).max()) >= MAX_ANGLE or max(np.ptp(pv), np.ptp(pj)) >= MAX_SPAN
-        ):
-            continue
-        res += [f * sin * (pv.max() - pj.max()), f * sin * (pv.min() - pj.min())]
-        used.append(k)
-    return np.asarray(res), used
+    k = np.arange(len(Cr)) if pairs is None else pairs
+    sin, a1, a2, pj_hi, pj_lo = _pair_frames(C, centre, Cr[k], hulls[k])
+    pv = np.arctan2(d @ a2.T, d @ a1.T)  # (M, pairs)
+    pv_hi, pv_lo = pv.max(axis=0), pv.min(axis=0)
+    if pairs is None:
+        reach = np.maximum(np.maximum(np.abs(pv_hi), np.abs(pv_lo)), np.maximum(np.abs(pj_hi), np.abs(pj_lo)))
+        keep = (reach < MAX_ANGLE) & (np.maximum(pv_hi - pv_lo, pj_hi - pj_lo) < MAX_SPAN)
+        k, sin, pv_hi, pv_lo, pj_hi, pj_lo = k[keep], sin[keep], pv_hi[keep], pv_lo[keep], pj_hi[keep], pj_lo[keep]
+    res = np.stack([f * sin * (pv_hi - pj_hi), f * sin * (pv_lo - pj_lo)], axis=1).reshape(-1)
+    return res, k
 
 
 def _search_pose(
     mask: np.ndarray, K: np.ndarray, centre: np.ndarray, distance: float, Cr: np.ndarray,
-    hulls: list[np.ndarray], min_pairs: int,
+    hulls: np.ndarray, min_pairs: int,
 ) -> tuple[float, int, np.ndarray, np.ndarray, float] | None:
     """(RMS px, pairs, R, C) of the best polished candidate pose for a mask and the RMS of the best
     polished pose in another basin (inf when none), or None."""
@@ -520,15 +540,7 @@ def _search_pose(
         world = np.einsum("mi,rij->rmj", hull, rotations)  # (rolls, M, 3): R^T r
         for scale in SEARCH_DISTANCES:
             C = centre + direction * distance * scale
-            b = Cr - C
-            b /= np.linalg.norm(b, axis=1, keepdims=True)
-            to_centre = centre - C
-            a1 = to_centre - (b @ to_centre)[:, None] * b
-            sin = np.linalg.norm(a1, axis=1) / np.linalg.norm(to_centre)
-            a1 /= np.linalg.norm(a1, axis=1, keepdims=True)
-            a2 = np.cross(b, a1)
-            pj = [np.arctan2(h @ a2[k], h @ a1[k]) for k, h in enumerate(hulls)]
-            pj_hi, pj_lo = np.array([p.max() for p in pj]), np.array([p.min() for p in pj])
+            sin, a1, a2, pj_hi, pj_lo = _pair_frames(C, centre, Cr, hulls)
             ok_j = (np.maximum(np.abs(pj_hi), np.abs(pj_lo)) < MAX_ANGLE) & (pj_hi - pj_lo < MAX_SPAN)
             pv = np.arctan2(world @ a2.T, world @ a1.T)  # (rolls, M, J)
             pv_hi, pv_lo = pv.max(axis=1), pv.min(axis=1)
