@@ -34,8 +34,8 @@ API_KEY = "demo-key"
 #: once an iteration gains under 0.03 % (the second stage stalls there: its last four iterations took
 #: 15 evaluations for 0.03 %), and the offset scan only before the first stage (on this capture the
 #: later scans moved the surface by under 0.1 px at 3 s each, while the first one buys 4 % in
-#: accuracy); no textured exports (the decimated mesh's UV atlas and texture bake took 14 % of the
-#: job and the console shows mesh.glb, which is written as always).
+#: accuracy); no textured exports (the decimated mesh's UV atlas and texture bake take about 17 s
+#: and the console shows mesh.glb, which is written as always).
 DEMO_OPTIONS = (
     "--set", "geometry.subdivision.max_area_px=8", "--set", "refine.solver.max_iterations=15",
     "--set", "refine.solver.rel_tolerance=3e-4",

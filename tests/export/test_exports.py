@@ -181,3 +181,23 @@ def test_the_bake_runs_in_a_child_that_a_cancel_stops(sphere_mesh: Mesh, tmp_pat
             poll_seconds=0.05,
         )
     assert calls == [1] and not (tmp_path / "bake-out.npz").exists()
+
+
+def test_no_uv_chart_covers_more_than_its_share_of_the_surface(sphere_mesh: Mesh) -> None:
+    """xatlas flattens charts as large as their distortion allows, which took nearly all of the
+    export's time; the atlas is made of charts of at most MAX_CHART_SHARE of the area each."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from pmvir.export.textured import MAX_CHART_SHARE, uv_atlas
+
+    vmapping, faces, uvs, _ = uv_atlas(sphere_mesh.vertices, sphere_mesh.faces, resolution=512, padding=2)
+    tri = sphere_mesh.vertices[vmapping][faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    # a chart: the faces joined through the atlas's vertices (a seam splits a vertex in two)
+    rows = np.repeat(np.arange(len(faces)), 3)
+    link = coo_matrix((np.ones(rows.size), (rows, faces.reshape(-1))), shape=(len(faces), len(uvs))).tocsr()
+    n, label = connected_components(link @ link.T, directed=False)
+    share = np.bincount(label, weights=area) / area.sum()
+    assert n > 1 / MAX_CHART_SHARE  # without the limit the sphere is a handful of charts
+    assert share.max() <= 1.05 * MAX_CHART_SHARE, share.max()
