@@ -110,7 +110,8 @@ def _run(capture: Path, mode: str, workdir: Path, options: SfmOptions, *, plain:
         row |= _centre_errors(reg, np.stack([model.cameras[i].center for i in reg]), true)
         row["extras"] = model.extras
         if plain:  # side by side: pycolmap's plain pipeline on the SIFT images ours saw
-            sift_dir = workdir / ("fallback" if model.fallback else "") / "images"
+            quick = any(e["step"] == "without_upsampling" and e["kept"] for e in model.extras)
+            sift_dir = workdir / ("without-upsampling" if quick else "fallback" if model.fallback else "") / "images"
             row["plain"] = _plain_colmap(sift_dir, workdir / "plain", true, names, options.seed)
             row["ratio_wall"] = row["timings"]["total"] / row["plain"]["timings"]["total"]
             row["ratio_cpu"] = row["cpu_s"] / row["plain"]["cpu_s"]
