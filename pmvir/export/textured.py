@@ -26,7 +26,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pmvir.geometry.mesh_ops import barycentric, raycasting_scene, vertex_normals
+from pmvir.geometry.mesh_ops import barycentric, face_areas, raycasting_scene, vertex_normals
 from pmvir.io.ply import Mesh, linear_to_srgb
 
 #: Sub-pixel bits of the rasterizer (OpenCV's ``shift``).
@@ -96,10 +96,8 @@ def uv_atlas(
 
     atlas = xatlas.Atlas()
     atlas.add_mesh(np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(faces, np.uint32))
-    tri = vertices[faces]
-    area = 0.5 * float(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
     charts = xatlas.ChartOptions()
-    charts.max_chart_area = MAX_CHART_SHARE * area
+    charts.max_chart_area = MAX_CHART_SHARE * float(face_areas(vertices, faces).sum())
     pack = xatlas.PackOptions()
     pack.resolution = int(resolution)
     pack.padding = int(padding)

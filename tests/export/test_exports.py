@@ -190,10 +190,10 @@ def test_no_uv_chart_covers_more_than_its_share_of_the_surface(sphere_mesh: Mesh
     from scipy.sparse.csgraph import connected_components
 
     from pmvir.export.textured import MAX_CHART_SHARE, uv_atlas
+    from pmvir.geometry.mesh_ops import face_areas
 
     vmapping, faces, uvs, _ = uv_atlas(sphere_mesh.vertices, sphere_mesh.faces, resolution=512, padding=2)
-    tri = sphere_mesh.vertices[vmapping][faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    area = face_areas(sphere_mesh.vertices[vmapping], faces)
     # a chart: the faces joined through the atlas's vertices (a seam splits a vertex in two)
     rows = np.repeat(np.arange(len(faces)), 3)
     link = coo_matrix((np.ones(rows.size), (rows, faces.reshape(-1))), shape=(len(faces), len(uvs))).tocsr()
