@@ -7,8 +7,8 @@
   inside the test's tolerance in our measurements (384 x 320: up to 2.5 % of the object's size).
 * ``textureless_capture``: a Lambertian sphere with one constant albedo, 12 views of 256 x 216:
   nothing to match but smooth shading and noise.
-* ``textureless_views``, ``unrelated_views``: those two decoded; ``textureless_set``, ``unrelated_set``:
-  their I_int images, masks, true cameras, names and true-surface points.
+* ``textureless_views``, ``unrelated_views``: those two decoded; ``textureless_set``, ``unrelated_set``
+  (and ``blob_set``): their I_int images, masks, true cameras, names and true-surface points.
 * ``unrelated_capture``: the blob's geometry, 8 views of 256 x 216, but every frame painted with a
   different random albedo texture, so no two frames share image content (they "do not overlap").
 
@@ -215,6 +215,11 @@ def unrelated_views(unrelated_capture: Path) -> list[PolarizationImages]:
 @pytest.fixture(scope="session")
 def textureless_set(textureless_capture: Path, textureless_views: list[PolarizationImages]) -> ViewSet:
     return view_set(textureless_capture, textureless_views)
+
+
+@pytest.fixture(scope="session")
+def blob_set(blob_capture: Path, blob_views: list[PolarizationImages]) -> ViewSet:
+    return view_set(blob_capture, blob_views)
 
 
 @pytest.fixture(scope="session")

@@ -164,6 +164,29 @@ def test_fused_points_lie_on_the_true_surface(blob_geometry, blob_capture: Path)
     assert min(blob_geometry.dense.consistent_fraction) > 0.1
 
 
+def test_depth_maps_are_the_same_on_one_thread_and_on_several(blob_set, monkeypatch):
+    """The views' sweeps run on a thread per core (OMP_NUM_THREADS caps them): the depth maps and the
+    fused points do not depend on how many."""
+    s = blob_set
+    first = slice(0, 8)
+    results = []
+    for threads in ("1", "3"):
+        monkeypatch.setenv("OMP_NUM_THREADS", threads)
+        results.append(
+            dense_stereo(
+                s.images[first], s.masks[first], s.cameras[first], s.points, names=s.names[first],
+                options=TWO_CONFIRMING,
+            )
+        )
+    one, several = results
+    maps = [(a, b) for a, b in zip(one.depth_maps, several.depth_maps, strict=True) if a is not None]
+    assert len(maps) == 8 and all(b is not None for _, b in maps)
+    for a, b in maps:
+        np.testing.assert_array_equal(a.depth, b.depth)
+        np.testing.assert_array_equal(a.score, b.score)
+    np.testing.assert_array_equal(one.points.points, several.points.points)
+
+
 def test_colmap_workspace_and_fusion_of_our_depth_maps(
     blob_geometry, blob_capture: Path, blob_views, tmp_path: Path
 ):

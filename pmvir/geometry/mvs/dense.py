@@ -23,8 +23,10 @@ not overlap), instead of producing an empty mesh.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -225,6 +227,15 @@ def stereo_window(options: MvsOptions, registered_views: int) -> int:
     return _SPARSE_RIG_WINDOW if registered_views <= options.sparse_rig_views else _WINDOW
 
 
+def _sweep_threads() -> int:
+    """Threads for the views' plane sweeps: ``OMP_NUM_THREADS`` when it holds a positive integer (the
+    service sets it from ``PMVIR_JOB_THREADS``), else the cores this process may use."""
+    value = os.environ.get("OMP_NUM_THREADS", "").strip()
+    if value.isdigit() and int(value) > 0:
+        return int(value)
+    return len(os.sched_getaffinity(0))
+
+
 def _dense_cpu(
     images: Sequence[np.ndarray],
     masks: Sequence[np.ndarray | None],
@@ -247,25 +258,29 @@ def _dense_cpu(
             )
     depth_maps: list[DepthMap | None] = [None] * n
     valid = [-1] * n
-    for k, i in enumerate(registered):
-        progress.update(k / len(registered), f"depth map {k + 1}/{len(registered)} (view {names[i]})")
-        ref = views[i]
-        if ref is None or not neighbours[i]:
-            continue
-        rng = ranges[i]
-        if rng is None:
-            continue
+    window = stereo_window(options, len(registered))
+
+    def sweep(i: int) -> DepthMap | None:
+        ref, rng = views[i], ranges[i]
+        if ref is None or not neighbours[i] or rng is None:
+            return None
         sources = [v for v in (views[j] for j in neighbours[i]) if v is not None]  # all prepared above
-        depth = depth_maps[i] = sweep_depth(
-            ref,
-            sources,
-            *rng,
-            planes=options.planes,
-            window=stereo_window(options, len(registered)),
-            top_k=options.top_k,
-            min_score=options.min_score,
+        return sweep_depth(
+            ref, sources, *rng, planes=options.planes, window=window, top_k=options.top_k, min_score=options.min_score
         )
-        valid[i] = int(depth.valid.sum())
+
+    # The views' sweeps are independent and spend their time in OpenCV and NumPy, which release the
+    # GIL: one thread per core (the maps, and so the result, are the same as one after the other).
+    pool = ThreadPoolExecutor(max_workers=_sweep_threads())
+    try:
+        futures = [pool.submit(sweep, i) for i in registered]
+        for k, (i, future) in enumerate(zip(registered, futures, strict=True)):
+            progress.update(k / len(registered), f"depth map {k + 1}/{len(registered)} (view {names[i]})")
+            depth = depth_maps[i] = future.result()
+            if depth is not None:
+                valid[i] = int(depth.valid.sum())
+    finally:  # a cancel (or a failed sweep) drops the sweeps not started
+        pool.shutdown(wait=True, cancel_futures=True)
     t1 = time.perf_counter()
     progress.update(1.0, "fusing depth maps")
     pts_f, views_f, counts_f = _fuse(depth_maps, neighbours, options, len(registered))
