@@ -178,21 +178,28 @@ def strong_wolfe(
 
 def _two_loop(
     g: torch.Tensor,
+    pg: torch.Tensor,
     s_hist: list[torch.Tensor],
     y_hist: list[torch.Tensor],
+    py_hist: list[torch.Tensor],
     rho_hist: list[float],
     *,
     gamma: float,
-    apply_p: Callable[[torch.Tensor], torch.Tensor],
 ) -> torch.Tensor:
-    """The L-BFGS direction -H g by the two-loop recursion, H0 = gamma * P (Nocedal & Wright, Alg. 7.4)."""
+    """The L-BFGS direction -H g by the two-loop recursion, H0 = gamma * P (Nocedal & Wright, Alg. 7.4).
+
+    P is linear, so P q of the middle step is assembled from ``pg`` = P g and the history's
+    ``py_hist`` = P y (each the difference of two iterates' P g) instead of applying P again.
+    """
     q = -g.clone()
+    pq = -pg.clone()
     alphas = []
-    for s, y, rho in zip(reversed(s_hist), reversed(y_hist), reversed(rho_hist), strict=True):
+    for s, y, py, rho in zip(reversed(s_hist), reversed(y_hist), reversed(py_hist), reversed(rho_hist), strict=True):
         a = rho * float(s @ q)
         q.add_(y, alpha=-a)
+        pq.add_(py, alpha=-a)
         alphas.append(a)
-    q = apply_p(q).mul_(gamma)
+    q = pq.mul_(gamma)
     for (s, y, rho), a in zip(zip(s_hist, y_hist, rho_hist, strict=True), reversed(alphas), strict=True):
         b = rho * float(y @ q)
         q.add_(s, alpha=a - b)
@@ -237,6 +244,7 @@ def minimize_lbfgs(
     apply_p = precondition if precondition is not None else (lambda v: v)
     x = x0.detach().clone()
     f, g, aux = fun(x)
+    pg = apply_p(g)  # P at each accepted gradient only: one application per iteration
     n_eval = 1
     if on_iteration is not None:
         on_iteration(0, f, float(g.abs().max()), aux)
@@ -246,16 +254,17 @@ def minimize_lbfgs(
         return LbfgsResult(x, f, 0, n_eval, "gradient_norm")
     s_hist: list[torch.Tensor] = []
     y_hist: list[torch.Tensor] = []
+    py_hist: list[torch.Tensor] = []
     rho_hist: list[float] = []
     gamma = 1.0
     reason = "max_iterations"
     it = 0
     for it in range(1, max_iterations + 1):
-        d = _two_loop(g, s_hist, y_hist, rho_hist, gamma=gamma, apply_p=apply_p)
+        d = _two_loop(g, pg, s_hist, y_hist, py_hist, rho_hist, gamma=gamma)
         gtd = float(g @ d)
         if not s_hist or gtd > -1e-30:
-            s_hist, y_hist, rho_hist = [], [], []
-            d = -apply_p(g)
+            s_hist, y_hist, py_hist, rho_hist = [], [], [], []
+            d = -pg
             gtd = float(g @ d)
             if first_step is not None:
                 t0 = first_step / max(float(d.abs().max()), 1e-30)
@@ -271,18 +280,21 @@ def minimize_lbfgs(
             break
         step = point.t * d
         y = point.g - g
+        pg_new = apply_p(point.g)
         ys = float(y @ step)
         if ys > 1e-10 * float(step @ step) ** 0.5 * float(y @ y) ** 0.5:
             if len(s_hist) == history_size:
-                s_hist.pop(0), y_hist.pop(0), rho_hist.pop(0)
+                s_hist.pop(0), y_hist.pop(0), py_hist.pop(0), rho_hist.pop(0)
+            py = pg_new - pg
             s_hist.append(step)
             y_hist.append(y)
+            py_hist.append(py)
             rho_hist.append(1.0 / ys)
-            gamma = ys / max(float(y @ apply_p(y)), 1e-300)
+            gamma = ys / max(float(y @ py), 1e-300)
         x = x + step
         decrease = f - point.f
         f_prev = f
-        f, g = point.f, point.g
+        f, g, pg = point.f, point.g, pg_new
         gmax = float(g.abs().max())
         if on_iteration is not None:
             on_iteration(it, f, gmax, point.aux)

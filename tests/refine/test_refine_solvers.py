@@ -10,7 +10,7 @@ import torch
 
 from pmvir.refine.albedo import AlbedoSolver
 from pmvir.refine.energy import photometric_smoothness_term, photometric_term
-from pmvir.refine.lbfgs import minimize_lbfgs, strong_wolfe
+from pmvir.refine.lbfgs import _two_loop, minimize_lbfgs, strong_wolfe
 from pmvir.refine.mesh_ops import GraphSmoother, face_adjacency, unique_edges
 from pmvir.refine.sampling import PairSet
 from pmvir.synth.shapes import geodesic_sphere
@@ -87,6 +87,42 @@ def test_lbfgs_with_exact_preconditioner_solves_a_quadratic_at_once() -> None:
     )
     assert res.iterations <= 2
     np.testing.assert_allclose(res.x.numpy(), torch.linalg.solve(h, b).numpy(), atol=1e-8)
+
+
+def test_two_loop_direction_is_the_lbfgs_inverse_hessian_with_the_preconditioner_folded_in() -> None:
+    """The two-loop recursion, fed P g and the history's P y instead of applying P, gives -H g with
+    H the L-BFGS update of H0 = gamma P written out as matrices."""
+    rng = np.random.default_rng(3)
+    n, m, gamma = 12, 4, 0.7
+    a = rng.normal(size=(n, n))
+    p = torch.from_numpy(a @ a.T + n * np.eye(n))
+    s_hist, y_hist, rho_hist = [], [], []
+    while len(s_hist) < m:
+        s, y = torch.from_numpy(rng.normal(size=n)), torch.from_numpy(rng.normal(size=n))
+        if float(y @ s) > 0.1:
+            s_hist.append(s), y_hist.append(y), rho_hist.append(1.0 / float(y @ s))
+    g = torch.from_numpy(rng.normal(size=n))
+    d = _two_loop(g, p @ g, s_hist, y_hist, [p @ y for y in y_hist], rho_hist, gamma=gamma)
+    h = gamma * p
+    eye = torch.eye(n, dtype=F64)
+    for s, y, rho in zip(s_hist, y_hist, rho_hist, strict=True):
+        h = (eye - rho * torch.outer(s, y)) @ h @ (eye - rho * torch.outer(y, s)) + rho * torch.outer(s, s)
+    np.testing.assert_allclose(d.numpy(), (-h @ g).numpy(), rtol=1e-10, atol=1e-12)
+
+
+def test_lbfgs_applies_the_preconditioner_once_per_iteration() -> None:
+    """P is the costly part of an iteration on a large mesh (a 30-term graph smoother): it is applied
+    to each accepted gradient only, the start's included."""
+    calls = []
+
+    def precondition(v: torch.Tensor) -> torch.Tensor:
+        calls.append(1)
+        return 0.5 * v
+
+    res = minimize_lbfgs(_rosenbrock, torch.zeros(6, dtype=F64), precondition=precondition, max_iterations=25,
+                         rel_tolerance=0.0, grad_tolerance=0.0)
+    assert res.iterations == 25
+    assert len(calls) == res.iterations + 1
 
 
 def test_graph_smoother_approximates_the_screened_laplacian_inverse() -> None:
