@@ -23,7 +23,6 @@ not overlap), instead of producing an empty mesh.
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -47,6 +46,7 @@ from pmvir.geometry.mvs.sweep import (
 )
 from pmvir.geometry.silhouette.hull import Hull, carve_hull
 from pmvir.progress import Progress
+from pmvir.threads import usable_threads
 
 #: Sparse points choose stereo neighbours and tighten depth ranges when there are at least this many
 #: (in all, and in a view); otherwise the known cameras' visual hull does both alone.
@@ -227,15 +227,6 @@ def stereo_window(options: MvsOptions, registered_views: int) -> int:
     return _SPARSE_RIG_WINDOW if registered_views <= options.sparse_rig_views else _WINDOW
 
 
-def _sweep_threads() -> int:
-    """Threads for the views' plane sweeps: ``OMP_NUM_THREADS`` when it holds a positive integer (the
-    service sets it from ``PMVIR_JOB_THREADS``), else the cores this process may use."""
-    value = os.environ.get("OMP_NUM_THREADS", "").strip()
-    if value.isdigit() and int(value) > 0:
-        return int(value)
-    return len(os.sched_getaffinity(0))
-
-
 def _dense_cpu(
     images: Sequence[np.ndarray],
     masks: Sequence[np.ndarray | None],
@@ -271,7 +262,7 @@ def _dense_cpu(
 
     # The views' sweeps are independent and spend their time in OpenCV and NumPy, which release the
     # GIL: one thread per core (the maps, and so the result, are the same as one after the other).
-    pool = ThreadPoolExecutor(max_workers=_sweep_threads())
+    pool = ThreadPoolExecutor(max_workers=usable_threads())
     try:
         futures = [pool.submit(sweep, i) for i in registered]
         for k, (i, future) in enumerate(zip(registered, futures, strict=True)):

@@ -13,7 +13,6 @@
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -23,6 +22,7 @@ from threadpoolctl import threadpool_limits
 
 from pmvir.camera import Camera
 from pmvir.config import SfmOptions
+from pmvir.threads import configured_threads
 
 #: Known poses: a candidate match lies within this distance of the known epipolar line, both ways (px).
 _EPIPOLAR_MAX_ERROR_PX = 2.0
@@ -47,8 +47,8 @@ _KNOWN_POSE_MAX_AXIS_DEG = 80.0
 def colmap_threads() -> int:
     """Threads for COLMAP's extraction, matching and mapping: ``OMP_NUM_THREADS`` when it holds a
     positive integer (the service sets it from ``PMVIR_JOB_THREADS``), else -1 (every core)."""
-    value = os.environ.get("OMP_NUM_THREADS", "").strip()
-    return int(value) if value.isdigit() and int(value) > 0 else -1
+    configured = configured_threads()
+    return -1 if configured is None else configured
 
 
 def extract_features(
