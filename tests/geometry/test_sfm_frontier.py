@@ -235,3 +235,49 @@ def test_silhouettes_complete_a_model_they_do_not_build(scene: dict) -> None:
     assert all(why.startswith("not searched: SfM registered 11 of 16 views") for why in refused.values()), refused
     assert "not searched for by their masks" in _silhouette_note(refused)
     assert len(rec.reg_image_ids()) == 11
+
+
+def test_the_batched_polish_reaches_scipys_huber_minimum(scene: dict) -> None:
+    """The silhouette search polishes its candidate poses together (Levenberg-Marquardt over a batch):
+    from view 6's pose turned by 4 degrees and moved by 4% it lands where scipy's robust least
+    squares lands on the same residuals, at the true pose; a candidate that sees no registered view's
+    frontier keeps its pose with an infinite RMS."""
+    import scipy.optimize
+    from scipy.spatial.transform import Rotation
+
+    from pmvir.geometry.sfm.frontier import (
+        FRONTIER_SCALE_PX,
+        _contour_rays,
+        _frontier_residuals,
+        _padded,
+        _polish,
+    )
+
+    others = [k for k in range(16) if k != 6]
+    Cr = np.stack([scene["cams"][k][1] for k in others])
+    hulls = _padded([_contour_rays(scene["masks"][f"{k:05d}.png"], K)[0] @ scene["cams"][k][0] for k in others])
+    hull = _contour_rays(scene["masks"]["00006.png"], K)[0]
+    R_true, C_true = scene["cams"][6]
+    centre, distance = np.zeros(3), float(np.linalg.norm(C_true))
+    R0 = R_true @ Rotation.from_rotvec(np.radians(4.0) * np.array([0.6, -0.48, 0.64])).as_matrix()
+    C0 = C_true + 0.04 * distance * np.array([0.0, 0.6, -0.8])
+    inside = np.array([0.0, 0.05, 0.0])  # in the object: every baseline meets it, no pair has a frontier
+    (rms, pairs, R, C), (rms_in, pairs_in, _, C_in) = _polish(
+        np.stack([R0, R0]), np.stack([C0, inside]), hull, centre, Cr, hulls, K[0, 0], distance, 100
+    )
+    keep = _frontier_residuals(R0[None], C0[None], hull, centre, Cr, hulls, K[0, 0], None)[1]
+    assert pairs == int(keep.sum()) >= 10 and pairs_in == 0 and np.isinf(rms_in) and np.array_equal(C_in, inside)
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        pose = R0 @ Rotation.from_rotvec(x[:3]).as_matrix()
+        return _frontier_residuals(pose[None], (C0 + x[3:] * distance)[None], hull, centre, Cr, hulls, K[0, 0], keep)[0][0]
+
+    fit = scipy.optimize.least_squares(residuals, np.zeros(6), loss="huber", f_scale=FRONTIER_SCALE_PX, max_nfev=200)
+    rms_scipy = float(np.sqrt((fit.fun**2).sum() / (2 * pairs)))
+    assert rms < 0.5 and rms <= 1.05 * rms_scipy + 0.01, (rms, rms_scipy)
+    C_scipy = C0 + fit.x[3:] * distance
+    assert np.linalg.norm(C - C_scipy) < 0.002 * distance and np.linalg.norm(C - C_true) < 0.02 * distance
+    R_scipy = R0 @ Rotation.from_rotvec(fit.x[:3]).as_matrix()
+    for other, bound in ((R_scipy, 0.05), (R_true, 1.0)):  # degrees; it started 4 degrees off
+        angle = np.degrees(np.arccos(np.clip((np.trace(R @ other.T) - 1) / 2, -1, 1)))
+        assert angle < bound, angle

@@ -360,11 +360,6 @@ class _Problem:
             rec.points3D[pid].xyz = X[k]
 
 
-def _rotvec(w: np.ndarray) -> np.ndarray:
-    """(3,) axis-angle -> (3, 3) rotation matrix."""
-    return Rotation.from_rotvec(w).as_matrix()
-
-
 @dataclass(frozen=True)
 class SilhouetteRegistration:
     """A view's silhouette search: its name, the RMS frontier residual (px) of the best pose
@@ -383,13 +378,15 @@ class SilhouetteRegistration:
 #: The search for a view's pose from its silhouette: camera directions (a Fibonacci sphere),
 #: distances from the object (times the registered cameras' median), rolls about the aim; the
 #: best candidate of each of the best ``SEARCH_POLISHED`` directions is screened by a short polish
-#: (``SCREEN_NFEV`` residual evaluations) and the ``SEARCH_FINALS`` best polished in full.
+#: (``SCREEN_ITERATIONS`` Levenberg-Marquardt steps, all candidates at once) and the best of
+#: ``SEARCH_FINALS`` distinct basins polished in full (``FINAL_ITERATIONS``).
 SEARCH_DIRECTIONS = 300
 SEARCH_DISTANCES = (0.85, 1.0, 1.15)
 SEARCH_ROLLS = 24
 SEARCH_POLISHED = 200
-SCREEN_NFEV = 15
+SCREEN_ITERATIONS = 15
 SEARCH_FINALS = 5
+FINAL_ITERATIONS = 100
 #: Two polished poses are distinct basins when their rotations differ by more than ``DISTINCT_DEG``
 #: or their centres by more than ``DISTINCT_DISTANCE`` of the distance to the object (screened
 #: poses, only partly polished, by 3 times that). A silhouette that a distinct pose fits about as
@@ -479,39 +476,88 @@ def _padded(hulls: list[np.ndarray]) -> np.ndarray:
 def _pair_frames(
     C: np.ndarray, centre: np.ndarray, Cr: np.ndarray, hulls: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The epipolar frames of a camera at C paired with registered cameras at Cr (J, 3): per pair
-    the sine of the angle at C between the baseline and the object's centre, two unit axes (J, 3)
-    normal to the baseline (a1 towards the centre, a2 = b x a1), and the highest and lowest angle
-    about the baseline of the registered view's hull rays ``hulls`` (J, M, 3)."""
-    b = Cr - C
-    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    """The epipolar frames of B cameras at C (B, 3) paired with the registered cameras at Cr (J, 3):
+    per pair (B, J) the sine of the angle at C between the baseline and the object's centre, two unit
+    axes (B, J, 3) normal to the baseline (a1 towards the centre, a2 = b x a1), and the highest and
+    lowest angle about the baseline of the registered view's hull rays ``hulls`` (J, M, 3)."""
+    b = Cr[None] - C[:, None]
+    b /= np.linalg.norm(b, axis=2, keepdims=True)
     to_centre = centre - C
-    a1 = to_centre - (b @ to_centre)[:, None] * b
-    sin = np.linalg.norm(a1, axis=1) / np.linalg.norm(to_centre)
-    a1 /= np.linalg.norm(a1, axis=1, keepdims=True)
+    a1 = to_centre[:, None] - np.einsum("bji,bi->bj", b, to_centre)[:, :, None] * b
+    sin = np.linalg.norm(a1, axis=2) / np.linalg.norm(to_centre, axis=1)[:, None]
+    a1 /= np.linalg.norm(a1, axis=2, keepdims=True)
     a2 = np.cross(b, a1)
-    pj = np.arctan2(np.einsum("jmi,ji->jm", hulls, a2), np.einsum("jmi,ji->jm", hulls, a1))  # (J, M)
-    return sin, a1, a2, pj.max(axis=1), pj.min(axis=1)
+    pj = np.arctan2(hulls @ a2.transpose(1, 2, 0), hulls @ a1.transpose(1, 2, 0))  # (J, M, B)
+    return sin, a1, a2, pj.max(axis=1).T, pj.min(axis=1).T
 
 
-def _frontier_vector(
+def _frontier_residuals(
     R: np.ndarray, C: np.ndarray, hull: np.ndarray, centre: np.ndarray, Cr: np.ndarray, hulls: np.ndarray,
-    f: float, pairs: np.ndarray | None,
+    f: float, keep: np.ndarray | None, frames: tuple[np.ndarray, ...] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """A view's frontier residuals (px) against the registered views (``hulls``: their padded
-    (J, M, 3) world hull rays, :func:`_padded`; ``pairs``: which; None: every pair that has frontier
-    points), the high and low extremes' residuals of each pair in turn, and the pairs used."""
-    d = hull @ R  # world directions of the view's hull rays
-    k = np.arange(len(Cr)) if pairs is None else pairs
-    sin, a1, a2, pj_hi, pj_lo = _pair_frames(C, centre, Cr[k], hulls[k])
-    pv = np.arctan2(d @ a2.T, d @ a1.T)  # (M, pairs)
-    pv_hi, pv_lo = pv.max(axis=0), pv.min(axis=0)
-    if pairs is None:
+    """The frontier residuals (px) of B poses of a view (R (B, 3, 3) world -> camera, C (B, 3); its
+    hull rays ``hull``) against the registered views (``hulls``: their padded (J, M, 3) world hull
+    rays, :func:`_padded`): (B, 2 J), the high and low extremes of each pair in turn, 0 for pairs not
+    kept; and the (B, J) pairs kept (``keep``; None: those with frontier points at these poses).
+    ``frames``: :func:`_pair_frames` at C when known."""
+    sin, a1, a2, pj_hi, pj_lo = _pair_frames(C, centre, Cr, hulls) if frames is None else frames
+    d = hull @ R  # (B, M', 3) world directions of the view's hull rays
+    pv = np.arctan2(d @ a2.transpose(0, 2, 1), d @ a1.transpose(0, 2, 1))  # (B, M', J)
+    pv_hi, pv_lo = pv.max(axis=1), pv.min(axis=1)
+    if keep is None:
         reach = np.maximum(np.maximum(np.abs(pv_hi), np.abs(pv_lo)), np.maximum(np.abs(pj_hi), np.abs(pj_lo)))
         keep = (reach < MAX_ANGLE) & (np.maximum(pv_hi - pv_lo, pj_hi - pj_lo) < MAX_SPAN)
-        k, sin, pv_hi, pv_lo, pj_hi, pj_lo = k[keep], sin[keep], pv_hi[keep], pv_lo[keep], pj_hi[keep], pj_lo[keep]
-    res = np.stack([f * sin * (pv_hi - pj_hi), f * sin * (pv_lo - pj_lo)], axis=1).reshape(-1)
-    return res, k
+    scale = np.where(keep, f * sin, 0.0)
+    return np.stack([scale * (pv_hi - pj_hi), scale * (pv_lo - pj_lo)], axis=2).reshape(len(R), -1), keep
+
+
+def _polish(
+    R0: np.ndarray, C0: np.ndarray, hull: np.ndarray, centre: np.ndarray, Cr: np.ndarray, hulls: np.ndarray,
+    f: float, distance: float, iterations: int,
+) -> list[tuple[float, int, np.ndarray, np.ndarray]]:
+    """B candidate poses of a view (R0 (B, 3, 3) world -> camera, C0 (B, 3)) polished together:
+    ``iterations`` Levenberg-Marquardt steps over each pose alone on its frontier residuals over the
+    pairs it has at its start, Huber-weighted (``FRONTIER_SCALE_PX``), forward-difference Jacobians.
+    Returns per candidate (RMS px, pairs, R, C); a candidate without pairs keeps its pose, RMS inf."""
+    n = len(R0)
+    r, keep = _frontier_residuals(R0, C0, hull, centre, Cr, hulls, f, None)
+    pairs = keep.sum(axis=1)
+
+    def pose(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return R0 @ Rotation.from_rotvec(x[:, :3]).as_matrix(), C0 + x[:, 3:] * distance
+
+    def cost(r: np.ndarray) -> np.ndarray:  # the Huber cost: sum of rho(r^2 / s^2) s^2 / 2, as scipy's
+        a = np.abs(r) / FRONTIER_SCALE_PX
+        return 0.5 * FRONTIER_SCALE_PX**2 * np.where(a <= 1, a * a, 2 * a - 1).sum(axis=1)
+
+    x, c = np.zeros((n, 6)), cost(r)
+    damping = np.full(n, 1e-3)
+    step = np.sqrt(np.finfo(np.float64).eps)
+    eye = np.eye(6)
+    for _ in range(iterations):
+        frames = _pair_frames(pose(x)[1], centre, Cr, hulls)  # the rotations' derivatives keep C
+        jac = np.stack(
+            [(_frontier_residuals(*pose(x + step * eye[k]), hull, centre, Cr, hulls, f, keep,
+                                  frames if k < 3 else None)[0] - r) / step
+             for k in range(6)], axis=2,
+        )  # (B, 2 J, 6)
+        w = np.minimum(1.0, FRONTIER_SCALE_PX / np.maximum(np.abs(r), 1e-12))  # the Huber loss's IRLS weights
+        jtj = np.einsum("bnk,bn,bnl->bkl", jac, w, jac)
+        jtr = np.einsum("bnk,bn,bn->bk", jac, w, r)
+        lhs = jtj + damping[:, None, None] * (np.einsum("bkk->bk", jtj)[:, :, None] + 1e-12) * eye
+        x_new = x - np.linalg.solve(lhs, jtr[:, :, None])[:, :, 0]
+        r_new = _frontier_residuals(*pose(x_new), hull, centre, Cr, hulls, f, keep)[0]
+        c_new = cost(r_new)
+        better = c_new < c
+        # converged: a step lowered the cost by less than 1e-9 of it, or none lowers it however short
+        done = (better & (c - c_new <= 1e-9 * c)) | (~better & (damping > 1e6))
+        x[better], r[better], c[better] = x_new[better], r_new[better], c_new[better]
+        damping = np.where(better, damping / 3, damping * 4)
+        if done.all():
+            break
+    rms = np.where(pairs > 0, np.sqrt((r**2).sum(axis=1) / np.maximum(2 * pairs, 1)), np.inf)
+    R, C = pose(x)
+    return [(float(rms[i]), int(pairs[i]), R[i], C[i]) for i in range(n)]
 
 
 def _search_pose(
@@ -536,11 +582,11 @@ def _search_pose(
         v = np.cross(aim, u)
         vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
         to_u = np.eye(3) + vx + vx @ vx / (1 + aim @ u)
-        rotations = np.stack([(_rotvec(u * roll) @ to_u).T for roll in rolls])  # world -> camera
+        rotations = (Rotation.from_rotvec(rolls[:, None] * u).as_matrix() @ to_u).transpose(0, 2, 1)  # world -> camera
         world = np.einsum("mi,rij->rmj", hull, rotations)  # (rolls, M, 3): R^T r
         for scale in SEARCH_DISTANCES:
             C = centre + direction * distance * scale
-            sin, a1, a2, pj_hi, pj_lo = _pair_frames(C, centre, Cr, hulls)
+            sin, a1, a2, pj_hi, pj_lo = (a[0] for a in _pair_frames(C[None], centre, Cr, hulls))
             ok_j = (np.maximum(np.abs(pj_hi), np.abs(pj_lo)) < MAX_ANGLE) & (pj_hi - pj_lo < MAX_SPAN)
             pv = np.arctan2(world @ a2.T, world @ a1.T)  # (rolls, M, J)
             pv_hi, pv_lo = pv.max(axis=1), pv.min(axis=1)
@@ -562,15 +608,13 @@ def _search_pose(
             seen.add(c[3])
             distinct.append(c)
 
-    def polish(R0: np.ndarray, C0: np.ndarray, nfev: int) -> tuple[float, int, np.ndarray, np.ndarray]:
-        pairs = _frontier_vector(R0, C0, hull, centre, Cr, hulls, f, None)[1]
-
-        def residuals(x: np.ndarray) -> np.ndarray:
-            return _frontier_vector(R0 @ _rotvec(x[:3]), C0 + x[3:] * distance, hull, centre, Cr, hulls, f, pairs)[0]
-
-        fit = scipy.optimize.least_squares(residuals, np.zeros(6), loss="huber", f_scale=FRONTIER_SCALE_PX, max_nfev=nfev)
-        rms = float(np.sqrt(np.mean(fit.fun**2)))
-        return rms, len(pairs), R0 @ _rotvec(fit.x[:3]), C0 + fit.x[3:] * distance
+    def polish(
+        poses: list[tuple[float, np.ndarray, np.ndarray]], iterations: int
+    ) -> list[tuple[float, int, np.ndarray, np.ndarray]]:
+        if not poses:
+            return []
+        R0, C0 = np.stack([p[-2] for p in poses]), np.stack([p[-1] for p in poses])
+        return sorted(_polish(R0, C0, hull, centre, Cr, hulls, f, distance, iterations), key=lambda c: c[0])
 
     def same_basin(
         a: tuple[float, int, np.ndarray, np.ndarray], b: tuple[float, int, np.ndarray, np.ndarray], widen: float = 1.0
@@ -581,7 +625,7 @@ def _search_pose(
             and np.linalg.norm(a[3] - b[3]) <= widen * DISTINCT_DISTANCE * distance
         )
 
-    screened = sorted((polish(R0, C0, SCREEN_NFEV) for _, R0, C0, _ in distinct[:SEARCH_POLISHED]), key=lambda c: c[0])
+    screened = polish([c[:3] for c in distinct[:SEARCH_POLISHED]], SCREEN_ITERATIONS)
     # the finals: the best screened pose of each of the first SEARCH_FINALS distinct basins (a
     # basin's neighbours screen alike and would crowd out a rival)
     starts: list[tuple[float, int, np.ndarray, np.ndarray]] = []
@@ -590,7 +634,7 @@ def _search_pose(
             break
         if not any(same_basin(pose, s, widen=3.0) for s in starts):
             starts.append(pose)
-    finals = sorted((polish(R, C, 200) for _, _, R, C in starts), key=lambda c: c[0])
+    finals = polish([(rms, R, C) for rms, _, R, C in starts], FINAL_ITERATIONS)
     if not finals:
         return None
     best = finals[0]
