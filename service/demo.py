@@ -27,8 +27,8 @@ from pmvir.cli import main as pmvir_main
 from pmvir.stages import AVAILABLE_STAGES
 
 API_KEY = "demo-key"
-#: A lighter schedule than the defaults so the demo ends in about two minutes on 2 cores (the
-#: benchmarks page, "Time of make demo"): coarser subdivision (about 8 px^2 per triangle), 15 L-BFGS iterations per stage (on the demo's
+#: A lighter schedule than the defaults so the demo ends in about a minute on an idle 2-core
+#: machine, longer on a loaded one (the benchmarks page, "Time of make demo"): coarser subdivision (about 8 px^2 per triangle), 15 L-BFGS iterations per stage (on the demo's
 #: capture rendered with seeds 0-2, 12 saved 8 of 52 evaluations and kept the accuracy within 1 %,
 #: but the albedo's RMSE rose by 13 %, 0.119 to 0.134 on average), a stage ends
 #: once an iteration gains under 0.03 % (the second stage stalls there: its last four iterations took
