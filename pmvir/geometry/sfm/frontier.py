@@ -583,19 +583,15 @@ def _search_pose(
         vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
         to_u = np.eye(3) + vx + vx @ vx / (1 + aim @ u)
         rotations = (Rotation.from_rotvec(rolls[:, None] * u).as_matrix() @ to_u).transpose(0, 2, 1)  # world -> camera
-        world = np.einsum("mi,rij->rmj", hull, rotations)  # (rolls, M, 3): R^T r
         for scale in SEARCH_DISTANCES:
-            C = centre + direction * distance * scale
-            sin, a1, a2, pj_hi, pj_lo = (a[0] for a in _pair_frames(C[None], centre, Cr, hulls))
-            ok_j = (np.maximum(np.abs(pj_hi), np.abs(pj_lo)) < MAX_ANGLE) & (pj_hi - pj_lo < MAX_SPAN)
-            pv = np.arctan2(world @ a2.T, world @ a1.T)  # (rolls, M, J)
-            pv_hi, pv_lo = pv.max(axis=1), pv.min(axis=1)
-            ok = ok_j & (np.maximum(np.abs(pv_hi), np.abs(pv_lo)) < MAX_ANGLE) & (pv_hi - pv_lo < MAX_SPAN)
-            r2 = (f * sin) ** 2 * ((pv_hi - pj_hi) ** 2 + (pv_lo - pj_lo) ** 2)
+            C = np.repeat((centre + direction * distance * scale)[None], SEARCH_ROLLS, axis=0)
+            # the rolls share a centre, so its pair frames are computed once
+            frames = tuple(np.repeat(a, SEARCH_ROLLS, axis=0) for a in _pair_frames(C[:1], centre, Cr, hulls))
+            r, ok = _frontier_residuals(rotations, C, hull, centre, Cr, hulls, f, None, frames)
             count = ok.sum(axis=1)
-            rms = np.sqrt(np.where(ok, r2, 0.0).sum(axis=1) / np.maximum(2 * count, 1))
+            rms = np.sqrt((r**2).sum(axis=1) / np.maximum(2 * count, 1))
             for k in np.nonzero(count >= min_pairs)[0]:
-                candidates.append((float(rms[k]), rotations[k], C, d_index))
+                candidates.append((float(rms[k]), rotations[k], C[0], d_index))
     # The best candidate of each direction, best first, screened by a short polish and the best
     # few polished in full: a candidate 7 degrees from the right pose can rank below wrong basins
     # (the dragon's view 23: its right pose polishes to 0.24 px from 15 degrees and 10% off, but
