@@ -44,6 +44,11 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/nomask.py --stop-after refine",
         "the same captures with their true masks",
     ),
+    "as_taken": (
+        "A folder of full-size frames as taken: no manifest, masks or poses",
+        f"{PY} bench/as_taken.py --reference",
+        "the same frames with their manifest (true poses) and true masks",
+    ),
     "subdivision": ("Visibility and subdivision", f"{PY} bench/subdivision.py", None),
     "refine": (
         "Refinement against ground truth (the paper's Tables 3 and 4)",

@@ -1,0 +1,195 @@
+"""A capture as people take it: a folder of full-size frames, an object on a table, no manifest, masks or poses.
+
+Per size (default 2448x2048) a built-in capture of an object standing on a textured table is
+rendered (``pmvir synth --scene table --no-masks``: blob, plastic, environment light, ``--views``
+views from above the table, seed 0) and its frames alone are copied into a bare folder. That
+folder is reconstructed with ``pmvir reconstruct FOLDER`` and the default options, under
+``/usr/bin/time -v`` (the run's peak resident memory): pmvir infers the manifest, estimates the
+intrinsics and poses by SfM and finds the object itself. With ``--reference`` the same frames
+run again as the lab prepares them: the capture's manifest (true intrinsics and poses) and the
+true masks.
+
+The meshes are compared with the object alone, after a similarity fitted from the estimated
+camera centres to the true ones (``pmvir evaluate --align``): accuracy of the initial surface
+and of the refined mesh, completeness, the median normal error, the largest vertex distance and
+the share of vertices farther than 2 % of the diagonal, the largest distance of the vertices
+within 2 % of the diagonal above the table (the table left in the mesh), and the masks' IoU
+against the true ones. Prints a table and writes bench/results/as_taken.json; ``--reuse``
+measures again only the runs without a finished result in ``--work``.
+
+    .venv/bin/python bench/as_taken.py [--sizes 2448x2048] [--views 36] [--reference] [--work DIR] [--reuse]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from _results import table, write_results
+from nomask import _mask_iou, _with_true_masks
+
+from pmvir.evaluate import (
+    SurfaceQuery,
+    align_by_cameras,
+    bbox_diagonal,
+    estimated_camera_centres,
+    evaluate,
+    true_camera_centres,
+)
+from pmvir.io.ply import Mesh, read_mesh
+
+PMVIR = str(Path(sys.executable).with_name("pmvir"))
+GIB = 2**30
+SEED = 0
+
+
+def _capture(size: str, views: int, work: Path) -> Path:
+    """The rendered capture (cached in ``work``): frames, its manifest, gt/ with the true masks."""
+    cap = work / f"cap_{size}_{views}v"
+    if not (cap / "capture.json").is_file():
+        subprocess.run([PMVIR, "synth", "--shape", "blob", "--scene", "table", "--no-masks", "--views", str(views),
+                        "--size", size, "--lighting", "envmap", "--seed", str(SEED), "--out", str(cap), "--force",
+                        "--quiet"], check=True)
+    return cap
+
+
+def _bare_frames(capture: Path, out: Path) -> Path:
+    """A folder holding the capture's frames and nothing else."""
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    for frame in json.loads((capture / "capture.json").read_text())["frames"]:
+        shutil.copy2(capture / frame["file"], out / Path(frame["file"]).name)
+    return out
+
+
+def _reconstruct(capture: Path, out: Path, *, reuse: bool) -> str | None:
+    """``pmvir reconstruct`` under /usr/bin/time -v (its record kept in out/time-v.txt); the error, or None."""
+    time_v = out / "time-v.txt"
+    if reuse and (out / "mesh.ply").is_file() and time_v.is_file():
+        return None
+    if out.exists():
+        shutil.rmtree(out)
+    proc = subprocess.run(["/usr/bin/time", "-v", PMVIR, "reconstruct", str(capture), "--out", str(out), "--quiet"],
+                          capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        return proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"exit status {proc.returncode}"
+    time_v.write_text(proc.stderr)
+    return None
+
+
+def _distances(vertices: np.ndarray, gt: Mesh) -> dict[str, float]:
+    """Largest vertex distance, share beyond 2 % and the largest near the table, in GT diagonals."""
+    diag = bbox_diagonal(gt.vertices)
+    closest, _, _ = SurfaceQuery(gt.vertices, gt.faces).closest(vertices)
+    far = np.linalg.norm(vertices - closest, axis=1) / diag
+    near_table = vertices[:, 2] < gt.vertices[:, 2].min() + 0.02 * diag  # the table touches the lowest point
+    return {"max_vertex_distance": float(far.max()), "share_beyond_2pct": float((far > 0.02).mean()),
+            "max_distance_near_table": float(far[near_table].max(initial=0.0))}
+
+
+def _measure(kind: str, size: str, views: int, capture: Path, source: Path, out: Path, reuse: bool) -> dict:
+    row: dict = {"run": kind, "size": size, "views": views, "source": str(source)}
+    error = _reconstruct(source, out, reuse=reuse)
+    if error is not None:
+        return row | {"error": error}
+    report = json.loads((out / "report.json").read_text())
+    geometry = report.get("geometry", {})
+    alignment = align_by_cameras(estimated_camera_centres(out / "poses" / "images.txt"),
+                                 true_camera_centres(capture / "capture.json"))
+    gt = read_mesh(capture / "gt" / "mesh.ply")
+    for name in ("initial", "mesh"):
+        mesh = read_mesh(out / f"{name}.ply")
+        vertices = alignment.transform.apply(mesh.vertices)
+        r = evaluate(Mesh(vertices, mesh.faces), gt, n_samples=300_000)
+        prefix = "initial_" if name == "initial" else ""
+        row |= {f"{prefix}accuracy": r.accuracy, f"{prefix}completeness": r.completeness,
+                f"{prefix}normal_error_median": r.normal_error_median}
+        row |= {f"{prefix}{k}": v for k, v in _distances(vertices, gt).items()}
+    m = re.search(r"Maximum resident set size \(kbytes\): (\d+)", (out / "time-v.txt").read_text())
+    timings = report["timings_s"]
+    geometry_timings = geometry.get("timings", {})
+    return row | {
+        "registered": geometry.get("poses", {}).get("registered_views"),
+        "pose_mode": geometry.get("poses", {}).get("mode"),
+        "alignment_rmse": alignment.rmse / bbox_diagonal(gt.vertices),
+        "working_size": (report.get("resolution") or {}).get("refine"),
+        "vertices": geometry.get("subdivision", {}).get("vertices"),
+        "peak_rss_gib": round(int(m.group(1)) * 1024 / GIB, 2) if m else None,
+        "seconds": {k: round(float(timings[k]), 1) for k in ("decode", "geometry", "refine", "total") if k in timings},
+        "geometry_seconds": {k: round(float(v), 1) for k, v in geometry_timings.items()},
+        "mask_iou": _mask_iou(out, capture),
+        "isolation": geometry.get("isolation"),
+    }
+
+
+def _row(r: dict) -> list:
+    head = [r["run"], r["size"], r["views"]]
+    if "error" in r:
+        return head + [f"failed: {r['error']}"] + [None] * 16
+    g, s = r["geometry_seconds"], r["seconds"]
+    return head + [
+        f"{r['registered']}/{r['views']}", r["working_size"], r["vertices"], r["peak_rss_gib"],
+        g.get("poses"), None if r["isolation"] is None else g.get("isolation"), s.get("geometry"), s.get("refine"),
+        round(s["total"] / 60, 1),
+        round(100 * r["initial_accuracy"], 4), round(100 * r["accuracy"], 4), round(100 * r["completeness"], 3),
+        round(r["normal_error_median"], 2), round(r["max_vertex_distance"], 4),
+        f"{100 * r['share_beyond_2pct']:.2f} %", round(r["max_distance_near_table"], 4),
+        None if r["mask_iou"] is None else round(r["mask_iou"], 3),
+    ]
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--sizes", nargs="+", default=["2448x2048"], help="frame sizes WxH (default 2448x2048)")
+    p.add_argument("--views", type=int, default=36, help="views per capture (default 36)")
+    p.add_argument("--reference", action="store_true",
+                   help="also reconstruct each capture with its manifest (true poses) and the true masks")
+    p.add_argument("--work", type=Path, default=Path("/tmp/pmvir-as-taken"), help="captures and results")
+    p.add_argument("--reuse", action="store_true", help="keep the finished results found in --work")
+    args = p.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    runs = []
+    for size in args.sizes:
+        capture = _capture(size, args.views, args.work)
+        sources = [("bare frames", _bare_frames(capture, args.work / f"frames_{size}_{args.views}v"))]
+        if args.reference:
+            sources.append(("manifest and true masks", _with_true_masks(capture, args.work / f"masked_{size}_{args.views}v")))
+        for kind, source in sources:
+            out = args.work / f"out_{'bare' if kind == 'bare frames' else 'reference'}_{size}_{args.views}v"
+            runs.append(_measure(kind, size, args.views, capture, source, out, args.reuse))
+            print(json.dumps(runs[-1], default=str), flush=True)
+    columns = ["input", "frames", "views", "registered", "working size", "vertices", "peak RSS GiB", "poses s",
+               "isolation s", "geometry s", "refine s", "total min", "initial accuracy x1e-2", "accuracy x1e-2",
+               "completeness x1e-2", "normal error median deg", "max dist (diag)", "> 2 % diag",
+               "max dist near table", "mask IoU"]
+    rows = [_row(r) for r in runs]
+    print(" | ".join(columns))
+    for row in rows:
+        print(" | ".join("-" if v is None else str(v) for v in row))
+    tab = table(
+        "A folder of frames of an object on a table: no manifest, masks or poses", columns, rows,
+        note="Capture: blob standing on a textured table, builtin renderer, plastic, envmap lighting, seed 0, "
+        "views from above the table. 'bare frames': the frames alone (manifest inferred, intrinsics and "
+        "poses by SfM, the object found without masks); 'manifest and true masks': the same frames with "
+        "the rendered manifest and the true masks. Meshes aligned to the ground truth by a similarity "
+        "from the camera centres; distances in GT bounding-box diagonals; 'near table': vertices within "
+        "2 % of the diagonal above the table; peak RSS of the whole run from /usr/bin/time -v.",
+    )
+    out = write_results("as_taken", title="Captures as people take them", tables=[tab],
+                        data={"options": vars(args) | {"work": str(args.work)}, "runs": runs})
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
