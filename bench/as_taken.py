@@ -30,15 +30,12 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from _results import table, write_results
-from nomask import _mask_iou, _with_true_masks
+from nomask import _mask_iou, _with_true_masks, vertex_distances
 
 from pmvir.evaluate import (
-    SurfaceQuery,
     align_by_cameras,
     bbox_diagonal,
     estimated_camera_centres,
@@ -87,16 +84,6 @@ def _reconstruct(capture: Path, out: Path, *, reuse: bool) -> str | None:
     return None
 
 
-def _distances(vertices: np.ndarray, gt: Mesh) -> dict[str, float]:
-    """Largest vertex distance, share beyond 2 % and the largest near the table, in GT diagonals."""
-    diag = bbox_diagonal(gt.vertices)
-    closest, _, _ = SurfaceQuery(gt.vertices, gt.faces).closest(vertices)
-    far = np.linalg.norm(vertices - closest, axis=1) / diag
-    near_table = vertices[:, 2] < gt.vertices[:, 2].min() + 0.02 * diag  # the table touches the lowest point
-    return {"max_vertex_distance": float(far.max()), "share_beyond_2pct": float((far > 0.02).mean()),
-            "max_distance_near_table": float(far[near_table].max(initial=0.0))}
-
-
 def _measure(kind: str, size: str, views: int, capture: Path, source: Path, out: Path, reuse: bool) -> dict:
     row: dict = {"run": kind, "size": size, "views": views, "source": str(source)}
     error = _reconstruct(source, out, reuse=reuse)
@@ -114,7 +101,7 @@ def _measure(kind: str, size: str, views: int, capture: Path, source: Path, out:
         prefix = "initial_" if name == "initial" else ""
         row |= {f"{prefix}accuracy": r.accuracy, f"{prefix}completeness": r.completeness,
                 f"{prefix}normal_error_median": r.normal_error_median}
-        row |= {f"{prefix}{k}": v for k, v in _distances(vertices, gt).items()}
+        row |= {f"{prefix}{k}": v for k, v in vertex_distances(vertices, gt).items()}
     m = re.search(r"Maximum resident set size \(kbytes\): (\d+)", (out / "time-v.txt").read_text())
     timings = report["timings_s"]
     geometry_timings = geometry.get("timings", {})

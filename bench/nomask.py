@@ -65,6 +65,17 @@ def _mask_iou(result: Path, capture: Path) -> float | None:
     return float(np.mean(ious))
 
 
+def vertex_distances(vertices: np.ndarray, gt: Mesh) -> dict[str, float]:
+    """The largest vertex distance to the object, the share of vertices beyond 2 % and the largest
+    distance of the vertices within 2 % of the diagonal above the table, in GT diagonals."""
+    diag = bbox_diagonal(gt.vertices)
+    closest, _, _ = SurfaceQuery(gt.vertices, gt.faces).closest(vertices)
+    far = np.linalg.norm(vertices - closest, axis=1) / diag
+    near_table = vertices[:, 2] < gt.vertices[:, 2].min() + 0.02 * diag  # the support touches the lowest point
+    return {"max_vertex_distance": float(far.max()), "share_beyond_2pct": float((far > 0.02).mean()),
+            "max_distance_near_table": float(far[near_table].max(initial=0.0))}
+
+
 def _measure(capture: Path, result: Path, stop_after: str) -> dict:
     t0 = time.perf_counter()
     proc = subprocess.run(
@@ -77,18 +88,12 @@ def _measure(capture: Path, result: Path, stop_after: str) -> dict:
     mesh = read_mesh(result / ("mesh.ply" if stop_after == "refine" else "initial.ply"))
     gt = read_mesh(capture / "gt" / "mesh.ply")
     r = evaluate(Mesh(mesh.vertices, mesh.faces), gt, n_samples=200_000)
-    diag = bbox_diagonal(gt.vertices)
-    closest, _, _ = SurfaceQuery(gt.vertices, gt.faces).closest(mesh.vertices)
-    far = np.linalg.norm(mesh.vertices - closest, axis=1) / diag
-    near_table = mesh.vertices[:, 2] < gt.vertices[:, 2].min() + 0.02 * diag  # the support touches the lowest point
     report = json.loads((result / "report.json").read_text())
     return {
         "accuracy": r.accuracy,
         "completeness": r.completeness,
         "normal_error_median": r.normal_error_median,
-        "max_vertex_distance": float(far.max()),
-        "share_beyond_2pct": float((far > 0.02).mean()),
-        "max_distance_near_table": float(far[near_table].max(initial=0.0)),
+        **vertex_distances(mesh.vertices, gt),
         "vertices": len(mesh.vertices),
         "mask_iou": _mask_iou(result, capture),
         "isolation": report.get("geometry", {}).get("isolation"),
