@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import shutil
 import subprocess
 import sys
@@ -33,6 +32,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from _results import table, write_results
+from fullsize import GIB, _peak_rss_bytes
 from nomask import _mask_iou, _with_true_masks, vertex_distances
 
 from pmvir.evaluate import (
@@ -45,7 +45,6 @@ from pmvir.evaluate import (
 from pmvir.io.ply import Mesh, read_mesh
 
 PMVIR = str(Path(sys.executable).with_name("pmvir"))
-GIB = 2**30
 SEED = 0
 
 
@@ -102,7 +101,7 @@ def _measure(kind: str, size: str, views: int, capture: Path, source: Path, out:
         row |= {f"{prefix}accuracy": r.accuracy, f"{prefix}completeness": r.completeness,
                 f"{prefix}normal_error_median": r.normal_error_median}
         row |= {f"{prefix}{k}": v for k, v in vertex_distances(vertices, gt).items()}
-    m = re.search(r"Maximum resident set size \(kbytes\): (\d+)", (out / "time-v.txt").read_text())
+    peak = _peak_rss_bytes((out / "time-v.txt").read_text())
     timings = report["timings_s"]
     geometry_timings = geometry.get("timings", {})
     return row | {
@@ -111,7 +110,7 @@ def _measure(kind: str, size: str, views: int, capture: Path, source: Path, out:
         "alignment_rmse": alignment.rmse / bbox_diagonal(gt.vertices),
         "working_size": (report.get("resolution") or {}).get("refine"),
         "vertices": geometry.get("subdivision", {}).get("vertices"),
-        "peak_rss_gib": round(int(m.group(1)) * 1024 / GIB, 2) if m else None,
+        "peak_rss_gib": round(peak / GIB, 2) if peak else None,
         "seconds": {k: round(float(timings[k]), 1) for k in ("decode", "geometry", "refine", "total") if k in timings},
         "geometry_seconds": {k: round(float(v), 1) for k, v in geometry_timings.items()},
         "mask_iou": _mask_iou(out, capture),
@@ -172,7 +171,8 @@ def main() -> int:
         "from the camera centres; distances in GT bounding-box diagonals; 'near table': vertices within "
         "2 % of the diagonal above the table; peak RSS of the whole run from /usr/bin/time -v.",
     )
-    out = write_results("as_taken", title="Captures as people take them", tables=[tab],
+    peer = "the same frames with their manifest (true poses) and true masks" if args.reference else None
+    out = write_results("as_taken", title="Captures as people take them", tables=[tab], peer=peer,
                         data={"options": vars(args) | {"work": str(args.work)}, "runs": runs})
     print(f"wrote {out}")
     return 0
