@@ -38,6 +38,11 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         "pycolmap's plain pipeline (SIFT, exhaustive matching, incremental mapping) on the same images",
     ),
     "geometry": ("Geometric stage (initial surface)", f"{PY} bench/geometry.py", None),
+    "occlusion": (
+        "Occlusion test",
+        f"{PY} bench/occlusion.py",
+        "the same captures fused without the occlusion test",
+    ),
     "nomask": ("The object found without masks", f"{PY} bench/nomask.py", "the same captures with their true masks"),
     "nomask_refine": (
         "The object found without masks: the refined mesh",

@@ -104,6 +104,12 @@ class MvsOptions(_Options):
         "confirms (min_consistent lowered to 1).",
         json_schema_extra=advanced(),
     )
+    max_occluding: int | None = Field(
+        default=1, ge=0, le=20,
+        description="A depth is dropped where more than this many views (and no fewer than agree with it) see a "
+        "surface in front of it along its ray; null: no occlusion test.",
+        json_schema_extra=advanced(),
+    )
     voxel: float = Field(
         default=0.002, ge=0.0,
         description="Fused points are thinned to one per cube of this side, a fraction of the sparse points' "

@@ -23,7 +23,7 @@ from pmvir.geometry.mvs.colmap import (
     write_workspace,
 )
 from pmvir.geometry.mvs.dense import dense_stereo
-from pmvir.geometry.mvs.fusion import backproject
+from pmvir.geometry.mvs.fusion import backproject, filter_and_fuse, occluding_views
 from pmvir.geometry.mvs.sweep import (
     DepthMap,
     StereoView,
@@ -162,6 +162,56 @@ def test_fused_points_lie_on_the_true_surface(blob_geometry, blob_capture: Path)
     assert np.all((n * to_cam).sum(1) > 0)  # normals face the camera that saw the point
     assert blob_geometry.dense.backend == "cpu"
     assert min(blob_geometry.dense.consistent_fraction) > 0.1
+
+
+def _sphere_depth(camera: Camera, radius: float) -> np.ndarray:
+    """(h, w) float32 camera-frame depth of a sphere of ``radius`` at the origin; 0 where missed."""
+    h, w = camera.height, camera.width
+    rows, cols = (a.ravel().astype(np.float64) for a in np.mgrid[0:h, 0:w])
+    c = camera.center
+    v = backproject(camera, np.ones(len(rows)), rows, cols) - c  # the ray's point at depth d is c + d v
+    a, b, k = (v * v).sum(1), 2.0 * (v @ c), c @ c - radius**2
+    disc = b * b - 4.0 * a * k
+    d = np.where(disc > 0, (-b - np.sqrt(np.maximum(disc, 0.0))) / (2.0 * a), 0.0)
+    return d.reshape(h, w).astype(np.float32)
+
+
+def test_occlusion_test_drops_a_virtual_surface_that_other_views_see_through():
+    """A glossy object's reflection, matched as a virtual image behind its surface, agrees between two
+    nearby views and is fused without the occlusion test; the views around see the surface in front of
+    it along those rays and the test drops it, keeping the true surface."""
+    radius = 0.5
+    cams = ring_cameras(24, 160, 128, object_radius=radius, elevations=(0.0,))
+    maps = [DepthMap(cam, _sphere_depth(cam, radius), np.ones((cam.height, cam.width), np.float32)) for cam in cams]
+    neighbours = [[(i + k) % 24 for k in (1, -1, 2, -2, 3, -3)] for i in range(24)]  # 15 degrees apart
+    # a virtual patch 15 % behind the surface in view 0, matched alike in view 1
+    rows, cols = np.nonzero(np.hypot(*np.mgrid[-64:64, -80:80]) < 6)
+    depth0 = maps[0].depth.copy()
+    depth0[rows, cols] *= 1.15
+    virtual = backproject(cams[0], depth0[rows, cols], rows, cols)
+    uv, z = project_points(cams[1], virtual)
+    depth1 = maps[1].depth.copy()
+    depth1[np.floor(uv[:, 1]).astype(int), np.floor(uv[:, 0]).astype(int)] = z
+    maps[0] = DepthMap(cams[0], depth0, maps[0].score)
+    maps[1] = DepthMap(cams[1], depth1, maps[1].score)
+
+    votes = occluding_views(maps, neighbours, 0.01)
+    # views 2, 10 and 11 see the sphere in front of the patch (less where their pixels, seen obliquely
+    # from view 0, leave some of its pixels without a depth landing on them)
+    assert np.median(votes[0][rows, cols]) >= 2 and np.median(votes[0][maps[0].valid]) == 0
+    plain, _, _ = filter_and_fuse(maps, neighbours, min_consistent=1)
+    tested, _, _ = filter_and_fuse(maps, neighbours, min_consistent=1, max_occluding=1)
+
+    def inside(pts: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(pts, axis=1) < 0.97 * radius
+
+    assert inside(plain).sum() > 50  # both views' patches are fused without the test
+    # measured: 207 patch points without the test, 5 with it (pixels that no view's depth lands on)
+    assert inside(tested).sum() < 0.1 * inside(plain).sum()
+    # the true surface stays: what is dropped besides the patches is at grazing angles
+    surface = ~inside(plain)
+    assert len(tested) - inside(tested).sum() > 0.98 * surface.sum()
+    assert np.abs(np.linalg.norm(plain[surface], axis=1) - radius).max() < 0.01 * radius
 
 
 def test_depth_maps_are_the_same_on_one_thread_and_on_several(blob_set, monkeypatch):

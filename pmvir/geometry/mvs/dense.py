@@ -304,13 +304,14 @@ def _dense_cpu(
 def _fuse(
     depth_maps: Sequence[DepthMap | None], neighbours: Sequence[Sequence[int]], options: MvsOptions, registered: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`filter_and_fuse` with the stereo options (one confirming view on sparse rigs)."""
+    """:func:`filter_and_fuse` with the stereo options (one confirming view on sparse rigs) and the occlusion test."""
     return filter_and_fuse(
         depth_maps,
         neighbours,
         max_reproj_px=options.consistency_px,
         max_rel_depth=options.consistency_depth,
         min_consistent=1 if registered <= options.sparse_rig_views else options.min_consistent,
+        max_occluding=options.max_occluding,
     )
 
 
