@@ -12,6 +12,10 @@
 * Normal error: the angle (degrees) between each estimated vertex's area-weighted
   normal and the true face normal at its closest true surface point; mean and median.
   Vertices without a face (no normal) are left out.
+* Alignment (results from SfM poses): a similarity fitted from the estimated camera
+  centres to the true ones, optionally refined by ICP against the true surface
+  (:func:`refine_alignment`, Tanks and Temples' protocol), which measures the surface
+  apart from the camera fit's error.
 * Illumination error: per frame (matched by file name), the RMSE over 10,000
   Fibonacci directions N and the three channels between the estimated shading
   ``S(N) * rgb_scale`` divided by the albedo scale and the true shading, divided
@@ -35,6 +39,7 @@ from pmvir.geometry.sfm.align import (
     estimated_camera_centres,
     match_names,
     true_camera_centres,
+    umeyama,
 )
 from pmvir.io.illumination import Illumination, read_illumination
 from pmvir.io.ply import Mesh, read_mesh
@@ -42,6 +47,11 @@ from pmvir.sh import fibonacci_sphere, sh9_shading
 
 #: Ground-truth surface samples for completeness (spec section 5: at least 1,000,000).
 N_GT_SAMPLES = 1_000_000
+#: ICP of refine_alignment: pairs farther apart than this (GT diagonals) are left out.
+ICP_REACH = 0.01
+#: ICP of refine_alignment: estimated vertices used at most, and true surface samples.
+ICP_POINTS = 200_000
+ICP_SAMPLES = 500_000
 #: Directions for the illumination error (spec section 5).
 N_LIGHT_DIRECTIONS = 10_000
 _EPS = 1e-12
@@ -63,7 +73,9 @@ class EvaluationResult:
         albedo_scale: the per-channel least-squares scale applied to the estimated albedo.
         illumination_per_frame: true frame file -> relative shading RMSE.
         aligned: whether a camera-based similarity was applied to the estimate first.
-        alignment_rmse: camera-centre RMSE after alignment, in GT diagonals (None unless aligned).
+        alignment_rmse: camera-centre RMSE after the camera fit, in GT diagonals (None unless aligned).
+        alignment_refine_shift: with the alignment refined on the true surface, the largest distance
+            by which that moved an estimated vertex, GT diagonals; else None.
         alignment: the applied similarity as a dict (scale, R, t), None unless aligned.
         notes: why a metric is None, which frames did not match, etc.
         normal_error, normal_error_median: mean / median angle in degrees between the estimated
@@ -92,6 +104,7 @@ class EvaluationResult:
     aligned: bool = False
     alignment_rmse: float | None = None
     alignment: dict | None = None
+    alignment_refine_shift: float | None = None
     notes: tuple[str, ...] = ()
     signed_offset: float | None = None
     signed_offset_median: float | None = None
@@ -119,6 +132,7 @@ class EvaluationResult:
         }
         if self.aligned:
             out["alignment_rmse"] = self.alignment_rmse
+            out["alignment_refine_shift"] = self.alignment_refine_shift
         out["details"] = {
             "gt_diagonal": self.gt_diagonal,
             "albedo_scale": None if self.albedo_scale is None else list(self.albedo_scale),
@@ -281,6 +295,45 @@ def shading_error(
     return float(np.sqrt(np.mean((est - true) ** 2))) / max(rms_true, _EPS)
 
 
+def refine_alignment(
+    alignment: CameraAlignment, est_vertices: np.ndarray, gt_mesh: Mesh, *, iterations: int = 50, seed: int = 0
+) -> CameraAlignment:
+    """The camera fit refined by ICP against the true surface (similarity, point to point).
+
+    From ``alignment``, each round pairs the estimated vertices (``ICP_POINTS`` of them at most)
+    with their nearest of ``ICP_SAMPLES`` points on the true surface, leaves out pairs farther
+    apart than ``ICP_REACH`` of its diagonal, and composes the Umeyama similarity of the rest,
+    until a round moves no vertex by more than 1e-7 of the diagonal. What it measures is then
+    the surface apart from the camera fit's error (Tanks and Temples' protocol); it cannot
+    remove a shape error, only a rigid motion and a scale.
+
+    Returns:
+        The refined alignment: its transform, the camera fit's ``rmse`` and ``pairs``, and
+        ``surface_shift``, the largest distance the refinement moved a used vertex.
+    """
+    from scipy.spatial import cKDTree
+
+    diag = bbox_diagonal(gt_mesh.vertices)
+    samples, _, _ = sample_surface(gt_mesh.vertices, gt_mesh.faces, ICP_SAMPLES, seed=seed)
+    tree = cKDTree(samples)
+    src = np.asarray(est_vertices, np.float64)
+    if len(src) > ICP_POINTS:
+        src = src[np.random.default_rng(seed).choice(len(src), ICP_POINTS, replace=False)]
+    start = alignment.transform.apply(src)
+    total, moved = alignment.transform, start
+    for _ in range(iterations):
+        dist, idx = tree.query(moved, workers=-1)
+        near = dist < ICP_REACH * diag
+        if near.sum() < 3:
+            break
+        total = umeyama(moved[near], samples[idx[near]]).after(total)
+        before, moved = moved, total.apply(src)
+        if np.abs(moved - before).max() < 1e-7 * diag:
+            break
+    shift = float(np.linalg.norm(moved - start, axis=1).max()) if len(src) else 0.0
+    return CameraAlignment(total, alignment.rmse, alignment.pairs, surface_shift=shift)
+
+
 def _summary(d: np.ndarray) -> tuple[float, float, float]:
     return float(d.mean()), float(np.median(d)), float(np.percentile(d, 90))
 
@@ -359,6 +412,8 @@ def evaluate(
         illumination_per_frame=per_frame,
         aligned=alignment is not None,
         alignment_rmse=None if alignment is None else alignment.rmse / diag,
+        alignment_refine_shift=None if alignment is None or alignment.surface_shift is None
+        else alignment.surface_shift / diag,
         alignment=None if alignment is None else alignment.transform.to_dict(),
         notes=tuple(notes),
         signed_offset=float(signed.mean()),
@@ -467,6 +522,7 @@ def evaluate_paths(
     gt_dir: str | Path,
     *,
     align: bool = False,
+    icp: bool = False,
     n_samples: int = N_GT_SAMPLES,
     seed: int = 0,
 ) -> EvaluationResult:
@@ -478,6 +534,7 @@ def evaluate_paths(
             with ``align`` its parent's ``capture.json`` gives the true camera poses.
         align: fit a similarity from the estimated camera centres (``poses/images.txt``)
             to the true ones and apply it first.
+        icp: with ``align``, refine that similarity on the true surface (:func:`refine_alignment`).
 
     Raises:
         MeshError, ManifestError, ConfigError, PmvirError: missing or malformed inputs.
@@ -512,6 +569,10 @@ def evaluate_paths(
             estimated_camera_centres(images_txt),
             true_camera_centres(gt_dir.resolve().parent / "capture.json"),
         )
+        if icp:
+            alignment = refine_alignment(alignment, est_mesh.vertices, gt_mesh, seed=seed)
+    elif icp:
+        raise ConfigError("--icp refines the camera alignment: it needs --align")
     return evaluate(
         est_mesh,
         gt_mesh,

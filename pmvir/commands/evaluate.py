@@ -40,6 +40,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "(RESULT_DIR/poses/images.txt) to the true ones and apply it before measuring",
     )
     p.add_argument(
+        "--icp",
+        action="store_true",
+        help="with --align: refine the similarity by ICP against the true surface (pairs within 1 %% of "
+        "the diagonal), to measure the surface apart from the camera fit's error",
+    )
+    p.add_argument(
         "--samples",
         type=int,
         default=N_GT_SAMPLES,
@@ -86,6 +92,8 @@ def format_table(result: EvaluationResult) -> str:
     if r.aligned and r.alignment is not None:
         rows.append(("alignment RMSE (camera centres)", _fmt(r.alignment_rmse)))
         rows.append(("alignment scale", f"{r.alignment['scale']:.6g}"))
+        if r.alignment_refine_shift is not None:
+            rows.append(("alignment refined on the surface: largest move", _fmt(r.alignment_refine_shift)))
     for name, err in r.illumination_per_frame.items():
         rows.append((f"  illumination {name}", _fmt(err)))
     width = max(len(k) for k, _ in rows)
@@ -97,7 +105,9 @@ def format_table(result: EvaluationResult) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    result = evaluate_paths(args.estimate, args.gt, align=args.align, n_samples=args.samples, seed=args.seed)
+    result = evaluate_paths(
+        args.estimate, args.gt, align=args.align, icp=args.icp, n_samples=args.samples, seed=args.seed
+    )
     text = json.dumps(result.to_dict(), indent=2)
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -44,6 +44,10 @@ class Similarity:
         """The similarity that undoes this one."""
         return Similarity(1.0 / self.scale, self.R.T, -(self.R.T @ self.t) / self.scale)
 
+    def after(self, first: Similarity) -> Similarity:
+        """The similarity that applies ``first``, then this one."""
+        return Similarity(self.scale * first.scale, self.R @ first.R, self.scale * (self.R @ first.t) + self.t)
+
     def to_dict(self) -> dict:
         return {"scale": float(self.scale), "R": self.R.tolist(), "t": self.t.tolist()}
 
@@ -179,14 +183,17 @@ class CameraAlignment:
 
     Attributes:
         transform: maps estimated world points to true world points.
-        rmse: root mean square distance between the transformed estimated centres and
-            the true ones, in the true world's units.
+        rmse: root mean square distance between the camera fit's transformed estimated centres
+            and the true ones, in the true world's units.
         pairs: the (est_name, true_file) pairs used.
+        surface_shift: when the fit was refined on the true surface (:func:`pmvir.evaluate.refine_alignment`),
+            the largest distance by which that moved an estimated point (true world units); else None.
     """
 
     transform: Similarity
     rmse: float
     pairs: list[tuple[str, str]]
+    surface_shift: float | None = None
 
 
 def align_by_cameras(
