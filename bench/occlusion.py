@@ -1,10 +1,12 @@
 """Benchmark of the fusion's occlusion test (``geometry.mvs.max_occluding``): the initial surface with and without it.
 
 The peer is the same capture fused without the test (``--set geometry.mvs.max_occluding=null``),
-in the same run. Captures (all with known poses and the true masks, 36 views, plastic):
+in the same run. Captures (all with known poses and the true masks, plastic; 36 views unless said):
 
 * the shapes of bench/geometry.py, 612x512, built-in renderer: the Stanford bunny, dragon and
   armadillo (skipped where ../shared is absent), the knot, gear and mug;
+* ``bunny-sparse``, ``dragon-sparse``, ``armadillo-sparse``: the Stanford models on the paper's
+  sparse rig (12 views of 304x256, where one confirming view fuses a depth);
 * ``blob-pathtraced``: the blob rendered by Mitsuba (32 spp), 612x512;
 * ``table-fullsize``: the blob on a textured table, 2448x2048 (the capture of bench/as_taken.py),
   with its true masks: the capture whose glossy top, fused without the test, gave the initial
@@ -14,7 +16,7 @@ For each: the initial surface's accuracy, completeness and median normal error a
 (spec section 5), its largest vertex distance and share beyond 2 % of the diagonal, the fused
 points and the fusion's time. Prints a table and writes bench/results/occlusion.json.
 
-Run: .venv/bin/python bench/occlusion.py [--captures knot table-fullsize] [--work DIR]
+Run: .venv/bin/python bench/occlusion.py [--captures knot table-fullsize] [--work DIR] [--append]
 """
 
 from __future__ import annotations
@@ -26,18 +28,20 @@ import sys
 import time
 from pathlib import Path
 
-from _results import table, write_results
+from _results import RESULTS, table, write_results
 from as_taken import _capture as table_capture
 from geometry import MODELS, SHARED, make_capture
 from nomask import _with_true_masks, vertex_distances
 
 from pmvir.evaluate import evaluate
 from pmvir.io.ply import Mesh, read_mesh
+from pmvir.synth.generate import synthesize
 
 PMVIR = str(Path(sys.executable).with_name("pmvir"))
 PATHTRACED = "blob-pathtraced"
 FULLSIZE = "table-fullsize"
-CAPTURES = [*MODELS, "knot", "gear", "mug", PATHTRACED, FULLSIZE]
+SPARSE = {f"{m}-sparse": m for m in MODELS}
+CAPTURES = [*MODELS, "knot", "gear", "mug", *SPARSE, PATHTRACED, FULLSIZE]
 VARIANTS = {"without": ["--set", "geometry.mvs.max_occluding=null"], "with": []}
 
 
@@ -46,6 +50,12 @@ def _prepare(name: str, work: Path) -> tuple[Path, str, str]:
     if name == FULLSIZE:
         return _with_true_masks(table_capture("2448x2048", 36, work), work / "table-fullsize-masks"), \
             "36 x 2448x2048", "builtin"
+    if name in SPARSE:
+        out = work / name
+        if not (out / "capture.json").is_file():
+            synthesize(out, views=12, size=(304, 256), material="plastic", seed=0, overwrite=True,
+                       mesh=SHARED / "data" / "models" / MODELS[SPARSE[name]], mesh_up="y")
+        return out, "12 x 304x256", "builtin"
     if name == PATHTRACED:
         out = work / PATHTRACED
         if not (out / "capture.json").is_file():
@@ -120,16 +130,22 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--captures", nargs="+", default=CAPTURES, choices=CAPTURES)
     ap.add_argument("--work", type=Path, default=Path("/tmp/pmvir-occlusion"), help="captures and results")
+    ap.add_argument("--append", action="store_true",
+                    help="keep the other captures' runs already in bench/results/occlusion.json")
     args = ap.parse_args()
-    names = [n for n in args.captures if n not in MODELS or (SHARED / "data" / "models").is_dir()]
+    shared = (SHARED / "data" / "models").is_dir()
+    names = [n for n in args.captures if shared or (n not in MODELS and n not in SPARSE)]
     args.work.mkdir(parents=True, exist_ok=True)
-    runs = []
+    earlier = RESULTS / "occlusion.json"
+    runs = json.loads(earlier.read_text())["runs"] if args.append and earlier.exists() else []
+    runs = [r for r in runs if r["capture"] not in names]
     for name in names:
         capture, views_size, renderer = _prepare(name, args.work)
         run = {"capture": name, "views_size": views_size, "renderer": renderer}
         for variant, extra in VARIANTS.items():
             run[variant] = _measure(capture, args.work / f"result-{name}-{variant}", extra)
         runs.append(run)
+        runs.sort(key=lambda r: CAPTURES.index(r["capture"]))
         print(json.dumps(run), flush=True)
         _write(runs)  # after every capture: an interrupted benchmark keeps what it measured
     return 0
