@@ -106,8 +106,8 @@ class MvsOptions(_Options):
     )
     max_occluding: int | None = Field(
         default=1, ge=0, le=20,
-        description="A depth is dropped where more than this many views (and no fewer than agree with it) see a "
-        "surface in front of it along its ray; null: no occlusion test.",
+        description="CPU stereo: a depth is dropped where more than this many views (and no fewer than agree with "
+        "it) see a surface in front of it along its ray; null: no occlusion test.",
         json_schema_extra=advanced(),
     )
     voxel: float = Field(

@@ -17,9 +17,9 @@ dent. The *occlusion test* (Merrell et al. 2007's free-space reasoning in
 spirit) counts, for each depth of a view, the views whose depths land on the
 same pixel in front of it by more than the relative margin: they see a surface
 where this view's depth says free space. A depth that at least as many views
-see through as agree with it, and more than ``max_occluding``, is dropped. The test also
-drops some depths of surfaces seen at grazing angles, where a depth projected a
-pixel off lands in front; those are the least accurate ones.
+see through as agree with it, and more than ``max_occluding``, is dropped. The
+test also drops some depths of surfaces seen at grazing angles, where a depth
+projected a pixel off lands in front; those are the least accurate ones.
 
 Normals are estimated on the fused cloud (Open3D, local PCA over the nearest
 neighbours) and turned towards the camera that produced each point.
