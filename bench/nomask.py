@@ -1,10 +1,11 @@
 """The object found without masks: table and turntable scenes, with and without masks, both renderers.
 
-Usage: .venv/bin/python bench/nomask.py [--shape blob] [--views 24] [--size 320x256]
+Usage: .venv/bin/python bench/nomask.py [--shapes blob,knot] [--views 24] [--size 320x256]
        [--renderers builtin,mitsuba] [--scenes table,turntable] [--spp 32] [--stop-after geometry]
        [--work /tmp/nomask] [--append]
 
-Per scene and renderer one capture is rendered with ``pmvir synth --scene S --no-masks``; a copy
+Per shape, scene and renderer one capture is rendered with ``pmvir synth --shape SHAPE --scene S
+--no-masks``; a copy
 names its true masks (gt/masks/) in capture.json. Both are reconstructed with ``pmvir reconstruct``
 (by default the geometric stage only) and the initial (or refined) mesh compared with the object
 alone: accuracy and completeness (pmvir.evaluate, GT diagonals), the median normal error (the
@@ -18,6 +19,7 @@ surface) or bench/results/nomask_refine.json (``--stop-after refine``: the refin
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import shutil
 import subprocess
@@ -108,16 +110,17 @@ def _name(stop_after: str) -> str:
 
 def _write(runs: list[dict], args: argparse.Namespace) -> Path:
     """Print the table of the runs so far and write bench/results/<_name>.json."""
-    columns = ["scene", "views x size", "renderer", "masks", "accuracy (1e-2)", "completeness (1e-2)",
+    columns = ["shape", "scene", "views x size", "renderer", "masks", "accuracy (1e-2)", "completeness (1e-2)",
                "normal error median deg", "max dist (diag)", "> 2 % diag", "max dist near table", "mask IoU",
                "time (s)"]
     rows = []
     for r in runs:
         if "error" in r:
-            rows.append([r["scene"], r.get("capture"), r["renderer"], r["masks"], *[None] * 7, round(r["seconds"], 1)])
+            rows.append([r.get("shape", "blob"), r["scene"], r.get("capture"), r["renderer"], r["masks"], *[None] * 7,
+                         round(r["seconds"], 1)])
             continue
         rows.append([
-            r["scene"], r.get("capture"), r["renderer"], r["masks"], round(100 * r["accuracy"], 3), round(100 * r["completeness"], 3),
+            r.get("shape", "blob"), r["scene"], r.get("capture"), r["renderer"], r["masks"], round(100 * r["accuracy"], 3), round(100 * r["completeness"], 3),
             None if r.get("normal_error_median") is None else round(r["normal_error_median"], 2),
             round(r["max_vertex_distance"], 4), f"{100 * r['share_beyond_2pct']:.2f} %",
             round(r["max_distance_near_table"], 4),
@@ -129,7 +132,7 @@ def _write(runs: list[dict], args: argparse.Namespace) -> Path:
         print(" | ".join("-" if v is None else str(v) for v in row))
     out = write_results(
         _name(args.stop_after),
-        title=f"Object isolation without masks ({args.shape}, stop after {args.stop_after})",
+        title=f"Object isolation without masks (stop after {args.stop_after})",
         tables=[table("With the true masks and without masks", columns, rows,
                       note="masks 'none': pmvir finds the object itself (geometry.isolate); distances in "
                       "GT bounding-box diagonals; 'near table': vertices within 2 % of the diagonal above "
@@ -143,7 +146,7 @@ def _write(runs: list[dict], args: argparse.Namespace) -> Path:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--shape", default="blob")
+    ap.add_argument("--shapes", default="blob", help="built-in shapes, comma-separated (pmvir synth --shape)")
     ap.add_argument("--views", type=int, default=24)
     ap.add_argument("--size", default="320x256")
     ap.add_argument("--renderers", default="builtin,mitsuba")
@@ -156,23 +159,24 @@ def main() -> int:
 
     earlier = RESULTS / f"{_name(args.stop_after)}.json"
     runs = json.loads(earlier.read_text())["runs"] if args.append and earlier.exists() else []
-    for scene in args.scenes.split(","):
-        for renderer in args.renderers.split(","):
-            cap = args.work / f"{scene}-{renderer}"
-            synth = [PMVIR, "synth", "--shape", args.shape, "--scene", scene, "--no-masks", "--views",
-                     str(args.views), "--size", args.size, "--renderer", renderer, "--spp", str(args.spp),
-                     "--out", str(cap), "--force", "--quiet"]
-            t0 = time.perf_counter()
-            subprocess.run(synth, check=True)
-            synth_s = time.perf_counter() - t0
-            masked = _with_true_masks(cap, args.work / f"{scene}-{renderer}-masks")
-            for masks, capture in (("true", masked), ("none", cap)):
-                row = {"scene": scene, "capture": f"{args.views} x {args.size}", "renderer": renderer,
-                       "masks": masks, "synth_seconds": synth_s, "arguments": " ".join(sys.argv[1:])}
-                row |= _measure(capture, args.work / f"result-{scene}-{renderer}-{masks}", args.stop_after)
-                runs.append(row)
-                print(json.dumps(row), flush=True)
-                _write(runs, args)  # after every run: an interrupted benchmark keeps what it measured
+    for shape, scene, renderer in itertools.product(
+        args.shapes.split(","), args.scenes.split(","), args.renderers.split(",")
+    ):
+        cap = args.work / shape / f"{scene}-{renderer}"
+        synth = [PMVIR, "synth", "--shape", shape, "--scene", scene, "--no-masks", "--views",
+                 str(args.views), "--size", args.size, "--renderer", renderer, "--spp", str(args.spp),
+                 "--out", str(cap), "--force", "--quiet"]
+        t0 = time.perf_counter()
+        subprocess.run(synth, check=True)
+        synth_s = time.perf_counter() - t0
+        masked = _with_true_masks(cap, args.work / shape / f"{scene}-{renderer}-masks")
+        for masks, capture in (("true", masked), ("none", cap)):
+            row = {"shape": shape, "scene": scene, "capture": f"{args.views} x {args.size}", "renderer": renderer,
+                   "masks": masks, "synth_seconds": synth_s, "arguments": " ".join(sys.argv[1:])}
+            row |= _measure(capture, args.work / shape / f"result-{scene}-{renderer}-{masks}", args.stop_after)
+            runs.append(row)
+            print(json.dumps(row), flush=True)
+            _write(runs, args)  # after every run: an interrupted benchmark keeps what it measured
 
     return 0
 

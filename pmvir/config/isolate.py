@@ -64,6 +64,14 @@ class IsolateOptions(_Options):
         "nearest neighbour), (0, 100].",
         json_schema_extra=advanced(),
     )
+    merge_gap: float = Field(
+        default=0.15,
+        ge=0.0,
+        le=1.0,
+        description="Other clusters within this share of the object's extent of it are the object's too "
+        "(parts that stereo leaves apart: a knot's crossings, a spring's coils; 0: one cluster), [0, 1].",
+        json_schema_extra=advanced(),
+    )
     grabcut_iterations: int = Field(
         default=2,
         ge=0,

@@ -142,6 +142,36 @@ def test_the_cluster_the_cameras_look_at_is_the_object(scene):
     assert counts["object_points"] == keep.sum()
 
 
+def torus_arcs(n: int, gap_deg: float, rng) -> tuple[np.ndarray, np.ndarray]:
+    """Points of a horizontal torus (major radius 0.4, tube 0.06) around CENTRE with two gaps of
+    ``gap_deg`` cut out of it (at 0 and 180 deg), and which of its two arcs each point is on."""
+    az = rng.uniform(0.0, 2 * np.pi, n)
+    tube = rng.uniform(0.0, 2 * np.pi, n)
+    half = np.radians(gap_deg) / 2
+    keep = (np.abs(np.angle(np.exp(1j * az))) > half) & (np.abs(np.angle(np.exp(1j * (az - np.pi)))) > half)
+    az, tube = az[keep], tube[keep]
+    ring_r = 0.4 + 0.06 * np.cos(tube)
+    pts = CENTRE + np.column_stack([ring_r * np.cos(az), ring_r * np.sin(az), 0.06 * np.sin(tube)])
+    return pts, (np.sin(az) > 0).astype(np.int64)
+
+
+def test_the_parts_stereo_leaves_apart_are_merged_into_the_object(scene):
+    """A loop whose dense points break into two arcs (gaps of 15 deg, 0.1 apart, twice DBSCAN's
+    radius): both are the object, within merge_gap of its extent; the ball off to the side is not."""
+    points, labels = scene
+    rng = np.random.default_rng(1)
+    loop, arc = torus_arcs(20_000, 15.0, rng)
+    keep_table = labels != 1  # the table and the other ball, without the centre ball
+    pts = np.concatenate([points[keep_table], loop])
+    which = np.concatenate([labels[keep_table], np.full(len(loop), 3)])
+    keep, _, _, counts = object_points(pts, ring(30.0), settings=IsolateOptions())
+    assert counts["clusters_merged"] == 2
+    assert keep[which == 3].mean() > 0.99 and not keep[which != 3].any()
+    one, _, _, counts = object_points(pts, ring(30.0), settings=IsolateOptions(merge_gap=0.0))
+    assert counts["clusters_merged"] == 1
+    assert {one[which == 3][arc == a].mean().round(2) for a in (0, 1)} == {0.0, 1.0}  # one arc alone
+
+
 def test_a_box_overrides_the_cluster(scene):
     points, labels = scene
     box = IsolateOptions(bbox=[1.0, 1.0, -1.0, 1.6, 1.6, 1.0])

@@ -31,7 +31,11 @@ given masks:
 4. **Cluster**: DBSCAN (Open3D ``cluster_dbscan``) of the rest with a radius of
    ``cluster_eps`` median point spacings; the cluster whose median point is
    nearest to the look-at point (among clusters of at least 2 % of the
-   remaining points) is the object. A bounding box (world units) replaces this
+   remaining points) is the object, with every other such cluster that comes
+   within ``merge_gap`` of the object's extent of it (grown one cluster at a
+   time): stereo leaves the parts of a thin or entangled object apart (a
+   knot's tubes where they cross, a spring's coils: gaps of up to 10 % of
+   the extent on 16-view scenes). A bounding box (world units) replaces this
    choice: the points inside it, off the plane, are the object.
 5. **Masks**: per view the object's solid points (dense neighbourhoods, not
    the sparse points stereo adds beside silhouettes) and vertical columns from
@@ -308,9 +312,31 @@ def object_points(
         candidates = names[sizes == sizes.max()] if len(names) else np.array([-1])
     gaps = [float(np.linalg.norm(np.median(pts[rest[labels == c]], axis=0) - look)) for c in candidates]
     chosen = candidates[int(np.argmin(gaps))]
+    parts = _merged(pts[rest], labels, int(chosen), candidates, settings.merge_gap)
     keep = np.zeros(len(pts), bool)
-    keep[rest[labels == chosen]] = True
-    return keep, plane, look, counts | {"clusters": len(names), "object_points": int(keep.sum())}
+    keep[rest[np.isin(labels, parts)]] = True
+    return keep, plane, look, counts | {
+        "clusters": len(names), "clusters_merged": len(parts), "object_points": int(keep.sum())
+    }
+
+
+def _merged(points: np.ndarray, labels: np.ndarray, chosen: int, candidates: np.ndarray, gap: float) -> list[int]:
+    """The chosen cluster's label and those of the candidates that come within ``gap`` times the
+    object's extent (the diagonal of its 1st-99th percentile box) of it, grown one cluster at a time,
+    nearest first: the parts of one object that stereo leaves apart (a knot's tubes where they
+    cross, a spring's coils) lie closer to one another than a backdrop or another object does."""
+    parts = [chosen]
+    rest = [int(c) for c in candidates if c != chosen]
+    while rest and gap > 0:
+        body = points[np.isin(labels, parts)]
+        reach = gap * float(np.linalg.norm(np.percentile(body, 99, 0) - np.percentile(body, 1, 0)))
+        tree = cKDTree(body)
+        near = [float(tree.query(points[labels == c], k=1, distance_upper_bound=reach)[0].min()) for c in rest]
+        k = int(np.argmin(near))
+        if not near[k] <= reach:
+            break
+        parts.append(rest.pop(k))
+    return parts
 
 
 def still_pixels(previews: Sequence[np.ndarray], *, tolerance: float) -> np.ndarray | None:
