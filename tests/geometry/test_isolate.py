@@ -18,6 +18,7 @@ from pmvir.geometry.mvs.fusion import DensePoints
 from pmvir.geometry.mvs.sweep import DepthMap
 from pmvir.geometry.silhouette.isolate import (
     columns_to_plane,
+    far_support_plane,
     inside_masks,
     isolate_object,
     object_points,
@@ -64,6 +65,23 @@ def test_support_plane_is_the_table_with_its_normal_toward_the_cameras(scene):
     np.testing.assert_allclose(plane[:3], [0.0, 0.0, 1.0], atol=0.01)
     assert abs(plane[3]) < 0.01
     assert inliers >= 0.95 * (labels == 0).sum()
+
+
+def test_a_table_that_holds_few_points_is_found_among_the_far_ones():
+    """3 % of the points on the table (seen at grazing angles), the rest on the ball: too few for
+    support_plane, found by far_support_plane; a wall behind the ball, with as few, is no support."""
+    rng = np.random.default_rng(3)
+    ball = sphere_points(CENTRE, 0.3, 20_000, rng)
+    ball = ball[ball[:, 2] > 0.1]  # its underside, hidden from views above, has no points
+    xy = rng.uniform(-1.2, 1.2, (3000, 2))
+    table = np.column_stack([xy, rng.normal(0, 0.002, len(xy))])[np.linalg.norm(xy, axis=1) > 0.35][:620]
+    cams = ring(30.0)
+    points = np.concatenate([ball, table])
+    assert support_plane(points, cams, distance=0.005, min_fraction=0.05, look_at=CENTRE)[0] is None
+    plane, inliers = far_support_plane(points, cams, distance=0.005, look_at=CENTRE)
+    assert plane is not None and plane[2] > 0.999 and abs(plane[3]) < 0.01 and inliers >= 600
+    wall = np.column_stack([np.full(620, -2.5), rng.uniform(-1.0, 1.0, (620, 2))])
+    assert far_support_plane(np.concatenate([ball, wall]), cams, distance=0.005, look_at=CENTRE)[0] is None
 
 
 def test_a_plane_with_cameras_on_both_sides_is_no_support(scene):

@@ -15,7 +15,9 @@ given masks:
    a noisy or half-hidden table, and walls are no candidates). The best,
    refitted to the points near it while its inliers grow (three noisy points
    tilt a sample plane), is the support when it holds at least
-   ``plane_min_fraction`` of the points;
+   ``plane_min_fraction`` of the points (else, one that holds 2 % found among the
+   tenth of the points farthest from the look-at point, with the object
+   above it and most cameras higher: :func:`far_support_plane`);
    points within ``plane_clearance`` inlier distances of it or below it are
    removed.
 3. **Still backdrop**: where the camera stood still and the object turned (a
@@ -87,6 +89,9 @@ _RANSAC_ITERATIONS = 4000
 _RANSAC_BATCH = 200
 #: RANSAC draws its planes from a random subset of at most this many points.
 _MAX_RANSAC_POINTS = 20_000
+#: A support found among the far points (:func:`far_support_plane`) has at most this share of the
+#: points near the object below it (a path-traced table: 0.6 %; a face of a rock: 8 %).
+_MAX_BELOW = 0.02
 #: RANSAC's best plane is refitted to the points within this many inlier distances of it ...
 _LOCAL_BAND = 2.0
 #: ... at most this many times, while its inliers grow (on a path-traced table: 4.6 % of the points
@@ -195,14 +200,10 @@ def support_plane(
     above = np.array([cam.center for cam in cameras] + ([] if look_at is None else [np.asarray(look_at)]))
     best, best_count = None, 0
     for _ in range(_RANSAC_ITERATIONS // _RANSAC_BATCH):
-        tri = sample[rng.integers(0, len(sample), (_RANSAC_BATCH, 3))]
-        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        length = np.linalg.norm(normal, axis=1)
-        normal = normal / np.maximum(length, 1e-12)[:, None]
-        offset = -np.einsum("ij,ij->i", normal, tri[:, 0])
+        normal, offset, spans = _random_planes(sample, rng)
         side = above @ normal.T + offset  # (C, B)
         sign = np.where(side[0] < 0, -1.0, 1.0)
-        ok = (length > 1e-12) & np.all(side * sign > distance, axis=0)
+        ok = spans & np.all(side * sign > distance, axis=0)
         if not ok.any():
             continue
         counts = (np.abs(sample @ normal[ok].T + offset[ok]) <= distance).sum(axis=0)
@@ -210,18 +211,102 @@ def support_plane(
         if counts[k] > best_count:
             best_count = int(counts[k])
             best = sign[ok][k] * np.append(normal[ok][k], offset[ok][k])
-    if best is None:
+    plane = _settled(pts, best, distance, min_fraction)
+    if plane is None:
         return None, 0
-    best = _local_refit(pts, best, distance)
-    inliers = np.abs(pts @ best[:3] + best[3]) <= distance
-    if inliers.sum() < max(3, min_fraction * len(pts)):
-        return None, 0
-    plane = _refit(pts[inliers])
     side = above @ plane[:3] + plane[3]
     if not (np.all(side > 0) or np.all(side < 0)):
         return None, 0
     plane = plane if side[0] > 0 else -plane
     return plane, int((np.abs(pts @ plane[:3] + plane[3]) <= distance).sum())
+
+
+def far_support_plane(
+    points: np.ndarray,
+    cameras: Sequence[Camera],
+    *,
+    distance: float,
+    look_at: np.ndarray,
+    min_fraction: float = 0.02,
+    seed: int = 0,
+) -> tuple[np.ndarray | None, int]:
+    """A support that holds too few of the points for :func:`support_plane`, found among the points
+    farthest from the object (module docstring, step 2).
+
+    Where the views see the table at grazing angles (path-traced, 16 views of 320x256: 3 % of a rock's
+    dense points) RANSAC seldom draws three of its points, and the object's own faces hold as many.
+    Here RANSAC draws its planes from the tenth of the points farthest from ``look_at`` (a quarter of
+    them on that table) and scores them on all. A plane counts with ``look_at`` and every camera more
+    than ``distance`` above it, three quarters of the cameras higher than ``look_at``, at most
+    :data:`_MAX_BELOW` of the points near the object (within twice the distance of the nearest
+    fifth) more than ``distance`` below, and at least ``min_fraction`` of the points on it: a face
+    of the object has the object on both sides, and a wall behind the object has views on both
+    sides of the object.
+
+    Returns:
+        As :func:`support_plane`.
+    """
+    pts = np.asarray(points, np.float64)
+    look = np.asarray(look_at, np.float64)
+    if len(pts) < 10 or distance <= 0 or not cameras:
+        return None, 0
+    rng = np.random.default_rng(seed)
+    sample = pts[rng.choice(len(pts), min(len(pts), _MAX_RANSAC_POINTS), replace=False)]
+    r = np.linalg.norm(sample - look, axis=1)
+    far = sample[r >= np.percentile(r, 90)]
+    near = sample[r <= 2.0 * np.percentile(r, 20)]
+    centres = np.array([cam.center for cam in cameras])
+
+    def holds(normal: np.ndarray, offset: np.ndarray) -> np.ndarray:
+        """(B,) bool: planes (unit normals toward ``look``) that can be the support."""
+        cams = centres @ normal.T + offset
+        obj = look @ normal.T + offset
+        below = (near @ normal.T + offset < -distance).mean(axis=0)
+        higher = np.percentile(cams, 25, axis=0) > obj  # three quarters of the views look down on the object
+        return np.asarray((obj > distance) & (cams.min(axis=0) > distance) & higher & (below <= _MAX_BELOW))
+
+    best, best_count = None, 0
+    for _ in range(_RANSAC_ITERATIONS // _RANSAC_BATCH):
+        normal, offset, spans = _random_planes(far, rng)
+        sign = np.where(normal @ look + offset < 0, -1.0, 1.0)
+        normal, offset = normal * sign[:, None], offset * sign
+        ok = spans & holds(normal, offset)
+        if not ok.any():
+            continue
+        counts = (np.abs(sample @ normal[ok].T + offset[ok]) <= distance).sum(axis=0)
+        k = int(np.argmax(counts))
+        if counts[k] > best_count:
+            best_count, best = int(counts[k]), np.append(normal[ok][k], offset[ok][k])
+    plane = _settled(pts, best, distance, min_fraction)
+    if plane is None:
+        return None, 0
+    plane = plane if look @ plane[:3] + plane[3] > 0 else -plane
+    if not holds(plane[None, :3], plane[3:])[0]:
+        return None, 0
+    return plane, int((np.abs(pts @ plane[:3] + plane[3]) <= distance).sum())
+
+
+def _random_planes(points: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:data:`_RANSAC_BATCH` planes, each through three random ``points``: (B, 3) unit normals, (B,)
+    offsets, and (B,) whether the three points span a plane."""
+    tri = points[rng.integers(0, len(points), (_RANSAC_BATCH, 3))]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(normal, axis=1)
+    normal = normal / np.maximum(length, 1e-12)[:, None]
+    return normal, -np.einsum("ij,ij->i", normal, tri[:, 0]), length > 1e-12
+
+
+def _settled(points: np.ndarray, best: np.ndarray | None, distance: float, min_fraction: float) -> np.ndarray | None:
+    """RANSAC's best plane refitted (:func:`_local_refit`, then least squares to its inliers), or None
+    where there is none or it holds fewer than ``min_fraction`` of the points (its orientation is
+    the caller's to set)."""
+    if best is None:
+        return None
+    best = _local_refit(points, best, distance)
+    inliers = np.abs(points @ best[:3] + best[3]) <= distance
+    if inliers.sum() < max(3, min_fraction * len(points)):
+        return None
+    return _refit(points[inliers])
 
 
 def _local_refit(points: np.ndarray, plane: np.ndarray, distance: float) -> np.ndarray:
@@ -291,8 +376,12 @@ def object_points(
     plane, inliers = support_plane(
         pts, cameras, distance=distance, min_fraction=settings.plane_min_fraction, look_at=look, seed=_SEED
     )
+    from_far = plane is None
+    if from_far:
+        plane, inliers = far_support_plane(pts, cameras, distance=distance, look_at=look, seed=_SEED)
     off = np.ones(len(pts), bool) if plane is None else pts @ plane[:3] + plane[3] > settings.plane_clearance * distance
-    counts = {"points": len(pts), "plane_inliers": inliers, "removed_with_plane": int((~off).sum())}
+    counts = {"points": len(pts), "plane_inliers": inliers, "removed_with_plane": int((~off).sum()),
+              "plane_from_far_points": int(from_far and plane is not None)}
     if backdrop is not None and (off & backdrop).sum() < 0.5 * off.sum():
         counts["still_backdrop"] = int((off & backdrop).sum())
         off &= ~backdrop
