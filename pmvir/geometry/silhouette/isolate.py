@@ -413,7 +413,7 @@ def _merged(points: np.ndarray, labels: np.ndarray, chosen: int, candidates: np.
     """The chosen cluster's label and those of the candidates that come within ``gap`` times the
     object's extent (the diagonal of its 1st-99th percentile box) of it, grown one cluster at a time,
     nearest first: the parts of one object that stereo leaves apart (a knot's tubes where they
-    cross, a spring's coils) lay 4-10 % of the extent apart on 16-view scenes."""
+    cross, a spring's coils) lay 3-10 % of the extent apart on 16-view scenes."""
     parts = [chosen]
     rest = [int(c) for c in candidates if c != chosen]
     while rest and gap > 0:
