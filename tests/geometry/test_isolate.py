@@ -174,7 +174,7 @@ def torus_arcs(n: int, gap_deg: float, rng) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_the_parts_stereo_leaves_apart_are_merged_into_the_object(scene):
-    """A loop whose dense points break into two arcs (gaps of 15 deg, 0.1 apart, twice DBSCAN's
+    """A loop whose dense points break into two arcs (gaps of 15 deg, 0.09 apart, three times DBSCAN's
     radius): both are the object, within merge_gap of its extent; the ball off to the side is not."""
     points, labels = scene
     rng = np.random.default_rng(1)
