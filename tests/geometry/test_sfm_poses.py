@@ -302,6 +302,46 @@ def test_mask_erosion_option_shrinks_the_feature_masks(sfm_views: dict, tmp_path
     assert areas[4] < areas[0] - 100  # a 4 px band along the silhouette is gone
 
 
+def test_features_of_masked_views_come_from_crops_at_the_full_views_positions(
+    blob_data: dict, tmp_path: Path
+) -> None:
+    """With masks and ``crop`` (known poses), SIFT runs on each view's crop around its mask and the
+    keypoints are shifted back: the same features at the same places in the full view as SIFT on the
+    whole view (a few large ones near the crop's edge differ); a view whose mask is empty gets no
+    features and no error."""
+    import pycolmap
+
+    from pmvir.geometry.sfm import matching
+    from pmvir.geometry.sfm.inputs import write_inputs
+
+    images = blob_data["images"][:3]
+    masks = blob_data["masks"][:2] + [np.zeros_like(blob_data["masks"][2])]
+    opts = SfmOptions(sift_affine_shape=False, sift_upsample=False)
+    sizes = [im.shape[:2] for im in images]
+    keypoints = {}
+    for cropped in (True, False):
+        root = tmp_path / str(cropped)
+        image_dir, mask_dir, files = write_inputs(root, images, masks, opts)
+        assert mask_dir is not None
+        if cropped:
+            boxes = matching._crop_boxes(mask_dir, files)
+            assert boxes is not None and boxes[0][2] - boxes[0][0] < images[0].shape[1]
+        matching.extract_features(
+            root / "database.db", image_dir, mask_dir, files, sizes, [None] * 3, opts, crop=cropped
+        )
+        db = pycolmap.Database.open(str(root / "database.db"))
+        keypoints[cropped] = {im.name: np.asarray(db.read_keypoints(im.image_id))[:, :2]
+                              for im in db.read_all_images()}
+        assert db.num_descriptors() == sum(len(k) for k in keypoints[cropped].values())
+        db.close()
+    for name in files[:2]:
+        crop, full = keypoints[True][name], keypoints[False][name]
+        assert len(full) > 100 and abs(len(crop) - len(full)) < 0.1 * len(full)
+        nearest = np.linalg.norm(full[:, None, :] - crop[None, :, :], axis=2).min(axis=1)
+        assert np.mean(nearest < 0.05) > 0.95
+    assert len(keypoints[True][files[2]]) == len(keypoints[False][files[2]]) == 0
+
+
 def test_match_ratio_option_reaches_colmap_matching(sfm_views: dict, tmp_path: Path) -> None:
     """A stricter ratio test (sfm.match_max_ratio) keeps fewer raw matches between neighbouring views."""
     import pycolmap

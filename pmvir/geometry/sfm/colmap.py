@@ -106,7 +106,10 @@ def run_colmap(
 
     report(0.1, "extracting SIFT features")
     t0 = time.perf_counter()
-    extract_features(database, image_dir, mask_dir, files, sizes, Ks, options, focal_priors=focal_priors)
+    extract_features(
+        database, image_dir, mask_dir, files, sizes, Ks, options, focal_priors=focal_priors,
+        crop=known_cameras is not None,
+    )
     timings["features"] = time.perf_counter() - t0
 
     report(0.4, "matching features")
