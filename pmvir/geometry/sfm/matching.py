@@ -59,12 +59,14 @@ _KNOWN_POSE_MAX_AXIS_DEG = 80.0
 _CROP_MARGIN_PX = 32
 
 
-#: Features with known poses and masks: a crop's corner lies on a multiple of this many pixels, so that SIFT's octaves
-#: (each half the resolution of the one before) sample the pixels they sample on the whole view.
+#: Features with known poses and masks: a crop's corner lies on a multiple of this many pixels, so
+#: that SIFT's octaves (each half the resolution of the one before) sample the pixels they sample on
+#: the whole view.
 _CROP_ALIGN_PX = 16
 
 
-#: Features with known poses and masks: views are cropped only when the crops hold less than this fraction of the pixels.
+#: Features with known poses and masks: views are cropped only when the crops hold less than this
+#: fraction of the pixels.
 _CROP_MAX_FRACTION = 0.8
 
 
@@ -142,7 +144,8 @@ def extract_features(
 
 def _crop_boxes(mask_dir: Path, files: list[str]) -> list[tuple[int, int, int, int]] | None:
     """Per view the box (x0, y0, x1, y1) SIFT runs on: its mask's bounding box grown by
-    ``_CROP_MARGIN_PX`` (the corner moved out onto a multiple of ``_CROP_ALIGN_PX``); None when the boxes hold ``_CROP_MAX_FRACTION`` of the pixels or more."""
+    ``_CROP_MARGIN_PX`` (the corner moved out onto a multiple of ``_CROP_ALIGN_PX``); None when the
+    boxes hold ``_CROP_MAX_FRACTION`` of the pixels or more."""
     boxes, inside, total = [], 0, 0
     for name in files:
         mask = _read_png(mask_dir / f"{name}.png")
@@ -150,7 +153,8 @@ def _crop_boxes(mask_dir: Path, files: list[str]) -> list[tuple[int, int, int, i
         rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
         if not len(rows):  # no features in this view: a small crop SIFT still reads
             rows, cols = np.array([0]), np.array([0])
-        x0, y0 = (max(int(v) - _CROP_MARGIN_PX, 0) // _CROP_ALIGN_PX * _CROP_ALIGN_PX for v in (cols[0], rows[0]))
+        x0, y0 = (max(int(v) - _CROP_MARGIN_PX, 0) // _CROP_ALIGN_PX * _CROP_ALIGN_PX
+                  for v in (cols[0], rows[0]))
         x1, y1 = min(int(cols[-1]) + 1 + _CROP_MARGIN_PX, w), min(int(rows[-1]) + 1 + _CROP_MARGIN_PX, h)
         boxes.append((x0, y0, x1, y1))
         inside += (x1 - x0) * (y1 - y0)
