@@ -25,8 +25,8 @@ from pmvir.errors import ConfigError, ResourceLimitError
 # Fitted to the peaks bench/fullsize.py measures (blob): BASE and PER_FRAME from the
 # decode stage's peaks of 12 views at 612x512, 1224x1024 and 2448x2048 frames (0.65, 0.76 and 1.22 GiB:
 # one full-size frame demosaiced at a time, 131 bytes per frame pixel); PER_VIEW from the refinement's
-# peaks with the default options. 36 views measured 4.52 GiB at 612x512 (486k vertices; estimated
-# 5.6 GiB) and 7.58 GiB for 2448x2048 frames worked at 816x682 (813k vertices; estimated 10.0 GiB).
+# peaks with the default options. 36 views measured 4.34 GiB at 612x512 (485k vertices; estimated
+# 5.6 GiB) and 7.30 GiB for 2448x2048 frames worked at 816x682 (811k vertices; estimated 10.0 GiB).
 # Rounded up.
 #: Python, NumPy, torch, Open3D and pycolmap loaded, and a small run's working set.
 BASE_BYTES = 0.65 * 2**30
