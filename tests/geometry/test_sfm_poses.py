@@ -324,7 +324,7 @@ def test_features_of_masked_views_come_from_crops_at_the_full_views_positions(
         image_dir, mask_dir, files = write_inputs(root, images, masks, opts)
         assert mask_dir is not None
         if cropped:
-            boxes = matching._crop_boxes(mask_dir, files)
+            boxes = matching._crop_boxes([matching._read_png(mask_dir / f"{name}.png") for name in files])
             assert boxes is not None and boxes[0][2] - boxes[0][0] < images[0].shape[1]
         matching.extract_features(
             root / "database.db", image_dir, mask_dir, files, sizes, [None] * 3, opts, crop=cropped

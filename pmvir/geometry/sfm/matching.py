@@ -108,7 +108,8 @@ def extract_features(
     extraction.sift.peak_threshold = options.sift_peak_threshold
     extraction.sift.estimate_affine_shape = options.sift_affine_shape
     extraction.sift.first_octave = 0 if options.sift_upsample is False else -1  # 'auto' is resolved by SfM
-    boxes = None if mask_dir is None or not crop else _crop_boxes(mask_dir, files)
+    masks = None if mask_dir is None or not crop else [_read_png(mask_dir / f"{name}.png") for name in files]
+    boxes = None if masks is None else _crop_boxes(masks)
     # COLMAP numbers images in the order its extraction threads finish them, which varies from run
     # to run; the matching and the mapper visit views in image-id order, so importing the images
     # first (one thread, group by group, in the views' order) makes SfM and the known-pose matches
@@ -138,17 +139,16 @@ def extract_features(
                 reader_options=reader,
                 extraction_options=extraction,
             )
-    if boxes is not None and mask_dir is not None:
-        _extract_cropped(database, image_dir, mask_dir, files, boxes, extraction)
+    if boxes is not None and masks is not None:
+        _extract_cropped(database, image_dir, masks, files, boxes, extraction)
 
 
-def _crop_boxes(mask_dir: Path, files: list[str]) -> list[tuple[int, int, int, int]] | None:
+def _crop_boxes(masks: list[np.ndarray]) -> list[tuple[int, int, int, int]] | None:
     """Per view the box (x0, y0, x1, y1) SIFT runs on: its mask's bounding box grown by
     ``_CROP_MARGIN_PX`` (the corner moved out onto a multiple of ``_CROP_ALIGN_PX``); None when the
     boxes hold ``_CROP_MAX_FRACTION`` of the pixels or more."""
     boxes, inside, total = [], 0, 0
-    for name in files:
-        mask = _read_png(mask_dir / f"{name}.png")
+    for mask in masks:
         h, w = mask.shape
         rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
         if not len(rows):  # no features in this view: a small crop SIFT still reads
@@ -173,41 +173,44 @@ def _read_png(path: Path) -> np.ndarray:
 def _extract_cropped(
     database: Path,
     image_dir: Path,
-    mask_dir: Path,
+    masks: list[np.ndarray],
     files: list[str],
     boxes: list[tuple[int, int, int, int]],
     extraction: pycolmap.FeatureExtractionOptions,
 ) -> None:
-    """SIFT on each view's crop (``boxes``, into a scratch database beside ``database``), its
-    keypoints shifted back to the full view and written with the descriptors for the views
-    already imported into ``database``."""
+    """SIFT on each view's crop (``boxes``; ``masks``: per view its COLMAP mask, 0 = no features), into
+    a scratch database beside ``database`` (removed afterwards, also on failure); the keypoints
+    shifted back to the full view and written with the descriptors for the views already imported
+    into ``database``."""
     crop_dir = database.parent / "crops"
     shutil.rmtree(crop_dir, ignore_errors=True)
     (crop_dir / "masks").mkdir(parents=True)
-    for name, (x0, y0, x1, y1) in zip(files, boxes, strict=True):
-        image, mask = _read_png(image_dir / name), _read_png(mask_dir / f"{name}.png")
-        cv2.imwrite(str(crop_dir / name), image[y0:y1, x0:x1], SCRATCH_PNG)
-        cv2.imwrite(str(crop_dir / "masks" / f"{name}.png"), mask[y0:y1, x0:x1], SCRATCH_PNG)
-    scratch = crop_dir / "database.db"
-    reader = pycolmap.ImageReaderOptions()
-    reader.mask_path = str(crop_dir / "masks")
-    pycolmap.extract_features(
-        scratch, crop_dir, image_names=files, camera_mode=pycolmap.CameraMode.PER_IMAGE,
-        reader_options=reader, extraction_options=extraction,
-    )
-    offset = {name: box[:2] for name, box in zip(files, boxes, strict=True)}
-    source, target = pycolmap.Database.open(str(scratch)), pycolmap.Database.open(str(database))
     try:
-        ids = {image.name: image.image_id for image in target.read_all_images()}
-        for view in source.read_all_images():
-            keypoints = np.array(source.read_keypoints(view.image_id), dtype=np.float32)
-            keypoints[:, :2] += np.asarray(offset[view.name], dtype=np.float32)  # shape columns stay
-            target.write_keypoints(ids[view.name], keypoints)
-            target.write_descriptors(ids[view.name], source.read_descriptors(view.image_id))
+        for name, mask, (x0, y0, x1, y1) in zip(files, masks, boxes, strict=True):
+            image = _read_png(image_dir / name)
+            cv2.imwrite(str(crop_dir / name), image[y0:y1, x0:x1], SCRATCH_PNG)
+            cv2.imwrite(str(crop_dir / "masks" / f"{name}.png"), mask[y0:y1, x0:x1], SCRATCH_PNG)
+        scratch = crop_dir / "database.db"
+        reader = pycolmap.ImageReaderOptions()
+        reader.mask_path = str(crop_dir / "masks")
+        pycolmap.extract_features(
+            scratch, crop_dir, image_names=files, camera_mode=pycolmap.CameraMode.PER_IMAGE,
+            reader_options=reader, extraction_options=extraction,
+        )
+        offset = {name: box[:2] for name, box in zip(files, boxes, strict=True)}
+        source, target = pycolmap.Database.open(str(scratch)), pycolmap.Database.open(str(database))
+        try:
+            ids = {image.name: image.image_id for image in target.read_all_images()}
+            for view in source.read_all_images():
+                keypoints = np.array(source.read_keypoints(view.image_id), dtype=np.float32)
+                keypoints[:, :2] += np.asarray(offset[view.name], dtype=np.float32)  # shape columns stay
+                target.write_keypoints(ids[view.name], keypoints)
+                target.write_descriptors(ids[view.name], source.read_descriptors(view.image_id))
+        finally:
+            source.close()
+            target.close()
     finally:
-        source.close()
-        target.close()
-    shutil.rmtree(crop_dir, ignore_errors=True)
+        shutil.rmtree(crop_dir, ignore_errors=True)
 
 
 def match_images(database: Path, n: int, options: SfmOptions) -> None:
