@@ -2,11 +2,11 @@
 
 Usage: .venv/bin/python bench/nomask.py [--shapes blob,knot] [--views 24] [--size 320x256]
        [--renderers builtin,mitsuba] [--scenes table,turntable] [--spp 32] [--stop-after geometry]
-       [--work /tmp/nomask] [--append]
+       [--work /tmp/nomask] [--append] [--reuse]
 
 Per shape, scene and renderer one capture is rendered with ``pmvir synth --shape SHAPE --scene S
---no-masks``; a copy
-names its true masks (gt/masks/) in capture.json. Both are reconstructed with ``pmvir reconstruct``
+--no-masks`` (``--reuse``: one already in --work with the same options is kept); a copy names its
+true masks (gt/masks/) in capture.json. Both are reconstructed with ``pmvir reconstruct``
 (by default the geometric stage only) and the initial (or refined) mesh compared with the object
 alone: accuracy and completeness (pmvir.evaluate, GT diagonals), the median normal error (the
 angle between each vertex's normal and the true surface's, degrees), the largest vertex distance and
@@ -103,6 +103,23 @@ def _measure(capture: Path, result: Path, stop_after: str) -> dict:
     }
 
 
+def _rendered_as(capture: Path, shape: str, scene: str, renderer: str, args: argparse.Namespace) -> bool:
+    """Whether ``capture`` holds a rendering with these options (its gt/synth.json)."""
+    path = capture / "gt" / "synth.json"
+    if not (capture / "capture.json").exists() or not path.exists():
+        return False
+    made = json.loads(path.read_text())
+    o = made.get("options", {})
+    width, height = (int(x) for x in args.size.split("x"))
+    return (made.get("source", {}).get("shape") == shape and o.get("scene") == scene and o.get("renderer") == renderer
+            and o.get("views") == args.views and o.get("size") == [width, height] and o.get("spp") == args.spp)
+
+
+def _key(row: dict) -> tuple:
+    """A row's identity in the table: shape, scene, views x size, renderer and masks."""
+    return row.get("shape", "blob"), row["scene"], row.get("capture"), row["renderer"], row["masks"]
+
+
 def _name(stop_after: str) -> str:
     """The result's name: the initial surface's runs and the refined mesh's are kept apart."""
     return "nomask" if stop_after == "geometry" else "nomask_refine"
@@ -154,7 +171,10 @@ def main() -> int:
     ap.add_argument("--spp", type=int, default=32)
     ap.add_argument("--stop-after", choices=["geometry", "refine"], default="geometry")
     ap.add_argument("--work", type=Path, default=Path("/tmp/nomask"))
-    ap.add_argument("--append", action="store_true", help="keep the runs already in the result file")
+    ap.add_argument("--append", action="store_true",
+                    help="keep the runs already in the result file (a new run replaces one of the same row key)")
+    ap.add_argument("--reuse", action="store_true",
+                    help="keep a capture already rendered in --work with the same options instead of rendering it again")
     args = ap.parse_args()
 
     earlier = RESULTS / f"{_name(args.stop_after)}.json"
@@ -167,14 +187,15 @@ def main() -> int:
                  str(args.views), "--size", args.size, "--renderer", renderer, "--spp", str(args.spp),
                  "--out", str(cap), "--force", "--quiet"]
         t0 = time.perf_counter()
-        subprocess.run(synth, check=True)
+        if not (args.reuse and _rendered_as(cap, shape, scene, renderer, args)):
+            subprocess.run(synth, check=True)
         synth_s = time.perf_counter() - t0
         masked = _with_true_masks(cap, args.work / shape / f"{scene}-{renderer}-masks")
         for masks, capture in (("true", masked), ("none", cap)):
             row = {"shape": shape, "scene": scene, "capture": f"{args.views} x {args.size}", "renderer": renderer,
                    "masks": masks, "synth_seconds": synth_s, "arguments": " ".join(sys.argv[1:])}
             row |= _measure(capture, args.work / shape / f"result-{scene}-{renderer}-{masks}", args.stop_after)
-            runs.append(row)
+            runs = [r for r in runs if _key(r) != _key(row)] + [row]
             print(json.dumps(row), flush=True)
             _write(runs, args)  # after every run: an interrupted benchmark keeps what it measured
 
