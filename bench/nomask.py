@@ -195,7 +195,12 @@ def main() -> int:
             row = {"shape": shape, "scene": scene, "capture": f"{args.views} x {args.size}", "renderer": renderer,
                    "masks": masks, "synth_seconds": synth_s, "arguments": " ".join(sys.argv[1:])}
             row |= _measure(capture, args.work / shape / f"result-{scene}-{renderer}-{masks}", args.stop_after)
-            runs = [r for r in runs if _key(r) != _key(row)] + [row]
+            same = [k for k, r in enumerate(runs) if _key(r) == _key(row)]
+            if same:  # in the earlier row's place, so that the table keeps its order
+                runs = [r for k, r in enumerate(runs) if k not in same[1:]]
+                runs[same[0]] = row
+            else:
+                runs.append(row)
             print(json.dumps(row), flush=True)
             _write(runs, args)  # after every run: an interrupted benchmark keeps what it measured
 
