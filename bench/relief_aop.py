@@ -41,7 +41,7 @@ from pmvir.decode import decode_frame
 from pmvir.polarization.azimuth import perspective_azimuth
 from pmvir.polarization.demosaic import demosaic
 from pmvir.polarization.layout import MosaicLayout
-from pmvir.polarization.noise import closure_noise
+from pmvir.polarization.noise import _CLOSURE_SIGN, closure_noise
 
 ROOT = Path(__file__).resolve().parent
 #: The "polarized" pixels: a decoded DoP at least this (E_pol's default floor, refine.pol.dop_min).
@@ -64,10 +64,10 @@ def relief_pixels(normal_cam: np.ndarray, mask: np.ndarray, sigma_px: float, min
     return inside & (turn > min_deg)
 
 
-#: cos 2 theta, sin 2 theta and the closure residual's sign of each angle (0, 45, 90, 135 degrees).
+#: cos 2 theta and sin 2 theta of each angle (0, 45, 90, 135 degrees); the closure residual's signs
+#: are pmvir.polarization.noise's.
 _COS2 = np.array([1.0, 0.0, -1.0, 0.0])
 _SIN2 = np.array([0.0, 1.0, 0.0, -1.0])
-_SIGN = np.array([1.0, -1.0, 1.0, -1.0])
 #: Gaussian sigma (px) of the demosaiced Stokes images the relief's share of the residual is taken from.
 _STOKES_BLUR_PX = 1.0
 
@@ -81,7 +81,7 @@ def relief_free_closure(mosaic: np.ndarray, layout: MosaicLayout, valid: np.ndar
     residual what the demosaiced, slightly blurred Stokes images predict for it at the four samples'
     positions: ``sum sign * (s0 + s1 cos 2 theta + s2 sin 2 theta) / 2``, relative to s0."""
     h, w = mosaic.shape
-    i = demosaic(mosaic, layout, method="guided").mean(-1)  # (H, W, 4) colour means
+    i = demosaic(mosaic, layout, method=DecodeOptions().demosaic).mean(-1)  # (H, W, 4) colour means
     s0 = _blur(0.5 * i.sum(-1), _STOKES_BLUR_PX)
     s1, s2 = _blur(i[..., 0] - i[..., 2], _STOKES_BLUR_PX), _blur(i[..., 1] - i[..., 3], _STOKES_BLUR_PX)
     index = layout.angle_index_block()
@@ -91,9 +91,9 @@ def relief_free_closure(mosaic: np.ndarray, layout: MosaicLayout, valid: np.ndar
     for dy in range(2):
         for dx in range(2):
             a = index[dy, dx]
-            r += _SIGN[a] * mosaic[dy::2, dx::2]
+            r += _CLOSURE_SIGN[a] * mosaic[dy::2, dx::2]
             block_s0 += 0.5 * mosaic[dy::2, dx::2]
-            predicted += 0.5 * _SIGN[a] * (s0 + _COS2[a] * s1 + _SIN2[a] * s2)[dy::2, dx::2]
+            predicted += 0.5 * _CLOSURE_SIGN[a] * (s0 + _COS2[a] * s1 + _SIN2[a] * s2)[dy::2, dx::2]
             mean_s0 += 0.25 * s0[dy::2, dx::2]
             ok &= valid[dy::2, dx::2]
     ok &= (block_s0 > 0) & (mean_s0 > 0)
