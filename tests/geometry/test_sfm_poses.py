@@ -211,6 +211,58 @@ def test_fundamental_matrix_and_sampson_error(blob_data: dict) -> None:
     assert np.median(sampson_error(x1, shifted, F)) > 0.5
 
 
+def _dense_guided_matches(x1, x2, d1, d2, F, band=2.0, ratio=0.8, max_dist=0.7):
+    """The epipolar-guided matching written on the whole (N1, N2) arrays: the reference."""
+    h1, h2 = np.c_[x1, np.ones(len(x1))], np.c_[x2, np.ones(len(x2))]
+    l2, l1 = h1 @ F.T, h2 @ F
+    l2 /= np.hypot(l2[:, :1], l2[:, 1:2])
+    l1 /= np.hypot(l1[:, :1], l1[:, 1:2])
+    inside = (np.abs(l2 @ h2.T) < band) & (np.abs(h1 @ l1.T) < band)
+    full = d1 @ d2.T
+    cos = np.where(inside, full, -2.0)
+    matches = set()
+    for i in range(len(x1)):
+        cand = np.flatnonzero(inside[i])
+        if not len(cand):
+            continue
+        j = int(cand[np.argmax(cos[i, cand])])
+        second = np.sort(cos[i, cand])[-2] if len(cand) > 1 else np.delete(full[i], j).max()
+        dist = np.sqrt(np.maximum(2 - 2 * np.array([cos[i, j], second]), 0))
+        if dist[0] < max_dist and dist[0] < ratio * dist[1] and int(np.argmax(cos[:, j])) == i:
+            matches.add((i, j))
+    return matches
+
+
+@pytest.mark.parametrize("motion", ["orbit", "forward", "sideways"])
+def test_guided_matches_equal_the_whole_array_reference(motion: str) -> None:
+    """The band's pairs are found by sorting the features about the epipole (far away in an orbit,
+    inside the image moving forward, at infinity moving sideways): the same matches as the search
+    over every pair of features."""
+    from pmvir.geometry.sfm.matching import _guided_matches
+
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([-1, -1, 4], [1, 1, 6], (800, 3))
+    centre2 = {"orbit": [2.0, 0.3, 0.5], "forward": [0.05, 0.02, 1.0], "sideways": [1.0, 0.0, 0.0]}[motion]
+    c1 = Camera.from_intrinsics(300.0, 300.0, 320.0, 240.0, 640, 480, np.eye(3), np.zeros(3))
+    R2 = np.eye(3)
+    if motion == "orbit":
+        a = np.radians(-20.0)
+        R2 = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    c2 = Camera.from_intrinsics(300.0, 300.0, 320.0, 240.0, 640, 480, R2, -R2 @ np.asarray(centre2))
+    x1, x2 = c1.project(pts)[0], c2.project(pts)[0]
+    x2 = x2 + rng.normal(0, 0.7, x2.shape)
+    x2 = np.concatenate([x2, rng.uniform([0, 0], [640, 480], (600, 2))])  # clutter
+    desc = rng.normal(size=(len(pts), 128)).astype(np.float32)
+    d1 = desc + 0.3 * rng.normal(size=desc.shape).astype(np.float32)
+    d2 = np.concatenate([desc + 0.3 * rng.normal(size=desc.shape), rng.normal(size=(600, 128))]).astype(np.float32)
+    d1 /= np.linalg.norm(d1, axis=1, keepdims=True)
+    d2 /= np.linalg.norm(d2, axis=1, keepdims=True)
+    F = fundamental_matrix(c1, c2)
+    got = {tuple(int(v) for v in m) for m in _guided_matches(x1, x2, d1, d2, F)}
+    assert got == _dense_guided_matches(x1, x2, d1, d2, F)
+    assert len(got) > 300 and sum(i == j for i, j in got) > 0.95 * len(got)
+
+
 def test_sift_image_is_exposure_invariant_8bit() -> None:
     rng = np.random.default_rng(0)
     image = rng.uniform(0.0, 0.2, size=(64, 80, 3)).astype(np.float32)

@@ -12,7 +12,9 @@
 * Matching, known poses (:func:`match_known_poses`): epipolar-guided; every feature's candidates
   are the other view's features within ``_EPIPOLAR_MAX_ERROR_PX`` of its epipolar line, then
   Lowe's ratio test and mutual nearest neighbours; no RANSAC, so wide baselines with a handful of
-  true matches still count.
+  true matches still count. The band's candidates come from the features sorted by their angle
+  about the epipole, and only they are compared: a view pair of 612x512 views of a textured table
+  takes a quarter of the time the whole arrays of feature pairs took.
 """
 
 from __future__ import annotations
@@ -35,6 +37,10 @@ from pmvir.threads import configured_threads
 
 #: Known poses: a candidate match lies within this distance of the known epipolar line, both ways (px).
 _EPIPOLAR_MAX_ERROR_PX = 2.0
+
+
+#: Known poses: features within this many epipolar bands of the epipole are candidates of every line.
+_NEAR_EPIPOLE = 16.0
 
 
 #: Known poses: a view pair is used when at least this many matches fit its epipolar geometry.
@@ -282,36 +288,111 @@ def _guided_matches(
 ) -> np.ndarray:
     """Mutual nearest descriptors within the epipolar band, ratio-tested; (M, 2) uint32 indices.
 
+    The band's pairs are found first (:func:`_band_pairs`), and the descriptors compared on them
+    alone: on 612x512 views of a textured table (4,000-6,000 features each) the band holds 0.5 %
+    of the pairs, and the whole (N1, N2) arrays took 0.24 s a view pair.
+
     Args:
         x1, x2: (N1, 2), (N2, 2) keypoint pixel coordinates.
         d1, d2: (N1, 128), (N2, 128) float32 unit descriptors.
         F: (3, 3) fundamental matrix, ``x2^T F x1 = 0``.
     """
+    none = np.zeros((0, 2), np.uint32)
     if len(x1) < 2 or len(x2) < 2:
-        return np.zeros((0, 2), np.uint32)
+        return none
+    rows, cols = _band_pairs(x1, x2, F)
+    if not len(rows):
+        return none
+    # Unit descriptors: distance^2 = 2 - 2 cos. The ratio test compares the nearest candidate in
+    # the band with the second nearest in the band, or (a lone candidate) with the nearest
+    # other feature anywhere in view 2.
+    cos = np.einsum("ij,ij->i", d1[rows], d2[cols])
+    order = np.lexsort((-cos, rows))  # by row, nearest first
+    rows, cols, cos = rows[order], cols[order], cos[order]
+    first = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
+    lone = np.r_[first[1:], len(rows)] - first == 1
+    i, best2, top = rows[first], cols[first], cos[first]
+    by_col = np.lexsort((-cos, cols))  # by column, nearest first
+    col_first = by_col[np.r_[True, cols[by_col][1:] != cols[by_col][:-1]]]
+    nearest_row = np.full(len(x2), -1, np.int64)
+    nearest_row[cols[col_first]] = rows[col_first]
+    top_dist = np.sqrt(np.maximum(2.0 - 2.0 * top, 0.0))
+    ok = (nearest_row[best2] == i) & (top_dist < _MAX_DESCRIPTOR_DISTANCE)  # mutual nearest, near enough
+    second = np.full_like(top, -2.0)
+    second[~lone] = cos[first[~lone] + 1]
+    outside = np.flatnonzero(lone & ok)  # a lone candidate's ratio test looks at the whole view
+    if len(outside):
+        full = d1[i[outside]] @ d2.T
+        full[np.arange(len(full)), best2[outside]] = -2.0
+        second[outside] = full.max(axis=1)
+    ok &= top_dist < _KNOWN_POSE_MAX_RATIO * np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0))
+    return np.stack([i[ok], best2[ok]], axis=1).astype(np.uint32)
+
+
+def _band_pairs(x1: np.ndarray, x2: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(K,) int64 row and column indices of the feature pairs within ``_EPIPOLAR_MAX_ERROR_PX`` of
+    each other's epipolar lines, both ways.
+
+    Every epipolar line in view 2 passes through the epipole: a feature at distance r from it lies
+    within the band of a line when their angles about the epipole differ by at most asin(band / r).
+    The features are sorted by that angle (modulo 180 deg) and each line takes those within the
+    angle the band spans at the nearest feature's r (features within ``_NEAR_EPIPOLE`` bands of the
+    epipole are candidates of every line);
+    with the epipole at infinity the lines are parallel and the features are sorted by their offset
+    along the lines' normal. The candidates are then checked exactly, in both views.
+    """
+    band = _EPIPOLAR_MAX_ERROR_PX
     h1 = np.concatenate([x1, np.ones((len(x1), 1))], axis=1)
     h2 = np.concatenate([x2, np.ones((len(x2), 1))], axis=1)
     l2 = h1 @ F.T  # epipolar lines in view 2 of the view-1 features, (N1, 3)
     l1 = h2 @ F  # epipolar lines in view 1 of the view-2 features, (N2, 3)
     l2 /= np.maximum(np.hypot(l2[:, :1], l2[:, 1:2]), 1e-12)
     l1 /= np.maximum(np.hypot(l1[:, :1], l1[:, 1:2]), 1e-12)
-    band = np.abs(l2.astype(np.float32) @ h2.T.astype(np.float32)) < _EPIPOLAR_MAX_ERROR_PX
-    band &= np.abs(h1.astype(np.float32) @ l1.T.astype(np.float32)) < _EPIPOLAR_MAX_ERROR_PX
-    # Unit descriptors: distance^2 = 2 - 2 cos. The ratio test compares the nearest candidate in
-    # the band with the second nearest in the band, or (a lone candidate) with the nearest
-    # other feature anywhere in view 2.
-    full = d1 @ d2.T
-    cos = np.where(band, full, np.float32(-2.0))
-    best2 = np.argmax(cos, axis=1)
-    rows = np.arange(len(cos))
-    top = -np.partition(-cos, 1, axis=1)[:, :2]
-    full[rows, best2] = -2.0
-    second = np.where(top[:, 1] > -1.5, top[:, 1], full.max(axis=1))
-    dist = np.sqrt(np.maximum(2.0 - 2.0 * np.stack([top[:, 0], second], axis=1), 0.0))
-    ok = (top[:, 0] > -1.5) & (dist[:, 0] < _MAX_DESCRIPTOR_DISTANCE)
-    ok &= dist[:, 0] < _KNOWN_POSE_MAX_RATIO * dist[:, 1]
-    ok &= np.argmax(cos, axis=0)[best2] == rows  # mutual nearest
-    return np.stack([rows[ok], best2[ok]], axis=1).astype(np.uint32)
+    epipole = np.linalg.svd(F)[0][:, 2]  # F^T e2 = 0
+    near = np.zeros(len(x2), bool)
+    if abs(epipole[2]) > 1e-12 * np.linalg.norm(epipole[:2]):
+        offset = x2 - epipole[:2] / epipole[2]
+        r = np.hypot(offset[:, 0], offset[:, 1])
+        near = r < _NEAR_EPIPOLE * band
+        key = np.mod(np.arctan2(offset[:, 1], offset[:, 0]), np.pi)
+        at = np.mod(np.arctan2(-l2[:, 0], l2[:, 1]), np.pi)
+        half = float(np.arcsin(min(1.0, band / float(r[~near].min(initial=np.inf)))))
+        period = np.pi
+        if half >= 0.5 * np.pi - 1e-9:  # a span as wide as the period: every feature a candidate
+            near[:] = True
+    else:  # parallel lines: their common normal, each line's offset along it
+        normal = l2[int(np.argmax(np.abs(l2[:, :2]).sum(axis=1))), :2]
+        key = x2 @ normal
+        at = -l2[:, 2] * np.sign(l2[:, :2] @ normal)
+        half, period = band * (1.0 + 1e-6), 0.0
+    far = np.flatnonzero(~near)
+    order = far[np.argsort(key[far], kind="stable")]
+    sorted_key = key[order]
+    spans = [(at - half, at + half)]
+    if period:  # the angle wraps around at 0 and 180 deg
+        spans += [(at - half + period, at + half + period), (at - half - period, at + half - period)]
+    rows_parts, cols_parts = [], []
+    for lo, hi in spans:
+        start, stop = np.searchsorted(sorted_key, lo), np.searchsorted(sorted_key, hi, side="right")
+        count = np.maximum(stop - start, 0)
+        rows_parts.append(np.repeat(np.arange(len(x1)), count))
+        cols_parts.append(order[np.repeat(start, count) + _ranks(count)])
+    nearest = np.flatnonzero(near)
+    rows_parts.append(np.repeat(np.arange(len(x1)), len(nearest)))
+    cols_parts.append(np.tile(nearest, len(x1)))
+    rows, cols = np.concatenate(rows_parts), np.concatenate(cols_parts)  # no pair twice: spans < period
+    ok = np.abs(np.einsum("ij,ij->i", l2[rows], h2[cols])) < band
+    ok &= np.abs(np.einsum("ij,ij->i", h1[rows], l1[cols])) < band
+    return rows[ok], cols[ok]
+
+
+def _ranks(count: np.ndarray) -> np.ndarray:
+    """0, 1, ..., count[0] - 1, 0, 1, ..., count[1] - 1, ...: each run's position within it."""
+    total = int(count.sum())
+    if not total:
+        return np.zeros(0, np.int64)
+    starts = np.cumsum(count) - count
+    return np.arange(total) - np.repeat(starts, count)
 
 
 def fundamental_matrix(camera1: Camera, camera2: Camera) -> np.ndarray:
