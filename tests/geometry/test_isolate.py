@@ -17,7 +17,7 @@ from pmvir.geometry.mvs.dense import DenseResult, fuse_within_masks
 from pmvir.geometry.mvs.fusion import DensePoints
 from pmvir.geometry.mvs.sweep import DepthMap
 from pmvir.geometry.silhouette.isolate import (
-    columns_to_plane,
+    columns_below,
     far_support_plane,
     inside_masks,
     isolate_object,
@@ -160,6 +160,21 @@ def test_the_cluster_the_cameras_look_at_is_the_object(scene):
     assert counts["object_points"] == keep.sum()
 
 
+def test_stray_points_in_the_air_do_not_join_the_object_to_the_rest(scene):
+    """Stray depths scattered over the table (as many as the balls' points: a low-contrast table's
+    mismatches) would set a DBSCAN radius that joins both balls through them; left out first, they
+    leave the centre ball alone."""
+    points, labels = scene
+    rng = np.random.default_rng(2)
+    stray = np.column_stack([rng.uniform(-2, 2, (12_000, 2)), rng.uniform(0.05, 1.2, 12_000)])
+    pts = np.concatenate([points, stray])
+    which = np.concatenate([labels, np.full(len(stray), 3)])
+    keep, _, _, counts = object_points(pts, ring(30.0), settings=IsolateOptions())
+    assert keep[which == 1].mean() > 0.85
+    assert not keep[which == 2].any() and keep[which == 3].mean() < 0.01
+    assert counts["stray_points"] >= 0.95 * len(stray)
+
+
 def torus_arcs(n: int, gap_deg: float, rng) -> tuple[np.ndarray, np.ndarray]:
     """Points of a horizontal torus (major radius 0.4, tube 0.06) around CENTRE with two gaps of
     ``gap_deg`` cut out of it (at 0 and 180 deg), and which of its two arcs each point is on."""
@@ -200,12 +215,19 @@ def test_a_box_overrides_the_cluster(scene):
         object_points(points, ring(30.0), settings=IsolateOptions(), bbox=empty)
 
 
-def test_columns_reach_down_to_the_plane():
-    pts = np.array([[0.0, 0.0, 0.5], [0.1, 0.0, 0.2], [0.0, 0.1, 0.9]])
-    cols = columns_to_plane(pts, np.array([0.0, 0.0, 1.0, 0.0]), 0.05)
-    assert cols[:, 2].min() == pytest.approx(0.0, abs=1e-12) and cols[:, 2].max() <= 0.5 + 1e-12
-    assert set(np.round(cols[:, :2], 6).view([("x", float), ("y", float)]).ravel().tolist()) <= {
-        (0.0, 0.0), (0.1, 0.0)}  # vertical: only the lower half's points, straight down
+def test_columns_reach_the_plane_unless_the_table_was_seen_under_them():
+    pts = np.array([[0.0, 0.0, 0.5], [0.1, 0.0, 0.02], [0.0, 0.1, 0.9], [0.2, 0.1, 1.0], [0.5, 0.5, 0.3]])
+    plane = np.array([0.0, 0.0, 1.0, 0.0])
+    full = columns_below(pts, plane, 0.005)
+    assert set(np.round(full[:, :2], 6).view([("x", float), ("y", float)]).ravel().tolist()) == {
+        (0.0, 0.0), (0.1, 0.0), (0.5, 0.5)}  # vertical: only the lower half's points, straight down
+    assert full[:, 2].min() == pytest.approx(0.0, abs=1e-12) and full[:, 2].max() <= 0.5 + 1e-12
+    support = np.array([[0.005, 0.0, 0.0], [0.1, 0.005, 0.0]])  # the table seen under the first two
+    cols = columns_below(pts, plane, 0.005, support=support)
+    height = np.percentile(pts[:, 2], 99)
+    assert cols[np.isclose(cols[:, 0], 0.0), 2].min() == pytest.approx(0.5 - 0.05 * height)  # short
+    assert cols[np.isclose(cols[:, 0], 0.1), 2].min() == pytest.approx(0.0, abs=1e-12)  # the plane is nearer
+    assert cols[np.isclose(cols[:, 0], 0.5), 2].min() == pytest.approx(0.0, abs=1e-12)  # no table seen there
 
 
 def test_grabcut_recovers_a_disc_from_a_shrunk_and_clipped_projection():
