@@ -163,7 +163,8 @@ def test_the_cluster_the_cameras_look_at_is_the_object(scene):
 def test_stray_points_in_the_air_do_not_join_the_object_to_the_rest(scene):
     """Stray depths scattered over the table (as many as the balls' points: a low-contrast table's
     mismatches) would set a DBSCAN radius that joins both balls through them; left out first, they
-    leave the centre ball alone."""
+    leave the centre ball alone, with the few strays inside its box (where an object's own sparser
+    points, a dark foot, are taken back)."""
     points, labels = scene
     rng = np.random.default_rng(2)
     stray = np.column_stack([rng.uniform(-2, 2, (12_000, 2)), rng.uniform(0.05, 1.2, 12_000)])
@@ -171,7 +172,9 @@ def test_stray_points_in_the_air_do_not_join_the_object_to_the_rest(scene):
     which = np.concatenate([labels, np.full(len(stray), 3)])
     keep, _, _, counts = object_points(pts, ring(30.0), settings=IsolateOptions())
     assert keep[which == 1].mean() > 0.85
-    assert not keep[which == 2].any() and keep[which == 3].mean() < 0.01
+    outside = (np.abs(stray[:, 0]) > 0.4) | (np.abs(stray[:, 1]) > 0.4) | (stray[:, 2] > 0.61)
+    assert not keep[which == 2].any() and not keep[which == 3][outside].any()
+    assert keep[which == 3].mean() < 0.03
     assert counts["stray_points"] >= 0.95 * len(stray)
 
 

@@ -40,8 +40,11 @@ given masks:
    within ``merge_gap`` of the object's extent of it (grown one cluster at a
    time): stereo leaves the parts of a thin or entangled object apart (a
    knot's tubes where they cross, a spring's coils: gaps of up to 10 % of
-   the extent on 16-view scenes). A bounding box (world units) replaces this
-   choice: the points inside it, off the plane, are the object.
+   the extent on 16-view scenes). The points left out that lie within the
+   object's box (along the plane, grown by the DBSCAN radius, up to its top)
+   are taken back: an object's foot in shadow is as sparse as the strays. A
+   bounding box (world units) replaces this choice: the points inside it, off
+   the plane, are the object.
 5. **Masks**: per view the object's solid points (dense neighbourhoods, not
    the sparse points stereo adds beside silhouettes) and vertical columns from
    their lower half down to the plane (the underside the points miss; short,
@@ -414,7 +417,6 @@ def object_points(
         return keep, plane, look, counts | {"clusters": 0, "object_points": int(keep.sum())}
     rest = np.flatnonzero(off)
     rest, spacing = _dense_core(pts, rest)
-    counts["stray_points"] = int(off.sum() - len(rest))
     labels = _clusters(pts[rest], settings.cluster_eps * spacing, _SEED)
     names, sizes = np.unique(labels[labels >= 0], return_counts=True)
     candidates = names[sizes >= _MIN_CLUSTER_SHARE * len(rest)]
@@ -425,9 +427,26 @@ def object_points(
     parts = _merged(pts[rest], labels, int(chosen), candidates, settings.merge_gap)
     keep = np.zeros(len(pts), bool)
     keep[rest[np.isin(labels, parts)]] = True
+    others = np.flatnonzero(off & ~keep)  # the object's sparser points (a dark foot) within its dense ones' box
+    keep[others[_within_box(pts[others], pts[keep], plane, settings.cluster_eps * spacing)]] = True
+    counts["stray_points"] = int((off & ~keep).sum())
     return keep, plane, look, counts | {
         "clusters": len(names), "clusters_merged": len(parts), "object_points": int(keep.sum())
     }
+
+
+def _within_box(points: np.ndarray, body: np.ndarray, plane: np.ndarray | None, margin: float) -> np.ndarray:
+    """(P,) bool: ``points`` inside ``body``'s box grown by ``margin`` sideways (axes along the
+    support plane, or the world's without one) and no higher than its highest point."""
+    axes = np.eye(3)
+    if plane is not None:
+        side = np.linalg.svd(plane[None, :3])[2][1:]  # two unit axes along the plane
+        axes = np.vstack([side, plane[:3]])
+    p, b = points @ axes.T, body @ axes.T
+    lo, hi = b.min(axis=0) - margin, b.max(axis=0) + margin
+    if plane is not None:
+        lo[2], hi[2] = -np.inf, b[:, 2].max()
+    return np.asarray(np.all((p >= lo) & (p <= hi), axis=1))
 
 
 def _dense_core(points: np.ndarray, index: np.ndarray) -> tuple[np.ndarray, float]:
