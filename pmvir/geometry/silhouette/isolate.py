@@ -30,9 +30,10 @@ given masks:
    few pixels still; where still pixels cover less than :data:`_MIN_STILL_AREA`
    of the images, or the still points would take most of the points off the
    plane (an object the same in every view), nothing is removed.
-4. **Cluster**: stray points left out first (those with few neighbours for
-   the median spacing, again while the spacing settles: a low-contrast
-   table's mismatches scatter in the air over it and would join everything),
+4. **Cluster**: stray points left out first (those with few neighbours
+   against the upper quartile's, again while the spacing settles: a
+   low-contrast table's mismatches scatter in the air over it and would join
+   everything),
    then DBSCAN (Open3D ``cluster_dbscan``) of the rest with a radius of
    ``cluster_eps`` median point spacings; the cluster whose median point is
    nearest to the look-at point (among clusters of at least 2 % of the
@@ -49,10 +50,11 @@ given masks:
    the sparse points stereo adds beside silhouettes) and vertical columns from
    their lower half down to the plane (the underside the points miss; short,
    :data:`_COLUMN_SHARE` of the object's height, where stereo saw the table
-   right under them: a knot's loops) are splatted (discs of the points' projected spacing), closed, and refined by
-   GrabCut (OpenCV) on the view's 8-bit preview: certain foreground on the
-   eroded projection of the points, probable foreground on the rest of it,
-   probable background in a band of ``band_px`` around it, background beyond.
+   right under them: a knot's loops) are splatted (discs of the points'
+   projected spacing), closed, and refined by GrabCut (OpenCV) on the view's
+   8-bit preview: certain foreground on the eroded projection of the points,
+   probable foreground on the rest of it, probable background in a band of
+   ``band_px`` around it, background beyond.
    The refined mask stays within that band.
 6. **Points**: the dense points inside every view's mask (where they project
    into the image) and above the plane's inlier distance are the object's
@@ -94,8 +96,8 @@ _SOLID_SHARE = 0.4
 #: 12 views of 320x256, lost its lower third, completeness 2.85e-2 against 1.42e-2 with 2)
 _SEEN_FOOT = 2.0
 #: ... reaches down this share of the object's height (or to the plane): on 36 views of 612x512 a
-#: knot's initial surface had 3.9 % of its vertices farther than 2 % of the diagonal from it with
-#: columns down to the plane, 0.1 % with 0.05 (0.25 % with 0.1); a mug's completeness, whose dark
+#: knot's initial surface had 5.2 % of its vertices farther than 2 % of the diagonal from it with
+#: columns down to the plane, 0.15 % with 0.05 (0.25 % with 0.1); a mug's completeness, whose dark
 #: foot stereo misses, 1.10e-2 with 0.05, 1.42e-2 without columns.
 _COLUMN_SHARE = 0.05
 #: The density filter before clustering (:func:`_dense_core`) repeats at most this many times ...
