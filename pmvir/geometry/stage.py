@@ -217,7 +217,8 @@ def run_geometry(
     if wants_isolation(options.isolate.enabled, masks):
         with progress.step("isolation", _STEP_WEIGHTS["isolation"]):
             isolation = isolate_object(
-                dense.points.points, cameras, viewable_images(images), settings=options.isolate
+                dense.points.points, cameras, viewable_images(images), settings=options.isolate,
+                depth_maps=dense.depth_maps,
             )
             masks = isolation.masks
             dense = replace(dense, points=object_dense_points(dense, isolation, cameras, options))
