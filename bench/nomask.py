@@ -2,7 +2,7 @@
 
 Usage: .venv/bin/python bench/nomask.py [--shapes blob,knot] [--views 24] [--size 320x256]
        [--renderers builtin,mitsuba] [--scenes table,turntable] [--spp 32] [--stop-after geometry]
-       [--work /tmp/nomask] [--append] [--reuse]
+       [--work /tmp/nomask] [--append] [--reuse] [--set KEY=VALUE ...] [--results NAME]
 
 Per shape, scene and renderer one capture is rendered with ``pmvir synth --shape SHAPE --scene S
 --no-masks`` (``--reuse``: one already in --work with the same options is kept); a copy names its
@@ -13,7 +13,9 @@ angle between each vertex's normal and the true surface's, degrees), the largest
 the share of vertices farther than 2 % of the diagonal, the largest distance of the vertices within
 2 % of the diagonal above the table (the table left in the mesh), the masks' IoU against the true
 ones (no-mask runs) and the time. Prints a table and writes bench/results/nomask.json (the initial
-surface) or bench/results/nomask_refine.json (``--stop-after refine``: the refined mesh).
+surface) or bench/results/nomask_refine.json (``--stop-after refine``: the refined mesh);
+``--results NAME``: bench/results/NAME.json. ``--set KEY=VALUE`` passes an option to every
+reconstruction (e.g. ``geometry.isolate.see_past=true``).
 """
 
 from __future__ import annotations
@@ -78,10 +80,11 @@ def vertex_distances(vertices: np.ndarray, gt: Mesh) -> dict[str, float]:
             "max_distance_near_table": float(far[near_table].max(initial=0.0))}
 
 
-def _measure(capture: Path, result: Path, stop_after: str) -> dict:
+def _measure(capture: Path, result: Path, stop_after: str, settings: list[str]) -> dict:
     t0 = time.perf_counter()
     proc = subprocess.run(
-        [PMVIR, "reconstruct", str(capture), "--out", str(result), "--stop-after", stop_after, "--quiet"],
+        [PMVIR, "reconstruct", str(capture), "--out", str(result), "--stop-after", stop_after, "--quiet",
+         *(a for kv in settings for a in ("--set", kv))],
         capture_output=True, text=True, check=False,
     )
     seconds = time.perf_counter() - t0
@@ -120,9 +123,9 @@ def _key(row: dict) -> tuple:
     return row.get("shape", "blob"), row["scene"], row.get("capture"), row["renderer"], row["masks"]
 
 
-def _name(stop_after: str) -> str:
-    """The result's name: the initial surface's runs and the refined mesh's are kept apart."""
-    return "nomask" if stop_after == "geometry" else "nomask_refine"
+def _name(args: argparse.Namespace) -> str:
+    """The result's name: the initial surface's runs and the refined mesh's are kept apart (``--results``: this)."""
+    return args.results or ("nomask" if args.stop_after == "geometry" else "nomask_refine")
 
 
 def _write(runs: list[dict], args: argparse.Namespace) -> Path:
@@ -148,7 +151,7 @@ def _write(runs: list[dict], args: argparse.Namespace) -> Path:
     for row in rows:
         print(" | ".join("-" if v is None else str(v) for v in row))
     out = write_results(
-        _name(args.stop_after),
+        _name(args),
         title=f"Object isolation without masks (stop after {args.stop_after})",
         tables=[table("With the true masks and without masks", columns, rows,
                       note="masks 'none': pmvir finds the object itself (geometry.isolate); distances in "
@@ -175,9 +178,12 @@ def main() -> int:
                     help="keep the runs already in the result file (a new run replaces one of the same row key)")
     ap.add_argument("--reuse", action="store_true",
                     help="keep a capture already rendered in --work with the same options instead of rendering it again")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="an option for every reconstruction (pmvir reconstruct --set), repeatable")
+    ap.add_argument("--results", default="", help="write bench/results/NAME.json instead of nomask(_refine).json")
     args = ap.parse_args()
 
-    earlier = RESULTS / f"{_name(args.stop_after)}.json"
+    earlier = RESULTS / f"{_name(args)}.json"
     runs = json.loads(earlier.read_text())["runs"] if args.append and earlier.exists() else []
     for shape, scene, renderer in itertools.product(
         args.shapes.split(","), args.scenes.split(","), args.renderers.split(",")
@@ -194,7 +200,7 @@ def main() -> int:
         for masks, capture in (("true", masked), ("none", cap)):
             row = {"shape": shape, "scene": scene, "capture": f"{args.views} x {args.size}", "renderer": renderer,
                    "masks": masks, "synth_seconds": synth_s, "arguments": " ".join(sys.argv[1:])}
-            row |= _measure(capture, args.work / shape / f"result-{scene}-{renderer}-{masks}", args.stop_after)
+            row |= _measure(capture, args.work / shape / f"result-{scene}-{renderer}-{masks}", args.stop_after, args.set)
             same = [k for k, r in enumerate(runs) if _key(r) == _key(row)]
             if same:  # in the earlier row's place, so that the table keeps its order
                 runs = [r for k, r in enumerate(runs) if k not in same[1:]]

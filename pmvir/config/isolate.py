@@ -72,6 +72,12 @@ class IsolateOptions(_Options):
         "(parts that stereo leaves apart: a knot's crossings, a spring's coils; 0: one cluster), [0, 1].",
         json_schema_extra=advanced(),
     )
+    see_past: bool = Field(
+        default=False,
+        description="Pixels where a view's own stereo depth lands past the object are background (a knot's "
+        "loops over a textured table); off: wrong depths on a textureless object would carve it.",
+        json_schema_extra=advanced(),
+    )
     grabcut_iterations: int = Field(
         default=2,
         ge=0,

@@ -218,7 +218,7 @@ def run_geometry(
         with progress.step("isolation", _STEP_WEIGHTS["isolation"]):
             isolation = isolate_object(
                 dense.points.points, cameras, viewable_images(images), settings=options.isolate,
-                depth_maps=dense.depth_maps,
+                depth_maps=dense.depth_maps if options.isolate.see_past else None,
             )
             masks = isolation.masks
             dense = replace(dense, points=object_dense_points(dense, isolation, cameras, options))

@@ -56,7 +56,7 @@ given masks:
    probable foreground on the rest of it, probable background in a band of
    ``band_px`` around it, background beyond.
    The refined mask stays within that band.
-   **Seen past** (with the stereo depth maps): where a view's own depths land
+   **Seen past** (``see_past``, off by default; with the stereo depth maps): where a view's own depths land
    farther than :data:`_FREE_REACH` spacings from every object point and
    column (most of the depths in a window: :func:`sees_past`), the view sees
    the table or the room past the object there (through a knot's loop, under
