@@ -44,6 +44,11 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         "the same captures fused without the occlusion test",
     ),
     "nomask": ("The object found without masks", f"{PY} bench/nomask.py", "the same captures with their true masks"),
+    "nomask_see_past": (
+        "The object found without masks, seeing past it (geometry.isolate.see_past)",
+        f"{PY} bench/nomask.py --set geometry.isolate.see_past=true --results nomask_see_past",
+        "the same captures with their true masks, and the default (see_past off) in the section above",
+    ),
     "nomask_refine": (
         "The object found without masks: the refined mesh",
         f"{PY} bench/nomask.py --stop-after refine",
