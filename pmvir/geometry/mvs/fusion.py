@@ -69,7 +69,7 @@ def backproject(camera: Camera, depth: np.ndarray, rows: np.ndarray, cols: np.nd
     return np.ascontiguousarray((camera.R.T @ cam_pts).T)
 
 
-def _lookup(dm: DepthMap, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def depth_at(dm: DepthMap, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``points`` projected into ``dm``: their depth in its camera, and the pixel they land on (rows, cols,
     clipped) with its depth (0 where none, or where a point falls outside the image or behind the camera)."""
     uv, z = project_points(dm.camera, points)
@@ -126,7 +126,7 @@ def filter_and_fuse(
             ds = depth_maps[s]
             if ds is None:
                 continue
-            z, rs, cs, zs = _lookup(ds, X)
+            z, rs, cs, zs = depth_at(ds, X)
             has = zs > 0
             Xs = backproject(ds.camera, np.where(has, zs, 1.0), rs.astype(np.float64), cs.astype(np.float64))
             uv_back, _ = project_points(dm.camera, Xs)
@@ -171,7 +171,7 @@ def occluding_views(
             dr = depth_maps[r]
             if dr is None:
                 continue
-            z, rr, cr, zr = _lookup(dr, X)
+            z, rr, cr, zr = depth_at(dr, X)
             seen = zr > 0
             nearest = np.full(dr.depth.shape, np.inf)  # s's nearest depth per pixel of r
             np.minimum.at(nearest, (rr[seen], cr[seen]), z[seen])

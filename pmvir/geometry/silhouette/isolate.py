@@ -56,12 +56,13 @@ given masks:
    probable foreground on the rest of it, probable background in a band of
    ``band_px`` around it, background beyond.
    The refined mask stays within that band.
-   **Seen past** (``see_past``, off by default; with the stereo depth maps): where a view's own depths land
-   farther than :data:`_FREE_REACH` spacings from every object point and
-   column (most of the depths in a window: :func:`sees_past`), the view sees
-   the table or the room past the object there (through a knot's loop, under
-   an arch), and those pixels are background, whatever the splats and their
-   closing cover, unless a solid point lands on them. The points taken back
+   **Seen past** (``see_past``, off by default; with the stereo depth
+   maps): where a view's own depths land farther than :data:`_FREE_REACH`
+   spacings from every object point and column (most of the depths in a
+   window: :func:`sees_past`), the view sees the table or the room past the
+   object there (through a knot's loop, under an arch), and those pixels are
+   background, whatever the splats and their closing cover, unless a solid
+   point lands on them. The points taken back
    within the box (step 4) that most views' depths pass behind
    (:func:`depth_past_share`) are left out first: strays in the air inside a
    loop, not a dark foot, which the views see where it is.
@@ -87,6 +88,7 @@ from scipy.spatial import cKDTree
 from pmvir.camera import Camera
 from pmvir.config.isolate import IsolateOptions
 from pmvir.errors import ConfigError, ReconstructionError
+from pmvir.geometry.mvs.fusion import backproject, depth_at
 from pmvir.geometry.projection import project_points
 from pmvir.geometry.silhouette.hull import _axes_point
 
@@ -639,8 +641,6 @@ def sees_past(depth: DepthMap, body: cKDTree, reach: float, shape: tuple[int, in
     of the known depths of a window around them: the view sees the table or the room there, past the
     object (a knot's loop, the gap under an arch), whatever the splatted points and columns cover.
     ``shape``: the preview's (H, W); the depth grid is resized to it."""
-    from pmvir.geometry.mvs.fusion import backproject
-
     rows, cols = np.nonzero(depth.valid)
     h, w = depth.depth.shape
     past = np.zeros((h, w), np.float32)
@@ -664,11 +664,7 @@ def depth_past_share(points: np.ndarray, depth_maps: Sequence[DepthMap | None], 
     for dm in depth_maps:
         if dm is None:
             continue
-        uv, z = project_points(dm.camera, points)
-        h, w = dm.depth.shape
-        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-        d = np.zeros(len(points), np.float64)
-        d[ok] = dm.depth[uv[ok, 1].astype(np.int64), uv[ok, 0].astype(np.int64)]
+        z, _, _, d = depth_at(dm, points)
         known = d > 0
         beyond += known & (d > z + margin)
         at += known & (np.abs(d - z) <= margin)
