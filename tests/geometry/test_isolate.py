@@ -10,6 +10,7 @@ import pytest
 from pydantic import ValidationError
 from scipy.spatial import cKDTree
 
+import pmvir.geometry.silhouette.isolate as isolate_module
 from pmvir.camera import Camera, look_at
 from pmvir.config import MvsOptions
 from pmvir.config.isolate import IsolateOptions
@@ -86,6 +87,34 @@ def test_a_table_that_holds_few_points_is_found_among_the_far_ones():
     assert plane is not None and plane[2] > 0.999 and abs(plane[3]) < 0.01 and inliers >= 600
     wall = np.column_stack([np.full(620, -2.5), rng.uniform(-1.0, 1.0, (620, 2))])
     assert far_support_plane(np.concatenate([ball, wall]), cams, distance=0.005, look_at=CENTRE)[0] is None
+
+
+def test_a_far_table_is_found_over_stereo_mismatches_below_it():
+    """A low-contrast table's mismatches put some of the points near the object below the table
+    (3 % here); the table is still the support, and so is the one found among them."""
+    rng = np.random.default_rng(4)
+    ball = sphere_points(CENTRE, 0.3, 20_000, rng)
+    ball = ball[ball[:, 2] > 0.1]
+    xy = rng.uniform(-1.2, 1.2, (3000, 2))
+    table = np.column_stack([xy, rng.normal(0, 0.002, len(xy))])[np.linalg.norm(xy, axis=1) > 0.35][:620]
+    under = np.column_stack([rng.uniform(-0.2, 0.2, (600, 2)), rng.uniform(-0.3, -0.05, 600)])
+    plane, _ = far_support_plane(np.concatenate([ball, table, under]), ring(30.0), distance=0.005, look_at=CENTRE)
+    assert plane is not None and plane[2] > 0.999 and abs(plane[3]) < 0.01
+
+
+def test_a_plane_through_the_rim_of_a_cut_off_underside_is_no_support(monkeypatch):
+    """A ball whose underside stereo missed ends in a rim, and a wall far behind it holds the
+    farthest points: a plane through the ball's lower part has the ball above it and few points
+    below, but its points lie within the ball's reach, not out past it."""
+    rng = np.random.default_rng(3)
+    ball = sphere_points(CENTRE, 0.3, 20_000, rng)
+    ball = ball[ball[:, 2] > 0.1]
+    wall = np.column_stack([np.full(620, -2.5), rng.uniform(-1.0, 1.0, (620, 2))])
+    points = np.concatenate([ball, wall])
+    assert far_support_plane(points, ring(30.0), distance=0.005, look_at=CENTRE)[0] is None
+    monkeypatch.setattr(isolate_module, "_reaches_out", lambda *args: True)
+    plane, _ = far_support_plane(points, ring(30.0), distance=0.005, look_at=CENTRE)
+    assert plane is not None and 0.1 < -plane[3] / plane[2] < 0.2  # without the test: through the ball
 
 
 def test_a_plane_with_cameras_on_both_sides_is_no_support(scene):
@@ -235,6 +264,9 @@ def test_columns_reach_the_plane_unless_the_table_was_seen_under_them():
     assert cols[np.isclose(cols[:, 0], 0.0), 2].min() == pytest.approx(0.5 - 0.05 * height)  # short
     assert cols[np.isclose(cols[:, 0], 0.1), 2].min() == pytest.approx(0.0, abs=1e-12)  # the plane is nearer
     assert cols[np.isclose(cols[:, 0], 0.5), 2].min() == pytest.approx(0.0, abs=1e-12)  # no table seen there
+    short = columns_below(pts, plane, 0.005, all_short=True)  # a support too sparse to tell: all short
+    assert short[np.isclose(short[:, 0], 0.5), 2].min() == pytest.approx(0.3 - 0.05 * height)
+    assert short[np.isclose(short[:, 0], 0.1), 2].min() == pytest.approx(0.0, abs=1e-12)
 
 
 def test_grabcut_recovers_a_disc_from_a_shrunk_and_clipped_projection():
