@@ -52,9 +52,9 @@ given masks:
    their lower half down to the plane (the underside the points miss; short,
    :data:`_COLUMN_SHARE` of the object's height, where stereo saw the table
    right under them: a knot's loops, and all short on a support found among
-   the far points, too few to show where the views saw it) are splatted (discs of the points'
-   projected spacing), closed, and refined by GrabCut (OpenCV) on the view's
-   8-bit preview: certain foreground on the eroded projection of the points,
+   the far points, too few to show where the views saw it) are splatted
+   (discs of the points' projected spacing), closed, and refined by GrabCut
+   (OpenCV) on the view's 8-bit preview: certain foreground on the eroded projection of the points,
    probable foreground on the rest of it, probable background in a band of
    ``band_px`` around it, background beyond.
    The refined mask stays within that band.
