@@ -2,7 +2,7 @@
 
 Usage: .venv/bin/python bench/nomask.py [--shapes blob,knot] [--views 24] [--size 320x256]
        [--renderers builtin,mitsuba] [--scenes table,turntable] [--spp 32] [--stop-after geometry]
-       [--work /tmp/nomask] [--append] [--reuse] [--set KEY=VALUE ...] [--results NAME]
+       [--work /tmp/nomask] [--append] [--reuse] [--masks true,none] [--set KEY=VALUE ...] [--results NAME]
 
 Per shape, scene and renderer one capture is rendered with ``pmvir synth --shape SHAPE --scene S
 --no-masks`` (``--reuse``: one already in --work with the same options is kept); a copy names its
@@ -176,6 +176,9 @@ def main() -> int:
     ap.add_argument("--work", type=Path, default=Path("/tmp/nomask"))
     ap.add_argument("--append", action="store_true",
                     help="keep the runs already in the result file (a new run replaces one of the same row key)")
+    ap.add_argument("--masks", default="true,none",
+                    help="which runs per capture: true (its true masks), none (no masks), or both; with --append "
+                    "the stored rows of the other stay")
     ap.add_argument("--reuse", action="store_true",
                     help="keep a capture already rendered in --work with the same options instead of rendering it again")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -198,6 +201,8 @@ def main() -> int:
         synth_s = time.perf_counter() - t0
         masked = _with_true_masks(cap, args.work / shape / f"{scene}-{renderer}-masks")
         for masks, capture in (("true", masked), ("none", cap)):
+            if masks not in args.masks.split(","):
+                continue
             row = {"shape": shape, "scene": scene, "capture": f"{args.views} x {args.size}", "renderer": renderer,
                    "masks": masks, "synth_seconds": synth_s, "arguments": " ".join(sys.argv[1:])}
             row |= _measure(capture, args.work / shape / f"result-{scene}-{renderer}-{masks}", args.stop_after, args.set)

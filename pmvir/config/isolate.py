@@ -78,6 +78,12 @@ class IsolateOptions(_Options):
         "loops over a textured table); off: wrong depths on a textureless object would carve it.",
         json_schema_extra=advanced(),
     )
+    cut_seen_through: bool = Field(
+        default=True,
+        description="Vertices of the initial surface that no view's stereo depth lies on and some views' "
+        "depths lie past (Poisson's fill across a knot's loop or a handle) are cut away.",
+        json_schema_extra=advanced(),
+    )
     grabcut_iterations: int = Field(
         default=2,
         ge=0,

@@ -53,7 +53,7 @@ from pmvir.geometry.export import (
     write_images,
     write_points_ply,
 )
-from pmvir.geometry.mesh_ops import vertex_normals
+from pmvir.geometry.mesh_ops import edge_topology, vertex_normals
 from pmvir.geometry.mvs.dense import DenseResult, dense_stereo, fuse_within_masks
 from pmvir.geometry.mvs.fusion import DensePoints
 from pmvir.geometry.sfm.poses import SparseModel, estimate_poses
@@ -63,11 +63,13 @@ from pmvir.geometry.silhouette.isolate import (
     isolate_object,
     kept_points,
     on_object,
+    point_spacing,
     wants_isolation,
     write_masks,
 )
 from pmvir.geometry.subdivision import subdivide_until
 from pmvir.geometry.surface.initial import SurfaceResult, initial_surface
+from pmvir.geometry.surface.seen_through import MARGIN_SPACINGS, cut_seen_through
 from pmvir.geometry.visibility import vertex_visibility
 from pmvir.io.ply import Mesh
 from pmvir.polarization.stokes import PolarizationImages
@@ -236,6 +238,8 @@ def run_geometry(
             max_area_px=options.surface.split_factor * options.subdivision.max_area_px,
             mask_slack_px=0 if isolation is None else _DRAWN_MASK_SLACK_PX,
         )
+        if isolation is not None and options.isolate.cut_seen_through:
+            surface = without_seen_through(surface, dense, options)
 
     with progress.step("visibility", _STEP_WEIGHTS["visibility"]):
         vis = vertex_visibility(
@@ -294,6 +298,24 @@ def run_geometry(
         isolation=isolation,
         coarse=coarse,
     )
+
+
+def without_seen_through(surface: SurfaceResult, dense: DenseResult, options: GeometryOptions) -> SurfaceResult:
+    """The initial surface without what the views' stereo depths see through (drawn masks' fill across an
+    opening: :mod:`pmvir.geometry.surface.seen_through`), its counts with ``seen_through_vertices`` and
+    the ``cut_*`` sizes; as given where stereo kept no depth maps (COLMAP's fusion)."""
+    points = dense.points.points
+    if not any(dm is not None for dm in dense.depth_maps) or len(points) < 10:
+        return surface
+    v, f, count = cut_seen_through(
+        surface.vertices, surface.faces, dense.depth_maps, margin=MARGIN_SPACINGS * point_spacing(points),
+        support=points, min_angle_deg=options.surface.min_angle_deg,
+    )
+    counts = surface.counts | {"seen_through_vertices": count}
+    if count:
+        counts |= {"cut_vertices": len(v), "cut_faces": len(f),
+                   "boundary_edges": int(edge_topology(f, len(v)).boundary.sum())}
+    return replace(surface, vertices=v, faces=f, counts=counts)
 
 
 def object_dense_points(

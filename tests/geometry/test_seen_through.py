@@ -1,0 +1,149 @@
+"""Surface the views see through (a membrane across a ring's opening) found and cut with stereo depths."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import open3d as o3d
+import pytest
+from scipy.spatial import Delaunay
+
+from pmvir.camera import Camera, look_at
+from pmvir.config import GeometryOptions
+from pmvir.geometry.mesh_ops import raycasting_scene
+from pmvir.geometry.mvs.sweep import DepthMap
+from pmvir.geometry.stage import without_seen_through
+from pmvir.geometry.surface.initial import SurfaceResult
+from pmvir.geometry.surface.seen_through import MAX_AT, MIN_PAST, cut_seen_through, seen_through
+
+RING, TUBE = 0.3, 0.1  # the ring's radius and its tube's: the opening's radius is 0.2
+
+
+def ring_mesh() -> tuple[np.ndarray, np.ndarray]:
+    mesh = o3d.geometry.TriangleMesh.create_torus(torus_radius=RING, tube_radius=TUBE, radial_resolution=60,
+                                                  tubular_resolution=24)
+    return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.triangles, np.int64)
+
+
+def membrane(radius: float = RING - TUBE - 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """A disc across the ring's opening (z = 0, facing up), as Poisson closes it."""
+    rr, aa = np.meshgrid(np.linspace(0.0, radius, 7)[1:], np.linspace(0, 2 * np.pi, 36, endpoint=False))
+    xy = np.vstack([[0.0, 0.0], np.stack([rr.ravel() * np.cos(aa.ravel()), rr.ravel() * np.sin(aa.ravel())], 1)])
+    faces = Delaunay(xy).simplices.astype(np.int64)
+    a, b, c = (xy[faces[:, k]] for k in range(3))
+    ccw = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]) > 0
+    faces[~ccw] = faces[~ccw][:, [0, 2, 1]]
+    return np.hstack([xy, np.zeros((len(xy), 1))]), faces
+
+
+def table(z: float = -TUBE, half: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    v = np.array([[-half, -half, z], [half, -half, z], [half, half, z], [-half, half, z]])
+    return v, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def joined(*parts: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    vs, fs, n = [], [], 0
+    for v, f in parts:
+        vs.append(v)
+        fs.append(f + n)
+        n += len(v)
+    return np.vstack(vs), np.vstack(fs)
+
+
+def cameras(n: int = 12, elevations_deg: tuple[float, ...] = (40.0, 65.0), size: tuple[int, int] = (120, 96)
+            ) -> list[Camera]:
+    w, h = size
+    out = []
+    for k in range(n * len(elevations_deg)):
+        a = 2 * np.pi * (k + 0.5 * (k // n)) / n
+        e = np.radians(elevations_deg[k // n])
+        centre = 2.0 * np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)])
+        R, t = look_at(centre, np.zeros(3))
+        out.append(Camera.from_intrinsics(110.0, 110.0, w / 2, h / 2, w, h, R, t))
+    return out
+
+
+def depth_maps(truth: tuple[np.ndarray, np.ndarray], cams: list[Camera]) -> list[DepthMap]:
+    """Each view's depth of the true scene at its pixel centres (ray casting)."""
+    scene = raycasting_scene(*truth)
+    maps = []
+    for cam in cams:
+        rows, cols = np.mgrid[0 : cam.height, 0 : cam.width]
+        pixels = np.stack([cols.ravel() + 0.5, rows.ravel() + 0.5, np.ones(rows.size)], 1)
+        direction = pixels @ np.linalg.inv(cam.K).T @ cam.R  # camera z = 1: t_hit is the depth
+        origin = np.broadcast_to(scene.local(cam.center[None]), direction.shape)
+        rays = o3d.core.Tensor(np.ascontiguousarray(np.hstack([origin, direction]), np.float32))
+        t = scene.scene.cast_rays(rays)["t_hit"].numpy().reshape(cam.height, cam.width)
+        depth = np.where(np.isfinite(t), t, 0.0).astype(np.float32)
+        maps.append(DepthMap(camera=cam, depth=depth, score=(depth > 0).astype(np.float32)))
+    return maps
+
+
+MARGIN = 0.02
+
+
+@pytest.fixture(scope="module")
+def setup():
+    ring, disc = ring_mesh(), membrane()
+    surface = joined(ring, disc)
+    cams = cameras()
+    return surface, len(ring[0]), depth_maps(joined(ring, table()), cams)
+
+
+def test_the_views_see_through_a_membrane_across_an_opening_and_onto_the_ring(setup):
+    (v, f), n_ring, maps = setup
+    votes = seen_through(v, f, maps, margin=MARGIN)
+    on_ring, on_disc = ~votes.through[:n_ring], votes.through[n_ring:]
+    centre = np.linalg.norm(v[n_ring:, :2], axis=1) < 0.12  # the disc's middle, away from the tube
+    assert on_ring.mean() > 0.99
+    assert on_disc[centre].all()
+    assert np.median(votes.at[:n_ring]) >= 2 * MAX_AT  # the ring's own depths vote for it
+    assert np.median(votes.past[n_ring:][centre]) >= 2 * MIN_PAST
+
+
+def test_depths_past_the_surface_in_most_views_do_not_cut_a_surface_others_see(setup):
+    """A textureless object: stereo puts most views' depths behind its wall, a few on it."""
+    (v, f), n_ring, maps = setup
+    rng = np.random.default_rng(0)
+    wrong = []
+    for k, dm in enumerate(maps):
+        if k % 3 == 0:  # a third of the views keep the right depths
+            wrong.append(dm)
+            continue
+        depth = dm.depth.copy()
+        depth[depth > 0] += rng.uniform(0.2, 0.6, int((depth > 0).sum())).astype(np.float32)
+        wrong.append(DepthMap(camera=dm.camera, depth=depth, score=dm.score))
+    votes = seen_through(v[:n_ring], f[: len(ring_mesh()[1])], wrong, margin=MARGIN)
+    upper = v[:n_ring, 2] > 0  # the half every view sees (the lower one: a few grazing views)
+    assert np.median(votes.past[upper]) > 2 * np.median(votes.at[upper])  # most views see past it ...
+    assert not votes.through[upper].any()  # ... and yet it stays
+
+
+def test_the_cut_takes_the_membrane_and_keeps_the_ring(setup):
+    (v, f), n_ring, maps = setup
+    ring_v = v[:n_ring]
+    v2, _, count = cut_seen_through(v, f, maps, margin=MARGIN, support=ring_v, min_angle_deg=0.0)
+    assert count > 0.5 * (len(v) - n_ring)
+    assert np.abs(v2[:, 2]).max() > 0.09  # the ring is there ...
+    assert (np.linalg.norm(v2[:, :2], axis=1) > RING - TUBE - 1e-6).all()  # ... and nothing inside its opening
+
+
+def test_a_cut_of_most_of_the_surface_is_not_made(setup):
+    (v, f), _, maps = setup
+    far = [DepthMap(camera=dm.camera, depth=np.where(dm.depth > 0, dm.depth + 1.0, 0).astype(np.float32),
+                    score=dm.score) for dm in maps]
+    v2, f2, count = cut_seen_through(v, f, far, margin=MARGIN, support=v, min_angle_deg=0.0)
+    assert count == 0 and len(v2) == len(v) and len(f2) == len(f)
+
+
+def test_the_geometric_stage_cuts_with_its_depth_maps_and_counts_it(setup):
+    (v, f), n_ring, maps = setup
+    points = v[:n_ring]
+    surface = SurfaceResult(vertices=v, faces=f, counts={"clean_vertices": len(v)})
+    dense = SimpleNamespace(points=SimpleNamespace(points=points), depth_maps=maps)
+    cut = without_seen_through(surface, dense, GeometryOptions())  # type: ignore[arg-type]
+    assert cut.counts["seen_through_vertices"] > 0 and cut.counts["cut_vertices"] == len(cut.vertices) < len(v)
+    assert cut.counts["clean_vertices"] == len(v)
+    none = SimpleNamespace(points=dense.points, depth_maps=[None] * len(maps))  # COLMAP's fusion: no depth maps
+    assert without_seen_through(surface, none, GeometryOptions()) is surface  # type: ignore[arg-type]
