@@ -20,15 +20,15 @@ from pmvir.geometry.surface.seen_through import MAX_AT, MIN_PAST, cut_seen_throu
 RING, TUBE = 0.3, 0.1  # the ring's radius and its tube's: the opening's radius is 0.2
 
 
-def ring_mesh() -> tuple[np.ndarray, np.ndarray]:
-    mesh = o3d.geometry.TriangleMesh.create_torus(torus_radius=RING, tube_radius=TUBE, radial_resolution=60,
-                                                  tubular_resolution=24)
+def ring_mesh(radial: int = 60, tubular: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    mesh = o3d.geometry.TriangleMesh.create_torus(torus_radius=RING, tube_radius=TUBE, radial_resolution=radial,
+                                                  tubular_resolution=tubular)
     return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.triangles, np.int64)
 
 
-def membrane(radius: float = RING - TUBE - 0.02) -> tuple[np.ndarray, np.ndarray]:
+def membrane(radius: float = RING - TUBE - 0.02, rings: int = 6) -> tuple[np.ndarray, np.ndarray]:
     """A disc across the ring's opening (z = 0, facing up), as Poisson closes it."""
-    rr, aa = np.meshgrid(np.linspace(0.0, radius, 7)[1:], np.linspace(0, 2 * np.pi, 36, endpoint=False))
+    rr, aa = np.meshgrid(np.linspace(0.0, radius, rings + 1)[1:], np.linspace(0, 2 * np.pi, 6 * rings, endpoint=False))
     xy = np.vstack([[0.0, 0.0], np.stack([rr.ravel() * np.cos(aa.ravel()), rr.ravel() * np.sin(aa.ravel())], 1)])
     faces = Delaunay(xy).simplices.astype(np.int64)
     a, b, c = (xy[faces[:, k]] for k in range(3))
@@ -147,3 +147,22 @@ def test_the_geometric_stage_cuts_with_its_depth_maps_and_counts_it(setup):
     assert cut.counts["clean_vertices"] == len(v)
     none = SimpleNamespace(points=dense.points, depth_maps=[None] * len(maps))  # COLMAP's fusion: no depth maps
     assert without_seen_through(surface, none, GeometryOptions()) is surface  # type: ignore[arg-type]
+
+
+def test_a_piece_the_cut_separates_stays():
+    """A box stands inside the opening; the fill over it lies on its top: the cut leaves it a piece of its own."""
+    ring = ring_mesh(240, 48)  # as fine as the disc: the cut takes less than half of the surface
+    disc_v, disc_f = membrane(rings=40)
+    top = np.linalg.norm(disc_v[:, :2], axis=1) < 0.05
+    disc_v = disc_v.copy()
+    disc_v[top, 2] = -0.04
+    box = o3d.geometry.TriangleMesh.create_box(0.16, 0.16, 0.06).translate((-0.08, -0.08, -TUBE))
+    truth = joined(ring, table(), (np.asarray(box.vertices, np.float64), np.asarray(box.triangles, np.int64)))
+    v, f = joined(ring, (disc_v, disc_f))
+    maps = depth_maps(truth, cameras())
+    v2, _, count = cut_seen_through(v, f, maps, margin=MARGIN, support=ring[0], min_angle_deg=0.0)
+    assert count > 0
+    radius = np.linalg.norm(v2[:, :2], axis=1)
+    on_top = (radius < 0.05) & (np.abs(v2[:, 2] + 0.04) < 1e-9)
+    assert on_top.sum() > 0.9 * top.sum()  # the box's piece stays, though no ring vertex is near it
+    assert not ((radius > 0.1) & (radius < RING - TUBE - 0.03)).any()  # the fill around it goes
