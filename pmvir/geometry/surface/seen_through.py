@@ -35,6 +35,7 @@ import scipy.sparse as sp
 from pmvir.geometry.mesh_ops import edge_topology, raycasting_scene, vertex_normals
 from pmvir.geometry.mvs.fusion import depth_at
 from pmvir.geometry.surface.clean import clean_mesh
+from pmvir.geometry.surface.initial import _keep_vertices
 
 if TYPE_CHECKING:
     from pmvir.geometry.mvs.sweep import DepthMap
@@ -163,9 +164,6 @@ def cut_seen_through(
     count = int(through.sum())
     if count == 0 or count > MAX_CUT_SHARE * len(v):
         return v, f, 0
-    kept = f[~through[f].any(axis=1)]
-    used = np.zeros(len(v), bool)
-    used[kept.ravel()] = True
-    index = np.cumsum(used) - 1
-    v2, f2, _ = clean_mesh(v[used], index[kept], min_angle_deg=min_angle_deg, support=support, min_support=0)
+    v2, f2 = _keep_vertices(v, f, ~through)
+    v2, f2, _ = clean_mesh(v2, f2, min_angle_deg=min_angle_deg, support=support, min_support=0)
     return v2, f2, count
