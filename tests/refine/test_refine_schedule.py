@@ -31,6 +31,13 @@ def _inputs(scene, intensity="min"):
     return obs, vis_fn, vis_fn(scene.vertices, scene.faces)
 
 
+def _refined(scene, obs, vis, vis_fn, options: RefineOptions):
+    """``refine_surface`` of the scene's own start, with its visibility function."""
+    return refine_surface(
+        scene.vertices, scene.faces, scene.cameras, obs, vis, options=options, visibility_fn=vis_fn
+    )
+
+
 @pytest.fixture(scope="module")
 def plastic():
     scene = make_scene(two_colours=True)
@@ -57,15 +64,7 @@ def plastic_runs(plastic):
         visibility_fn=counting_vis,
         progress=Progress(lambda stage, frac, msg: progress.append((frac, f"{stage}: {msg}"))),
     )
-    baseline = refine_surface(
-        scene.vertices,
-        scene.faces,
-        scene.cameras,
-        obs,
-        vis,
-        options=RefineOptions(pol={"enabled": False}, **NO_MOSAIC),
-        visibility_fn=vis_fn,
-    )
+    baseline = _refined(scene, obs, vis, vis_fn, RefineOptions(pol={"enabled": False}, **NO_MOSAIC))
     return full, baseline, calls, progress
 
 
@@ -158,15 +157,7 @@ def test_lambert_capture_full_method_agrees_with_the_baseline(stokes_noise: floa
     scene = make_scene(two_colours=True, lambert=True, stokes_noise=stokes_noise)
     obs, vis_fn, vis = _inputs(scene)
     runs = [
-        refine_surface(
-            scene.vertices,
-            scene.faces,
-            scene.cameras,
-            obs,
-            vis,
-            options=RefineOptions(pol={"enabled": pol}, **NO_MOSAIC),
-            visibility_fn=vis_fn,
-        )
+        _refined(scene, obs, vis, vis_fn, RefineOptions(pol={"enabled": pol}, **NO_MOSAIC))
         for pol in (True, False)
     ]
     assert all(st.pol_pairs == 0 for st in runs[0].stages)
@@ -174,15 +165,7 @@ def test_lambert_capture_full_method_agrees_with_the_baseline(stokes_noise: floa
     assert abs(accs[0] - accs[1]) <= 0.005 * accs[1]
     assert accs[0] < accuracy(scene.vertices, scene.true_vertices, scene.true_faces)
     if stokes_noise > 0.03:  # with the fixed floor, the noise above it would pull the normals
-        fixed = refine_surface(
-            scene.vertices,
-            scene.faces,
-            scene.cameras,
-            obs,
-            vis,
-            options=RefineOptions(pol={"dop_min_noise": "fixed"}, **NO_MOSAIC),
-            visibility_fn=vis_fn,
-        )
+        fixed = _refined(scene, obs, vis, vis_fn, RefineOptions(pol={"dop_min_noise": "fixed"}, **NO_MOSAIC))
         assert all(st.pol_pairs > 0 for st in fixed.stages)
 
 
@@ -805,15 +788,7 @@ def test_lighting_coupling_recovers_the_shading_of_normals_a_view_does_not_see(p
     torch.set_num_threads(1)
     try:
         free, coupled = (
-            refine_surface(
-                scene.vertices,
-                scene.faces,
-                scene.cameras,
-                obs,
-                vis,
-                options=RefineOptions(lighting={"coupling": coupling}, **NO_MOSAIC),
-                visibility_fn=vis_fn,
-            )
+            _refined(scene, obs, vis, vis_fn, RefineOptions(lighting={"coupling": coupling}, **NO_MOSAIC))
             for coupling in (0.0, 1.0)
         )
     finally:
