@@ -241,6 +241,26 @@ def test_the_parts_stereo_leaves_apart_are_merged_into_the_object(scene):
     assert {one[which == 3][arc == a].mean().round(2) for a in (0, 1)} == {0.0, 1.0}  # one arc alone
 
 
+def test_small_clusters_bridge_the_parts_apart(scene):
+    """A loop broken into two arcs by gaps of 40 deg (0.27 apart, beyond merge_gap of an arc's
+    extent) with a small knob of points in each gap (1 % of the points, under the share a first
+    cluster needs): the arcs join through the knobs."""
+    points, labels = scene
+    rng = np.random.default_rng(3)
+    loop, arc = torus_arcs(20_000, 40.0, rng)
+    knobs = np.concatenate([sphere_points(CENTRE + [x, 0.0, 0.0], 0.03, 150, rng) for x in (0.4, -0.4)])
+    keep_table = labels != 1
+    pts = np.concatenate([points[keep_table], loop, knobs])
+    which = np.concatenate([labels[keep_table], np.full(len(loop), 3), np.full(len(knobs), 4)])
+    keep, _, _, counts, _ = object_points(pts, ring(30.0), settings=IsolateOptions())
+    assert counts["clusters_merged"] == 4
+    assert keep[which >= 3].mean() > 0.99 and not keep[which < 3].any()
+    # the same arcs without the knobs stay apart
+    bare, _, _, counts, _ = object_points(pts[which != 4], ring(30.0), settings=IsolateOptions())
+    assert counts["clusters_merged"] == 1
+    assert {bare[which[which != 4] == 3][arc == a].mean().round(2) for a in (0, 1)} == {0.0, 1.0}
+
+
 def test_a_box_overrides_the_cluster(scene):
     points, labels = scene
     box = IsolateOptions(bbox=[1.0, 1.0, -1.0, 1.6, 1.6, 1.0])

@@ -98,7 +98,8 @@ if TYPE_CHECKING:
     from pmvir.geometry.mvs.fusion import DensePoints
     from pmvir.geometry.mvs.sweep import DepthMap
 
-#: Clusters smaller than this share of the points left after the plane's removal are not candidates.
+#: Clusters smaller than this share of the points left after the plane's removal are not candidates
+#: for the object's first cluster (they may still join it, :func:`_merged`).
 _MIN_CLUSTER_SHARE = 0.02
 #: DBSCAN runs on at most this many points (a random subset); the rest take their nearest one's label.
 _MAX_CLUSTER_POINTS = 60_000
@@ -487,7 +488,7 @@ def object_points(
         candidates = names[sizes == sizes.max()] if len(names) else np.array([-1])
     gaps = [float(np.linalg.norm(np.median(pts[rest[labels == c]], axis=0) - look)) for c in candidates]
     chosen = candidates[int(np.argmin(gaps))]
-    parts = _merged(pts[rest], labels, int(chosen), candidates, settings.merge_gap)
+    parts = _merged(pts[rest], labels, int(chosen), names if len(names) else candidates, settings.merge_gap)
     keep = np.zeros(len(pts), bool)
     keep[rest[np.isin(labels, parts)]] = True
     dense = keep.copy()
@@ -539,18 +540,24 @@ def _merged(points: np.ndarray, labels: np.ndarray, chosen: int, candidates: np.
     """The chosen cluster's label and those of the candidates that come within ``gap`` times the
     object's extent (the diagonal of its 1st-99th percentile box) of it, grown one cluster at a time,
     nearest first: the parts of one object that stereo leaves apart (a knot's tubes where they
-    cross, a spring's coils) lay 3-10 % of the extent apart on 16-view scenes."""
+    cross, a spring's coils) lay 3-10 % of the extent apart on 16-view scenes. A candidate of any
+    size can join, and then bridge to the next: a path-traced knot on a table (16 views of 320x256)
+    broke into three parts 11 % of its extent apart and a fourth of 62 points between two of them."""
     parts = [chosen]
-    rest = [int(c) for c in candidates if c != chosen]
-    while rest and gap > 0:
-        body = points[np.isin(labels, parts)]
+    rest = np.sort(np.array([int(c) for c in candidates if c != chosen], np.int64))
+    while len(rest) and gap > 0:
+        inside = np.isin(labels, parts)
+        body = points[inside]
         reach = gap * float(np.linalg.norm(np.percentile(body, 99, 0) - np.percentile(body, 1, 0)))
-        tree = cKDTree(body)
-        near = [float(tree.query(points[labels == c], k=1, distance_upper_bound=reach)[0].min()) for c in rest]
+        others = np.flatnonzero(np.isin(labels, rest))
+        dist, _ = cKDTree(body).query(points[others], k=1, distance_upper_bound=reach)
+        near = np.full(len(rest), np.inf)
+        np.minimum.at(near, np.searchsorted(rest, labels[others]), dist)
         k = int(np.argmin(near))
         if not near[k] <= reach:
             break
-        parts.append(rest.pop(k))
+        parts.append(int(rest[k]))
+        rest = np.delete(rest, k)
     return parts
 
 
