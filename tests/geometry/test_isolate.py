@@ -244,17 +244,22 @@ def test_the_parts_stereo_leaves_apart_are_merged_into_the_object(scene):
 def test_small_clusters_bridge_the_parts_apart(scene):
     """A loop broken into two arcs by gaps of 40 deg (0.27 apart, beyond merge_gap of an arc's
     extent) with a small knob of points in each gap (1 % of the points, under the share a first
-    cluster needs): the arcs join through the knobs."""
+    cluster needs): the arcs join through a knob. A small cluster over the loop, as near as the
+    knobs but leading to no larger part, is not the object's."""
     points, labels = scene
     rng = np.random.default_rng(3)
     loop, arc = torus_arcs(20_000, 40.0, rng)
     knobs = np.concatenate([sphere_points(CENTRE + [x, 0.0, 0.0], 0.03, 150, rng) for x in (0.4, -0.4)])
+    above = sphere_points(CENTRE + [0.3, 0.0, 0.15], 0.02, 150, rng)
     keep_table = labels != 1
-    pts = np.concatenate([points[keep_table], loop, knobs])
-    which = np.concatenate([labels[keep_table], np.full(len(loop), 3), np.full(len(knobs), 4)])
-    keep, _, _, counts, _ = object_points(pts, ring(30.0), settings=IsolateOptions())
-    assert counts["clusters_merged"] == 4
-    assert keep[which >= 3].mean() > 0.99 and not keep[which < 3].any()
+    pts = np.concatenate([points[keep_table], loop, knobs, above])
+    which = np.concatenate([labels[keep_table], np.full(len(loop), 3), np.full(len(knobs), 4),
+                            np.full(len(above), 5)])
+    keep, _, _, counts, dense = object_points(pts, ring(30.0), settings=IsolateOptions())
+    assert counts["clusters_merged"] == 3  # both arcs and the knob between them
+    assert keep[which == 3].mean() > 0.99 and not keep[which < 3].any()
+    assert dense[which == 4].sum() == 150  # one knob as a bridge (the other within the box)
+    assert not keep[which == 5].any()
     # the same arcs without the knobs stay apart
     bare, _, _, counts, _ = object_points(pts[which != 4], ring(30.0), settings=IsolateOptions())
     assert counts["clusters_merged"] == 1

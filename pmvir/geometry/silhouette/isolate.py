@@ -488,7 +488,8 @@ def object_points(
         candidates = names[sizes == sizes.max()] if len(names) else np.array([-1])
     gaps = [float(np.linalg.norm(np.median(pts[rest[labels == c]], axis=0) - look)) for c in candidates]
     chosen = candidates[int(np.argmin(gaps))]
-    parts = _merged(pts[rest], labels, int(chosen), names if len(names) else candidates, settings.merge_gap)
+    parts = _merged(pts[rest], labels, int(chosen), names if len(names) else candidates, settings.merge_gap,
+                    min_size=int(np.ceil(_MIN_CLUSTER_SHARE * len(rest))))
     keep = np.zeros(len(pts), bool)
     keep[rest[np.isin(labels, parts)]] = True
     dense = keep.copy()
@@ -536,29 +537,43 @@ def _dense_core(points: np.ndarray, index: np.ndarray) -> tuple[np.ndarray, floa
     return index, spacing
 
 
-def _merged(points: np.ndarray, labels: np.ndarray, chosen: int, candidates: np.ndarray, gap: float) -> list[int]:
+def _merged(
+    points: np.ndarray, labels: np.ndarray, chosen: int, candidates: np.ndarray, gap: float, min_size: int = 0
+) -> list[int]:
     """The chosen cluster's label and those of the candidates that come within ``gap`` times the
     object's extent (the diagonal of its 1st-99th percentile box) of it, grown one cluster at a time,
     nearest first: the parts of one object that stereo leaves apart (a knot's tubes where they
-    cross, a spring's coils) lay 3-10 % of the extent apart on 16-view scenes. A candidate of any
-    size can join, and then bridge to the next: a path-traced knot on a table (16 views of 320x256)
-    broke into three parts 11 % of its extent apart and a fourth of 62 points between two of them."""
+    cross, a spring's coils) lay 3-10 % of the extent apart on 16-view scenes. A candidate smaller
+    than ``min_size`` points stays only as a bridge, where a larger one joined through it: a
+    path-traced knot on a table (16 views of 320x256) broke into three parts 11 % of its extent
+    apart and a fourth of 62 points between two of them, while small clusters of stray depths
+    beside a path-traced rock are not its own."""
     parts = [chosen]
+    parent = {chosen: chosen}
     rest = np.sort(np.array([int(c) for c in candidates if c != chosen], np.int64))
     while len(rest) and gap > 0:
-        inside = np.isin(labels, parts)
+        inside = np.flatnonzero(np.isin(labels, parts))
         body = points[inside]
         reach = gap * float(np.linalg.norm(np.percentile(body, 99, 0) - np.percentile(body, 1, 0)))
         others = np.flatnonzero(np.isin(labels, rest))
-        dist, _ = cKDTree(body).query(points[others], k=1, distance_upper_bound=reach)
+        dist, nearest = cKDTree(body).query(points[others], k=1, distance_upper_bound=reach)
         near = np.full(len(rest), np.inf)
-        np.minimum.at(near, np.searchsorted(rest, labels[others]), dist)
+        which = np.searchsorted(rest, labels[others])
+        np.minimum.at(near, which, dist)
         k = int(np.argmin(near))
         if not near[k] <= reach:
             break
+        mine = np.flatnonzero(which == k)
+        parent[int(rest[k])] = int(labels[inside[nearest[mine[np.argmin(dist[mine])]]]])
         parts.append(int(rest[k]))
         rest = np.delete(rest, k)
-    return parts
+    sizes = {p: int((labels == p).sum()) for p in parts}
+    needed = {chosen} | {p for p in parts if sizes[p] >= min_size}
+    for p in list(needed):  # the small clusters on the way to a large one
+        while p != chosen:
+            p = parent[p]
+            needed.add(p)
+    return [p for p in parts if p in needed]
 
 
 def still_pixels(previews: Sequence[np.ndarray], *, tolerance: float) -> np.ndarray | None:
