@@ -548,31 +548,42 @@ def _merged(
     path-traced knot on a table (16 views of 320x256) broke into three parts 11 % of its extent
     apart and a fourth of 62 points between two of them, while small clusters of stray depths
     beside a path-traced rock are not its own."""
-    parts = [chosen]
-    parent = {chosen: chosen}
     rest = np.sort(np.array([int(c) for c in candidates if c != chosen], np.int64))
-    while len(rest) and gap > 0:
-        inside = np.flatnonzero(np.isin(labels, parts))
+    if not len(rest) or gap <= 0:
+        return [chosen]
+    inside = labels == chosen
+    others = np.flatnonzero(np.isin(labels, rest))
+    which = np.searchsorted(rest, labels[others])
+    # each other point's distance to the body so far and the part it is nearest to; a part that
+    # joins updates them from its own points only (no farther than the widest reach there can be)
+    bound = gap * float(np.linalg.norm(np.ptp(points[inside | np.isin(labels, rest)], axis=0)))
+    dist, owner = np.full(len(others), np.inf), np.full(len(others), chosen)
+    parts, parent, new, open_ = [chosen], {chosen: chosen}, chosen, np.ones(len(rest), bool)
+    while open_.any():
+        d, _ = cKDTree(points[labels == new]).query(points[others], k=1, distance_upper_bound=bound)
+        closer = d < dist
+        dist[closer], owner[closer] = d[closer], new
         body = points[inside]
         reach = gap * float(np.linalg.norm(np.percentile(body, 99, 0) - np.percentile(body, 1, 0)))
-        others = np.flatnonzero(np.isin(labels, rest))
-        dist, nearest = cKDTree(body).query(points[others], k=1, distance_upper_bound=reach)
         near = np.full(len(rest), np.inf)
-        which = np.searchsorted(rest, labels[others])
-        np.minimum.at(near, which, dist)
+        np.minimum.at(near, which, np.where(open_[which], dist, np.inf))
         k = int(np.argmin(near))
         if not near[k] <= reach:
             break
         mine = np.flatnonzero(which == k)
-        parent[int(rest[k])] = int(labels[inside[nearest[mine[np.argmin(dist[mine])]]]])
-        parts.append(int(rest[k]))
-        rest = np.delete(rest, k)
-    sizes = {p: int((labels == p).sum()) for p in parts}
-    needed = {chosen} | {p for p in parts if sizes[p] >= min_size}
-    for p in list(needed):  # the small clusters on the way to a large one
-        while p != chosen:
-            p = parent[p]
-            needed.add(p)
+        new = int(rest[k])
+        parent[new] = int(owner[mine[np.argmin(dist[mine])]])
+        parts.append(new)
+        open_[k] = False
+        inside |= labels == new
+    counts = np.bincount(which, minlength=len(rest))
+    big = {chosen} | {int(c) for c, n in zip(rest, counts, strict=True) if n >= min_size}
+    needed = set()
+    for p in parts:  # the large parts and the small ones on their way to the chosen one
+        if p in big:
+            while p not in needed:
+                needed.add(p)
+                p = parent[p]
     return [p for p in parts if p in needed]
 
 
