@@ -325,7 +325,7 @@ def _edge_aware_colour(mosaic: np.ndarray, layout: MosaicLayout, planes: np.ndar
     span = hi - lo
     scale = 65535.0 / span if span > 0 else 1.0
     # lo -> 0, hi -> 65535, rounded (one threaded pass)
-    q16 = cv2.normalize(  # type: ignore[call-overload]  # the stubs refuse dst=None, which OpenCV allows
+    q16 = cv2.normalize(  # type: ignore[call-overload, unused-ignore]  # OpenCV 5.0 stubs refuse dst=None
         mosaic, None, 0, 65535, cv2.NORM_MINMAX, dtype=cv2.CV_16U
     )
     columns = column_phases(q16, 2)
