@@ -84,6 +84,12 @@ class IsolateOptions(_Options):
         "depths lie past (Poisson's fill across a knot's loop or a handle) are cut away.",
         json_schema_extra=advanced(),
     )
+    cut_support_sheet: bool = Field(
+        default=True,
+        description="Vertices of the initial surface within the support's band of its plane (plane_clearance "
+        "inlier distances) whose normals face up from it (the table kept under a knot's centre) are cut away.",
+        json_schema_extra=advanced(),
+    )
     grabcut_iterations: int = Field(
         default=2,
         ge=0,
@@ -99,6 +105,14 @@ class IsolateOptions(_Options):
         description="Half-width in pixels of the band around the projected object where GrabCut decides "
         "(0: 2 % of the image diagonal).",
         json_schema_extra=advanced("px"),
+    )
+    outside_share: float = Field(
+        default=0.1,
+        ge=0.0,
+        le=0.5,
+        description="Dense points and surface vertices outside the drawn masks of at most this share of the "
+        "views seeing them stay (GrabCut cuts into the object here and there), [0, 0.5]; 0: every mask.",
+        json_schema_extra=advanced(),
     )
 
     @field_validator("bbox")

@@ -69,7 +69,7 @@ from pmvir.geometry.silhouette.isolate import (
 )
 from pmvir.geometry.subdivision import subdivide_until
 from pmvir.geometry.surface.initial import SurfaceResult, initial_surface
-from pmvir.geometry.surface.seen_through import MARGIN_SPACINGS, cut_seen_through
+from pmvir.geometry.surface.seen_through import MARGIN_SPACINGS, cut_seen_through, lying_on_support
 from pmvir.geometry.visibility import vertex_visibility
 from pmvir.io.ply import Mesh
 from pmvir.polarization.stokes import PolarizationImages
@@ -237,9 +237,10 @@ def run_geometry(
             options=options.surface,
             max_area_px=options.surface.split_factor * options.subdivision.max_area_px,
             mask_slack_px=0 if isolation is None else _DRAWN_MASK_SLACK_PX,
+            mask_outside_share=0.0 if isolation is None else isolation.outside_share,
         )
-        if isolation is not None and options.isolate.cut_seen_through:
-            surface = without_seen_through(surface, dense, options)
+        if isolation is not None and (options.isolate.cut_seen_through or options.isolate.cut_support_sheet):
+            surface = without_seen_through(surface, dense, options, isolation)
 
     with progress.step("visibility", _STEP_WEIGHTS["visibility"]):
         vis = vertex_visibility(
@@ -300,19 +301,32 @@ def run_geometry(
     )
 
 
-def without_seen_through(surface: SurfaceResult, dense: DenseResult, options: GeometryOptions) -> SurfaceResult:
+def without_seen_through(
+    surface: SurfaceResult, dense: DenseResult, options: GeometryOptions, isolation: Isolation | None = None
+) -> SurfaceResult:
     """The initial surface without what the views' stereo depths see through (drawn masks' fill across an
-    opening: :mod:`pmvir.geometry.surface.seen_through`), its counts with ``seen_through_vertices`` and
-    the ``cut_*`` sizes; as given where stereo kept no depth maps (COLMAP's fusion)."""
+    opening) and without the sheet lying on the isolation's support plane (:mod:`pmvir.geometry.surface.seen_through`;
+    ``geometry.isolate.cut_seen_through`` and ``cut_support_sheet``), its counts with
+    ``seen_through_vertices``, ``support_sheet_vertices`` and the ``cut_*`` sizes. Stereo without depth maps
+    (COLMAP's fusion) sees through nothing."""
     points = dense.points.points
-    if not any(dm is not None for dm in dense.depth_maps) or len(points) < 10:
+    if len(points) < 10:
+        return surface
+    sheet = None
+    if isolation is not None and isolation.plane is not None and options.isolate.cut_support_sheet:
+        band = options.isolate.plane_clearance * isolation.clearance
+        sheet = lying_on_support(surface.vertices, surface.faces, isolation.plane, band)
+    maps = dense.depth_maps if options.isolate.cut_seen_through else [None] * len(dense.depth_maps)
+    if sheet is None and not any(dm is not None for dm in maps):
         return surface
     v, f, count = cut_seen_through(
-        surface.vertices, surface.faces, dense.depth_maps, margin=MARGIN_SPACINGS * point_spacing(points),
-        support=points, min_angle_deg=options.surface.min_angle_deg,
+        surface.vertices, surface.faces, maps, margin=MARGIN_SPACINGS * point_spacing(points),
+        support=points, min_angle_deg=options.surface.min_angle_deg, sheet=sheet,
     )
     counts = surface.counts | {"seen_through_vertices": count}
-    if count:
+    if sheet is not None:
+        counts |= {"support_sheet_vertices": int(sheet.sum())}
+    if len(v) != len(surface.vertices) or len(f) != len(surface.faces):
         counts |= {"cut_vertices": len(v), "cut_faces": len(f),
                    "boundary_edges": int(edge_topology(f, len(v)).boundary.sum())}
     return replace(surface, vertices=v, faces=f, counts=counts)

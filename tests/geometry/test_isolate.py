@@ -20,12 +20,14 @@ from pmvir.geometry.mvs.fusion import DensePoints
 from pmvir.geometry.mvs.sweep import DepthMap
 from pmvir.geometry.projection import project_points
 from pmvir.geometry.silhouette.isolate import (
+    Isolation,
     columns_below,
     depth_past_share,
     far_support_plane,
     inside_masks,
     isolate_object,
     object_points,
+    on_object,
     refine_mask,
     sees_past,
     still_points,
@@ -322,6 +324,43 @@ def test_inside_masks_keeps_points_in_every_silhouette():
         m[int(uv[0, 1]) - 3 : int(uv[0, 1]) + 4, int(uv[0, 0]) - 3 : int(uv[0, 0]) + 4] = True
         masks.append(m)
     np.testing.assert_array_equal(inside_masks(pts, cams, masks), [True, False])
+
+
+def test_one_mask_cut_into_the_object_does_not_take_its_points_from_all_views():
+    """GrabCut cuts into the object where it looks like the table: one view's mask misses a point that every
+    other view holds; a point off the object lies outside most masks."""
+    cams = ring(30.0, 10)
+    pts = np.array([CENTRE, CENTRE + [0.0, 0.0, 0.5]])
+    masks = []
+    for k, cam in enumerate(cams):
+        m = np.zeros((cam.height, cam.width), bool)
+        uv, _ = cam.project(CENTRE[None])
+        if k != 3:  # view 3's mask has lost the point's pixel
+            m[int(uv[0, 1]) - 3 : int(uv[0, 1]) + 4, int(uv[0, 0]) - 3 : int(uv[0, 0]) + 4] = True
+        masks.append(m)
+    np.testing.assert_array_equal(inside_masks(pts, cams, masks), [False, False])
+    np.testing.assert_array_equal(inside_masks(pts, cams, masks, outside_share=0.1), [True, False])
+    np.testing.assert_array_equal(inside_masks(pts, cams, masks, outside_share=0.09), [False, False])  # 0 of 10
+    assert IsolateOptions().outside_share == 0.1
+
+
+def test_near_the_support_a_point_outside_one_mask_is_the_table_s():
+    """Under an overhang the table is hidden in most views: near the plane every mask counts."""
+    cams = ring(30.0, 10)
+    low, high = CENTRE - [0.0, 0.0, 0.28], CENTRE  # 0.02 and 0.3 above the table (z = 0)
+    pts = np.array([low, high])
+    masks = []
+    for k, cam in enumerate(cams):
+        m = np.zeros((cam.height, cam.width), bool)
+        if k != 3:  # view 3's mask holds neither point
+            for uv in cam.project(pts)[0]:
+                m[int(uv[1]) - 3 : int(uv[1]) + 4, int(uv[0]) - 3 : int(uv[0]) + 4] = True
+        masks.append(m)
+    iso = Isolation(masks=masks, keep=np.zeros(2, bool), plane=np.array([0.0, 0.0, 1.0, 0.0]), look_at=CENTRE,
+                    method="cluster", clearance=0.005, outside_share=0.1)
+    np.testing.assert_array_equal(on_object(pts, cams, iso), [False, True])  # 0.02 < 4 clearances: strict
+    np.testing.assert_array_equal(on_object(pts, cams, replace(iso, clearance=0.004)), [True, True])
+    np.testing.assert_array_equal(on_object(pts, cams, replace(iso, outside_share=0.0)), [False, False])
 
 
 def test_isolate_object_draws_masks_of_the_ball(scene):

@@ -15,7 +15,13 @@ from pmvir.geometry.mesh_ops import raycasting_scene
 from pmvir.geometry.mvs.sweep import DepthMap
 from pmvir.geometry.stage import without_seen_through
 from pmvir.geometry.surface.initial import SurfaceResult
-from pmvir.geometry.surface.seen_through import MAX_AT, MIN_PAST, cut_seen_through, seen_through
+from pmvir.geometry.surface.seen_through import (
+    MAX_AT,
+    MIN_PAST,
+    cut_seen_through,
+    lying_on_support,
+    seen_through,
+)
 
 RING, TUBE = 0.3, 0.1  # the ring's radius and its tube's: the opening's radius is 0.2
 
@@ -166,3 +172,33 @@ def test_a_piece_the_cut_separates_stays():
     on_top = (radius < 0.05) & (np.abs(v2[:, 2] + 0.04) < 1e-9)
     assert on_top.sum() > 0.9 * top.sum()  # the box's piece stays, though no ring vertex is near it
     assert not ((radius > 0.1) & (radius < RING - TUBE - 0.03)).any()  # the fill around it goes
+
+
+def test_a_sheet_lying_on_the_support_is_cut_and_the_object_s_foot_stays(setup):
+    """Poisson keeps a patch of the table under a ring's opening: every view's depth lands on it, so only its
+    place and facing tell it from the ring's own foot."""
+    ring = ring_mesh()
+    n_ring = len(ring[0])
+    sheet_v, sheet_f = membrane()
+    v, f = joined(ring, (sheet_v + [0.0, 0.0, -TUBE + 0.005], sheet_f))
+    plane, band = np.array([0.0, 0.0, 1.0, TUBE]), 0.02  # the table: z = -TUBE, normal up
+    on = lying_on_support(v, f, plane, band)
+    foot = v[:n_ring, 2] < -TUBE + band
+    assert on[n_ring:].all()
+    assert foot.sum() >= 30 and not on[:n_ring][foot].any()  # the ring's foot faces down or sideways
+    assert not lying_on_support(v, f, plane, 0.004).any()  # above the band: not the support's
+
+    maps = setup[2]  # the ring standing on the table
+    assert not seen_through(v, f, maps, margin=MARGIN).through[n_ring:].any()  # the depths land on the sheet
+    surface = SurfaceResult(vertices=v, faces=f, counts={})
+    dense = SimpleNamespace(points=SimpleNamespace(points=ring[0]), depth_maps=maps)
+    isolation = SimpleNamespace(plane=plane, clearance=band / GeometryOptions().isolate.plane_clearance)
+    cut = without_seen_through(surface, dense, GeometryOptions(), isolation)  # type: ignore[arg-type]
+    inside = np.linalg.norm(cut.vertices[:, :2], axis=1) < RING - TUBE - 1e-6
+    assert cut.counts["support_sheet_vertices"] == len(sheet_v) and not inside.any()
+    assert cut.vertices[:, 2].min() < -TUBE + 0.002  # the ring's foot is there
+    kept = without_seen_through(
+        surface, dense, GeometryOptions(isolate={"cut_support_sheet": False}), isolation  # type: ignore[arg-type]
+    )
+    assert "support_sheet_vertices" not in kept.counts
+    assert (np.linalg.norm(kept.vertices[:, :2], axis=1) < RING - TUBE - 1e-6).sum() == len(sheet_v)

@@ -118,6 +118,20 @@ def test_silhouette_trimming_drops_vertices_outside_a_mask():
     assert not out[2]  # behind the camera: not judged
 
 
+def test_silhouette_trimming_of_drawn_masks_forgives_a_share_of_the_views():
+    cams = [_camera(3.0 * np.array([np.cos(a), np.sin(a), 0.0])) for a in np.linspace(0, 2 * np.pi, 10, endpoint=False)]
+    v = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.5]])  # the object's centre; a point above it
+    masks = []
+    for k, cam in enumerate(cams):
+        uv, _ = cam.project(v[:1])
+        mask = np.zeros((200, 200), bool)
+        if k != 0:  # view 0's mask misses the centre
+            mask[int(uv[0, 1]) - 5 : int(uv[0, 1]) + 6, int(uv[0, 0]) - 5 : int(uv[0, 0]) + 6] = True
+        masks.append(mask)
+    np.testing.assert_array_equal(off_silhouette(v, cams, masks), [True, True])
+    np.testing.assert_array_equal(off_silhouette(v, cams, masks, outside_share=0.1), [False, True])
+
+
 def test_clean_mesh_keeps_one_manifold_component_without_slivers():
     v1, f1 = _icosphere(2, 1.0)
     v2, f2 = _icosphere(1, 0.2)

@@ -128,11 +128,18 @@ def auto_poisson_depth(
 
 
 def off_silhouette(
-    vertices: np.ndarray, cameras: Sequence[Camera], masks: Sequence[np.ndarray | None], *, dilate_px: int = SILHOUETTE_PX
+    vertices: np.ndarray,
+    cameras: Sequence[Camera],
+    masks: Sequence[np.ndarray | None],
+    *,
+    dilate_px: int = SILHOUETTE_PX,
+    outside_share: float = 0.0,
 ) -> np.ndarray:
-    """(N,) bool: the vertex projects inside a view's image but outside its mask dilated by ``dilate_px``."""
+    """(N,) bool: the vertex projects outside the masks (dilated by ``dilate_px``) of more than
+    ``floor(outside_share * n)`` of the ``n`` views whose image it projects into (0: of any)."""
     v = np.asarray(vertices, np.float64)
-    out = np.zeros(len(v), bool)
+    outside = np.zeros(len(v), np.int64)
+    seeing = np.zeros(len(v), np.int64)
     kernel = np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8)
     for cam, mask in zip(cameras, masks, strict=True):
         if mask is None:
@@ -141,8 +148,9 @@ def off_silhouette(
         uv, z = project_points(cam, v)
         c, r = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
         inside = (z > 0) & (c >= 0) & (c < cam.width) & (r >= 0) & (r < cam.height)
-        out[inside] |= ~m[r[inside], c[inside]]
-    return out
+        seeing += inside
+        outside[inside] += ~m[r[inside], c[inside]]
+    return np.asarray(outside > np.floor(outside_share * seeing))
 
 
 def _keep_vertices(
@@ -165,6 +173,7 @@ def initial_surface(
     options: SurfaceOptions | None = None,
     max_area_px: float | None = None,
     mask_slack_px: int = 0,
+    mask_outside_share: float = 0.0,
 ) -> SurfaceResult:
     """Screened Poisson, trimming, simplification and cleaning (module docstring).
 
@@ -180,6 +189,8 @@ def initial_surface(
             they face) are bisected afterwards (:func:`split_large_faces`).
         mask_slack_px: pixels the masks are dilated by in the silhouette trimming beyond
             ``SILHOUETTE_PX`` (for masks drawn from the images, which miss a pixel or two of the outline).
+        mask_outside_share: share of the views seeing a vertex whose masks it may fall outside and stay
+            (:func:`off_silhouette`; for masks drawn from the images, which cut into the object here and there).
 
     Returns:
         :class:`SurfaceResult`.
@@ -209,7 +220,9 @@ def initial_surface(
     trim = max(opts.trim_distance * diag, _TRIM_SPACINGS * spacing)  # sparse points: no holes between them
     keep &= dist <= trim
     if cameras is not None and masks is not None:
-        keep &= ~off_silhouette(v, cameras, masks, dilate_px=SILHOUETTE_PX + mask_slack_px)
+        keep &= ~off_silhouette(
+            v, cameras, masks, dilate_px=SILHOUETTE_PX + mask_slack_px, outside_share=mask_outside_share
+        )
     v, f = _keep_vertices(v, f, keep)
     counts.update(trimmed_vertices=len(v), trimmed_faces=len(f))
     if len(f) == 0:
