@@ -335,12 +335,15 @@ def test_one_mask_cut_into_the_object_does_not_take_its_points_from_all_views():
     for k, cam in enumerate(cams):
         m = np.zeros((cam.height, cam.width), bool)
         uv, _ = cam.project(CENTRE[None])
-        if k != 3:  # view 3's mask has lost the point's pixel
-            m[int(uv[0, 1]) - 3 : int(uv[0, 1]) + 4, int(uv[0, 0]) - 3 : int(uv[0, 0]) + 4] = True
+        r, c = int(uv[0, 1]), int(uv[0, 0])
+        shift = 4 if k == 3 else -3  # view 3's mask ends 4 px short of the point (grown by 2: 2 px short)
+        m[r - 3 : r + 4, c + shift : c + shift + 7] = True
         masks.append(m)
     np.testing.assert_array_equal(inside_masks(pts, cams, masks), [False, False])
     np.testing.assert_array_equal(inside_masks(pts, cams, masks, outside_share=0.1), [True, False])
     np.testing.assert_array_equal(inside_masks(pts, cams, masks, outside_share=0.09), [False, False])  # 0 of 10
+    masks[3] = np.zeros_like(masks[3])  # far outside view 3's mask: no strip GrabCut cut
+    np.testing.assert_array_equal(inside_masks(pts, cams, masks, outside_share=0.1), [False, False])
     assert IsolateOptions().outside_share == 0.1
 
 
@@ -352,9 +355,9 @@ def test_near_the_support_a_point_outside_one_mask_is_the_table_s():
     masks = []
     for k, cam in enumerate(cams):
         m = np.zeros((cam.height, cam.width), bool)
-        if k != 3:  # view 3's mask holds neither point
-            for uv in cam.project(pts)[0]:
-                m[int(uv[1]) - 3 : int(uv[1]) + 4, int(uv[0]) - 3 : int(uv[0]) + 4] = True
+        shift = 4 if k == 3 else -3  # view 3's mask ends 4 px short of either point
+        for uv in cam.project(pts)[0]:
+            m[int(uv[1]) - 3 : int(uv[1]) + 4, int(uv[0]) + shift : int(uv[0]) + shift + 7] = True
         masks.append(m)
     iso = Isolation(masks=masks, keep=np.zeros(2, bool), plane=np.array([0.0, 0.0, 1.0, 0.0]), look_at=CENTRE,
                     method="cluster", clearance=0.005, outside_share=0.1)
