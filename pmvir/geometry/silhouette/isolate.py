@@ -804,12 +804,14 @@ def inside_masks(
     masks: Sequence[np.ndarray | None],
     *,
     grow_px: int = 2,
-    outside_share: float = 0.0,
+    outside_share: float | np.ndarray = 0.0,
 ) -> np.ndarray:
     """(P,) bool: points inside the masks (grown by ``grow_px``) of the views whose image they project into,
-    all but ``floor(outside_share * those views)`` of them (0: every one), and in those within
-    :data:`_FORGIVEN_REACH` of the image diagonal of the mask."""
+    all but ``floor(outside_share * those views)`` of them (0: every one; a float, or (P,) per point), and
+    in those within :data:`_FORGIVEN_REACH` of the image diagonal of the mask."""
     pts = np.asarray(points, np.float64)
+    share = np.broadcast_to(np.asarray(outside_share, np.float64), (len(pts),))
+    forgiving = bool((share > 0).any())
     outside = np.zeros(len(pts), np.int64)
     beyond = np.zeros(len(pts), bool)
     seeing = np.zeros(len(pts), np.int64)
@@ -823,11 +825,11 @@ def inside_masks(
         seen = (z > 0) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
         seeing += seen
         outside[seen] += ~grown[row[seen], col[seen]]
-        if outside_share > 0:
+        if forgiving:  # outside the wide mask is outside the grown one: no point held strictly changes
             reach = grow_px + round(_FORGIVEN_REACH * float(np.hypot(cam.width, cam.height)))
             wide = cv2.dilate(mask.astype(np.uint8), np.ones((2 * reach + 1, 2 * reach + 1), np.uint8)).astype(bool)
             beyond[seen] |= ~wide[row[seen], col[seen]]
-    return np.asarray((outside <= np.floor(outside_share * seeing)) & ~beyond)
+    return np.asarray((outside <= np.floor(share * seeing)) & ~beyond)
 
 
 def isolate_object(
@@ -928,10 +930,10 @@ def on_object(points: np.ndarray, cameras: Sequence[Camera | None], isolation: I
     base, near the plane, where the masks hold it; a view whose mask takes in some of the support leaves
     it to the others)."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
-    inside = inside_masks(pts, cameras, isolation.masks, grow_px=_KEEP_GROW_PX, outside_share=isolation.outside_share)
-    if isolation.outside_share > 0 and isolation.plane is not None:
-        near = pts @ isolation.plane[:3] + isolation.plane[3] < _STRICT_CLEARANCES * isolation.clearance
-        inside[near] = inside_masks(pts[near], cameras, isolation.masks, grow_px=_KEEP_GROW_PX)
+    share = np.full(len(pts), isolation.outside_share)
+    if isolation.plane is not None:
+        share[pts @ isolation.plane[:3] + isolation.plane[3] < _STRICT_CLEARANCES * isolation.clearance] = 0.0
+    inside = inside_masks(pts, cameras, isolation.masks, grow_px=_KEEP_GROW_PX, outside_share=share)
     return inside & isolation.above_support(pts)
 
 
