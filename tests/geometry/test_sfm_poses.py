@@ -536,6 +536,26 @@ def test_fallback_images_register_the_views_the_first_ones_leave_out(sfm_views: 
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
 
 
+def test_views_the_masks_register_spare_the_second_images(sfm_views: dict, tmp_path: Path) -> None:
+    """Two views blanked in the first images: SfM leaves them out, their masks register them (the
+    silhouette registration) and the second images are not run (on the armadillo a 25 s run that
+    registered fewer views); ``extras`` says so."""
+    true = sfm_views["cameras"]
+    blank = (5, 22)
+    model = estimate_poses(
+        [np.full_like(im, 0.3) if i in blank else im for i, im in enumerate(sfm_views["images"])],
+        sfm_views["names"], intrinsics=[true[0].K] * 36, masks=sfm_views["masks"],
+        options=SfmOptions(sift_upsample=True), workdir=tmp_path, fallback_images=sfm_views["images"],
+    )
+    assert model.registered == [True] * 36 and not model.fallback
+    assert sorted(model.silhouette_registered) == [sfm_views["names"][i] for i in blank]
+    assert not (tmp_path / "fallback").exists() and "second_images" not in model.timings
+    skipped = next(e for e in model.extras if e["step"] == "second_images")
+    assert skipped["seconds"] == 0 and "2 view(s)" in skipped["skipped"], skipped
+    err, scene = _centre_errors(model, true)
+    assert err.max() <= 0.01 * scene
+
+
 def test_fallback_images_must_match_the_views(sfm_views: dict, tmp_path: Path) -> None:
     with pytest.raises(ShapeError, match="fallback images"):
         estimate_poses(

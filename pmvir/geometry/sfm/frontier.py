@@ -291,19 +291,20 @@ class _Problem:
         self.pairs = pairs
         self.pair_scale = torch.tensor(scales, dtype=torch.float64)
         sizes = [0 if r is None else len(r) for r in self.rays]
-        self._offsets = np.r_[0, np.cumsum(sizes)].tolist()
+        offsets = np.r_[0, np.cumsum(sizes)]
         self._all_rays = torch.cat([r for r in self.rays if r is not None])
         self._all_border = torch.cat([b for b in self.border if b is not None])
-        rows: dict[int, tuple[list[int], list[int]]] = {}
-        for p, (i, j) in enumerate(pairs):
-            for side, k in enumerate((i, j)):
-                rows.setdefault(k, ([], []))[0].append(p)
-                rows[k][1].append(side)
-        self._rows = {k: (torch.tensor(r), torch.tensor(s)) for k, (r, s) in rows.items()}
+        # every view's rays as flat indices padded to the longest with its first (a repeated ray
+        # leaves the extremes as they are): the extremes of all pairs and sides in one search
+        width = max(sizes)
+        self._padded = torch.from_numpy(np.stack([
+            offsets[k] + np.minimum(np.arange(width), max(sizes[k] - 1, 0)) for k in range(len(sizes))
+        ]))
+        self._pair = torch.tensor(pairs, dtype=torch.long).reshape(-1, 2)  # (P, 2): i, j
 
     def frontier_residuals(self, R: torch.Tensor, C: torch.Tensor) -> torch.Tensor:
         """(pairs, 2) px: the max and min angle differences; 0 where an extreme lies on the border."""
-        pair = torch.tensor(self.pairs, dtype=torch.long)  # (P, 2): i, j
+        pair = self._pair
         b = C[pair[:, 1]] - C[pair[:, 0]]
         b = b / b.norm(dim=-1, keepdim=True)
         a1 = self.centre - C[pair[:, 0]]
@@ -311,13 +312,14 @@ class _Problem:
         a1 = a1 / a1.norm(dim=-1, keepdim=True)
         a2 = torch.linalg.cross(b, a1)
         # extremes over every contour point, without gradients: (P, side, hi/lo) flat ray indices
-        sel = torch.zeros(len(self.pairs), 2, 2, dtype=torch.long)
         with torch.no_grad():
-            for k, (rows, sides) in self._rows.items():
-                d = self._all_rays[self._offsets[k]:self._offsets[k + 1]] @ R[k]
-                phi = torch.atan2(d @ a2[rows].T, d @ a1[rows].T)
-                sel[rows, sides, 0] = torch.argmax(phi, dim=0) + self._offsets[k]
-                sel[rows, sides, 1] = torch.argmin(phi, dim=0) + self._offsets[k]
+            candidates = self._padded[pair]  # (P, side, M) flat ray indices
+            d = torch.einsum("psmj,psji->psmi", self._all_rays[candidates], R.detach()[pair])  # R^T r
+            phi = torch.atan2(torch.einsum("psmi,pi->psm", d, a2.detach()), torch.einsum("psmi,pi->psm", d, a1.detach()))
+            sel = torch.stack([
+                candidates.gather(2, phi.argmax(dim=2, keepdim=True))[..., 0],
+                candidates.gather(2, phi.argmin(dim=2, keepdim=True))[..., 0],
+            ], dim=2)  # (P, side, hi/lo)
         view = pair[:, :, None].expand(-1, -1, 2)
         d = torch.einsum("pshji,pshj->pshi", R[view], self._all_rays[sel])  # R^T r
         phi = torch.atan2((d * a2[:, None, None]).sum(-1), (d * a1[:, None, None]).sum(-1))  # (P, side, hi/lo)

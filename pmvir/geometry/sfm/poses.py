@@ -257,7 +257,10 @@ def estimate_poses(
             fewer than every view (or fails), it runs again on these (in ``workdir/fallback``)
             and the model with more registered views is kept (ties: the first); the result's
             ``fallback`` says which. Only the kept model is held to the masks and completed from
-            them (``sfm.frontier_weight``, ``sfm.silhouette_register_px``). Ignored with known poses.
+            them (``sfm.frontier_weight``, ``sfm.silhouette_register_px``), except that a first
+            model the masks may complete (``sfm.silhouette_min_registered``) is held and completed
+            first, and the second run is made only where views are still missing. Ignored with
+            known poses.
         focal_priors: per view a focal length in pixels to start from (e.g. from EXIF) or None;
             SfM refines it (SIMPLE_PINHOLE, principal point at the image centre). Used only for
             views whose intrinsics are not given.
@@ -300,45 +303,94 @@ def estimate_poses(
             images, cameras, intrinsics, masks, options, workdir, report, names=names, focal_priors=focal_priors
         )
         return _noting(tried, _finish(run, names, cameras, masks, options, report))
+    return _noting(tried, _first_then_second(
+        images, fallback_images, Path(workdir), report,
+        sfm=lambda ims, where, rep: _run_sfm(
+            ims, cameras, intrinsics, masks, options, where, rep, names=names, focal_priors=focal_priors
+        ),
+        finish=lambda run, rep, t0: _finish(run, names, cameras, masks, options, rep, t0=t0),
+        completable=lambda run: _completable(run, masks, options),
+    ))
+
+
+def _first_then_second(
+    images: Sequence[np.ndarray],
+    fallback_images: Sequence[np.ndarray],
+    workdir: Path,
+    report: Progress,
+    *,
+    sfm: Callable[[Sequence[np.ndarray], Path, Progress], _SfmRun],
+    finish: Callable[[_SfmRun, Progress, float], SparseModel],
+    completable: Callable[[_SfmRun], bool],
+) -> SparseModel:
+    """SfM on ``images``, and on ``fallback_images`` where views are left out (:func:`estimate_poses`):
+    ``sfm(images, workdir, report)`` runs SfM, ``finish(run, report, t0)`` is :func:`_finish`,
+    ``completable(run)`` is :func:`_completable`."""
     t0 = time.perf_counter()
     n = len(images)
-    first, first_error = _attempt(lambda: _run_sfm(
-        images, cameras, intrinsics, masks, options, workdir, lambda f, s: report(0.5 * f, s), names=names,
-        focal_priors=focal_priors,
-    ))
-    if first is not None and first.num_registered == n:
-        try:
-            return _noting(tried, _finish(first, names, cameras, masks, options, report))
+    first, first_error = _attempt(lambda: sfm(images, workdir, lambda f, s: report(0.5 * f, s)))
+    finished: SparseModel | None = None  # the first run finished before the second images were tried
+    if first is not None and (first.num_registered == n or completable(first)):
+        # every view registered, or few enough left out that their masks may register them: a second
+        # SfM run (as long as the first) only where the first, finished, still leaves views out
+        left_out = n - first.num_registered
+        try:  # (its progress ends at half the range: the second run may follow)
+            finished = finish(first, lambda f, s: report(0.5 * f, s) if f < 1.0 else None, t0)
         except ReconstructionError as exc:  # e.g. too few sparse points: the second images may give more
             first, first_error = None, exc
+        else:
+            if finished.num_registered == n:
+                if left_out:
+                    finished.extras.insert(0, {"step": "second_images", "seconds": 0.0, "skipped":
+                                               f"the masks registered the {left_out} view(s) SfM left out"})
+                report(1.0, "poses done")
+                return finished
     t1 = time.perf_counter()
-    second, second_error = _attempt(lambda: _run_sfm(
-        fallback_images, cameras, intrinsics, masks, options, Path(workdir) / "fallback",
-        lambda f, s: report(0.5 + 0.45 * f, f"{s} (second images)"), names=names, focal_priors=focal_priors,
+    second, second_error = _attempt(lambda: sfm(
+        fallback_images, workdir / "fallback", lambda f, s: report(0.5 + 0.45 * f, f"{s} (second images)")
     ))
     seconds = {"first_images": t1 - t0, "second_images": time.perf_counter() - t1}
+    registered_first = 0 if first is None else first.num_registered
+    if finished is not None:
+        registered_first = finished.num_registered
     # the model with more registered views first (ties: the first images'); only the kept one is finished
-    for run in sorted((r for r in (first, second) if r is not None), key=lambda r: -r.num_registered):
-        try:
-            model = _finish(run, names, cameras, masks, options, report, t0=t0)
-        except ReconstructionError as exc:
-            if run is first:
-                first_error = exc
-            else:
-                second_error = exc
-            continue
+    errors = [first_error, second_error]
+    runs = [(registered_first, r) for r in (first,) if r is not None]
+    runs += [(second.num_registered, second)] if second is not None else []
+    for _, run in sorted(runs, key=lambda r: -r[0]):
+        if run is first and finished is not None:
+            model = finished
+            model.timings["total"] = time.perf_counter() - t0
+        else:
+            try:
+                model = finish(run, report, t0)
+            except ReconstructionError as exc:
+                errors[1 if run is second else 0] = exc
+                continue
         model.fallback = run is second
         # the total counts both runs; "first_images" / "second_images" is the time of the run not kept
         other = "first_images" if model.fallback else "second_images"
         model.timings[other] = seconds[other]
         model.extras.insert(0, {
             "step": "second_images", "seconds": seconds["second_images"],
-            "registered_first": 0 if first is None else first.num_registered,
+            "registered_first": registered_first,
             "registered_second": 0 if second is None else second.num_registered, "kept": "second" if model.fallback
             else "first",
         })
-        return _noting(tried, model)
-    raise ReconstructionError(f"{first_error}; on the second images: {second_error}")
+        report(1.0, "poses done")
+        return model
+    raise ReconstructionError(f"{errors[0]}; on the second images: {errors[1]}")
+
+
+def _completable(run: _SfmRun, masks: Sequence[np.ndarray | None] | None, options: SfmOptions) -> bool:
+    """Whether :func:`_finish` registers the views ``run`` left out from their masks where their
+    silhouettes decide a pose: masks, the frontier adjustment and the silhouette registration on, and
+    at least ``sfm.silhouette_min_registered`` of the views registered."""
+    return (
+        not run.known and run.rec is not None and masks is not None and any(m is not None for m in masks)
+        and options.frontier_weight > 0 and options.silhouette_register_px > 0
+        and run.num_registered >= options.silhouette_min_registered * len(run.images)
+    )
 
 
 def _upsampling_try(
