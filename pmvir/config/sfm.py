@@ -140,9 +140,9 @@ class SfmOptions(_Options):
         json_schema_extra=advanced(),
     )
     frontier_iterations: int = Field(
-        default=1000, ge=1, le=100000,
-        description="Most L-BFGS iterations of the frontier adjustment (frontier_weight); it stops earlier once "
-        "converged, 1..100000.",
+        default=100, ge=1, le=100000,
+        description="Most Levenberg-Marquardt iterations of the frontier adjustment (frontier_weight); it stops "
+        "earlier once converged, 1..100000.",
         json_schema_extra=advanced(),
     )
     silhouette_register_px: float = Field(

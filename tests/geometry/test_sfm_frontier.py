@@ -281,3 +281,69 @@ def test_the_batched_polish_reaches_scipys_huber_minimum(scene: dict) -> None:
     for other, bound in ((R_scipy, 0.05), (R_true, 1.0)):  # degrees; it started 4 degrees off
         angle = np.degrees(np.arccos(np.clip((np.trace(R @ other.T) - 1) / 2, -1, 1)))
         assert angle < bound, angle
+
+
+def test_levenberg_marquardt_system_is_the_robust_gauss_newton_model(scene: dict) -> None:
+    """The adjustment's normal equations, assembled per observation and pair with the points
+    eliminated, are J^T diag(weights) J and J^T diag(weights) r of the residual vector (tracks'
+    x and y, frontier hi and lo, gauge) with its Jacobian by autograd, and their gradient is half of
+    the energy's (itself checked against finite differences above); the Schur-reduced step
+    solves the full system."""
+    from pmvir.geometry.sfm.frontier import (
+        FRONTIER_SCALE_PX,
+        GAUGE_WEIGHT,
+        TRACK_SCALE_PX,
+        _normal_equations,
+        _SchurStructure,
+    )
+
+    rng = np.random.default_rng(6)
+    moved = _perturbed(scene["cams"], [2, 5, 11], rng, size=0.03)
+    problem = _Problem.build(_reconstruction(moved, _surface_points(30, rng), scene["cams"]), scene["masks"])
+    assert problem is not None and problem.pairs
+    n_view, n_point = len(problem.C0), len(problem.X0)
+    w = torch.randn(n_view, 3, dtype=torch.float64) * 0.5
+    dc = torch.randn(n_view, 3, dtype=torch.float64) * 0.5
+    dx = torch.randn(n_point, 3, dtype=torch.float64) * 0.5
+    system = _normal_equations(problem, _SchurStructure.of(problem), 2.0, w, dc, dx)
+
+    def residuals(x: torch.Tensor) -> torch.Tensor:
+        xw, xc, xx = x[: 3 * n_view].view(-1, 3), x[3 * n_view: 6 * n_view].view(-1, 3), x[6 * n_view:].view(-1, 3)
+        uw, uc, ux = problem.unscaled(xw, xc, xx)
+        R, C, X = problem.state(uw, uc, ux)
+        v, p = problem.obs_view, problem.obs_point
+        img = torch.einsum("nij,nj->ni", problem.K[v], torch.einsum("nij,nj->ni", R[v], X[p] - C[v]))
+        tracks = (img[:, :2] / img[:, 2:] - problem.obs_xy).reshape(-1)
+        frontier = problem.frontier_residuals(R, C).reshape(-1)
+        gauge = torch.cat([uc[0], uw[0], ((C - C.mean(0)).norm(dim=-1).mean() - problem.spread0)[None]])
+        return torch.cat([tracks, frontier, gauge])
+
+    x = torch.cat([w.reshape(-1), dc.reshape(-1), dx.reshape(-1)])
+    r = residuals(x).detach()
+    J = torch.autograd.functional.jacobian(residuals, x)
+    n_obs, n_pair = len(problem.obs_view), len(problem.pairs)
+    e2 = r[: 2 * n_obs].view(-1, 2).pow(2).sum(-1)
+    f = r[2 * n_obs: 2 * n_obs + 2 * n_pair]
+    weights = torch.cat([
+        (1 / (1 + e2 / TRACK_SCALE_PX**2)).repeat_interleave(2),
+        2.0 * torch.clamp(FRONTIER_SCALE_PX / f.abs().clamp_min(1e-12), max=1.0),
+        torch.full((7,), GAUGE_WEIGHT, dtype=torch.float64),
+    ])
+    H = J.T @ (weights[:, None] * J)
+    g = J.T @ (weights * r)
+    # the camera variables in the system's order: per view (w, dc)
+    cam = torch.cat([torch.arange(3 * n_view).view(-1, 3), 3 * n_view + torch.arange(3 * n_view).view(-1, 3)], 1).reshape(-1)
+    pts = 6 * n_view + torch.arange(3 * n_point)
+    assert torch.allclose(system.U, H[cam][:, cam], rtol=1e-7, atol=1e-6)
+    assert torch.allclose(system.g_cam, g[cam], rtol=1e-7, atol=1e-6)
+    assert torch.allclose(system.g_point.reshape(-1), g[pts], rtol=1e-7, atol=1e-6)
+    Vp = H[pts][:, pts].view(n_point, 3, n_point, 3)
+    assert torch.allclose(system.Vp, torch.stack([Vp[k, :, k] for k in range(n_point)]), rtol=1e-7, atol=1e-6)
+    xt = x.clone().requires_grad_(True)
+    xw, xc, xx = xt[: 3 * n_view].view(-1, 3), xt[3 * n_view: 6 * n_view].view(-1, 3), xt[6 * n_view:].view(-1, 3)
+    (grad,) = torch.autograd.grad(problem.energy(*problem.unscaled(xw, xc, xx), weight=2.0), xt)
+    assert torch.allclose(2 * g, grad, rtol=1e-6, atol=1e-5)
+    step = system.solve(0.0)
+    assert step is not None
+    full = torch.cat([step[0].reshape(-1), step[1].reshape(-1), step[2].reshape(-1)])
+    assert torch.allclose(H @ full, -g, rtol=1e-6, atol=1e-6 * float(g.abs().max()))
