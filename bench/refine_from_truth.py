@@ -15,9 +15,15 @@ observations and visibility refresh). Accuracy and the normal error are measured
 completeness is printed too, but it depends on the vertex density, which differs from a
 reconstruction's.
 
-Prints a markdown table and writes bench/results/refine_from_truth.json (or --out).
+``--observations`` says what each variant fits: the decoded frames (``decoded``, the default); the
+renderer's noise-free AoP and DoP (gt/views/<frame>.npz) in place of the decoded ones
+(``noise-free-pol``: the floor the decoding's AoP leaves); those and its noise-free intensity
+(``noise-free``: what the model and the schedule leave of the true surface with exact data). The
+pixels each view fits and the AoP noise weights stay the decoded frames'.
+
+Prints a markdown table and writes bench/results/refine_from_truth_floor.json (or --out).
 Run: .venv/bin/python bench/refine_from_truth.py CAPTURE [--subdivide 1] [--iterations 40]
-     [--variant NAME key=value ...] [--samples 200000] [--offset D]
+     [--variant NAME key=value ...] [--samples 200000] [--offset D] [--observations decoded noise-free]
      e.g. --variant mvir pol.enabled=false --variant full --variant rho1 pol.dop_weight_power=1
 """
 
@@ -26,6 +32,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -41,8 +48,37 @@ from pmvir.geometry.visibility import vertex_visibility
 from pmvir.io.ply import Mesh, read_mesh, vertex_normals
 from pmvir.pipeline import decode_views, refinement_observations
 from pmvir.refine import make_visibility_fn, refine_surface
+from pmvir.refine.sampling import Observation
 
 ROOT = Path(__file__).resolve().parent
+
+
+#: What the variants fit (module docstring).
+OBSERVATIONS = ("decoded", "noise-free-pol", "noise-free")
+
+
+def noise_free(capture: Path, stems: list[str], observations: list[Observation], kind: str, intensity: str) -> list[Observation]:
+    """The observations with the renderer's noise-free AoP and DoP (``kind`` 'noise-free-pol') and
+    intensity ('noise-free': I_min = (1 - DoP) I_int, or I_int as ``intensity`` says) from
+    gt/views/<stem>.npz; the valid pixels are the decoded ones where the renderer's are defined."""
+    out = []
+    for stem, obs in zip(stems, observations, strict=True):
+        path = capture / "gt" / "views" / f"{stem}.npz"
+        if not path.is_file():
+            raise PmvirError(f"{path}: not found (noise-free observations need a synthetic capture's gt/views)")
+        with np.load(path) as g:
+            aop, dop, i_int, mask = g["aop"], g["dop"], g["i_int"], g["mask"]
+        if aop.shape != obs.aop.shape:
+            raise PmvirError(f"{path}: {aop.shape[1]}x{aop.shape[0]}, the observations are "
+                             f"{obs.aop.shape[1]}x{obs.aop.shape[0]} (refine at the frames' size)")
+        valid = obs.valid & mask & np.isfinite(aop) & np.isfinite(dop) & np.isfinite(i_int).all(axis=2)
+        dop = np.nan_to_num(dop).astype(np.float32)
+        new = replace(obs, aop=np.nan_to_num(aop).astype(np.float32), dop=dop, valid=valid)
+        if kind == "noise-free":
+            linear = np.nan_to_num(i_int).astype(np.float32)
+            new = replace(new, intensity=linear if intensity == "int" else (1.0 - dop)[..., None] * linear)
+        out.append(new)
+    return out
 
 
 def parse_variants(tokens: list[list[str]]) -> dict[str, dict]:
@@ -73,7 +109,12 @@ def main() -> None:
         help="start from the true surface moved along its vertex normals by this many GT diagonals "
         "(negative: inward), to see whether the refinement removes an offset every vertex shares",
     )
-    parser.add_argument("--out", type=Path, default=ROOT / "results" / "refine_from_truth.json")
+    parser.add_argument(
+        "--observations", nargs="+", choices=OBSERVATIONS, default=["decoded"],
+        help="what every variant fits, each in turn: the decoded frames, the renderer's noise-free AoP and DoP, "
+        "or those and its noise-free intensity",
+    )
+    parser.add_argument("--out", type=Path, default=ROOT / "results" / "refine_from_truth_floor.json")
     args = parser.parse_args()
     variants = parse_variants(args.variant or [["mvir", "pol.enabled=false"], ["full"]])
     try:
@@ -84,6 +125,7 @@ def main() -> None:
             iterations=args.iterations,
             samples=args.samples,
             offset=args.offset,
+            observations=args.observations,
         )
     except PmvirError as e:
         sys.exit(f"error: {e}")
@@ -99,25 +141,26 @@ def main() -> None:
         tables=[
             table(
                 f"{args.capture.name}{made}: refined from {start} ({rows[0]['vertices']:,} vertices)",
-                ["variant", "options", "accuracy x1e-2", "signed offset x1e-2", "completeness x1e-2",
+                ["variant", "observations", "options", "accuracy x1e-2", "signed offset x1e-2", "completeness x1e-2",
                  "normal error mean deg", "normal error median deg", "seconds"],
-                [[r["variant"], r["options"] or "defaults", round(100 * r["accuracy"], 4),
+                [[r["variant"], r["observations"], r["options"] or "defaults", round(100 * r["accuracy"], 4),
                   round(100 * r["signed_offset"], 4), round(100 * r["completeness"], 4),
                   round(r["normal_error"], 2), round(r["normal_error_median"], 2), round(r["time"])]
                  for r in rows],
             )
         ],
-        data={"capture": str(args.capture), "subdivide": args.subdivide, "offset": args.offset, "rows": rows},
+        data={"capture": str(args.capture), "subdivide": args.subdivide, "offset": args.offset,
+              "observations": args.observations, "rows": rows},
     )
     print(f"\n{args.capture}: refinement started from {start} ({rows[0]['vertices']:,} vertices)\n")
     print(
-        "| variant | options | accuracy (x1e-2) | signed offset (x1e-2) | completeness (x1e-2) "
+        "| variant | observations | options | accuracy (x1e-2) | signed offset (x1e-2) | completeness (x1e-2) "
         "| normal err. mean (deg) | normal err. median (deg) | time (s) |"
     )
-    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    print("|---|---|---|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(
-            f"| {r['variant']} | {r['options'] or 'defaults'} | {100 * r['accuracy']:.4f} "
+            f"| {r['variant']} | {r['observations']} | {r['options'] or 'defaults'} | {100 * r['accuracy']:.4f} "
             f"| {100 * r['signed_offset']:+.4f} | {100 * r['completeness']:.4f} "
             f"| {r['normal_error']:.2f} | {r['normal_error_median']:.2f} | {r['time']:.0f} |"
         )
@@ -131,6 +174,7 @@ def run(
     iterations: int,
     samples: int,
     offset: float = 0.0,
+    observations: list[str] | tuple[str, ...] = ("decoded",),
 ) -> list[dict]:
     """Refine every variant from the capture's true surface (moved ``offset`` GT diagonals along its
     vertex normals); one row per variant, the unrefined start first."""
@@ -148,6 +192,7 @@ def run(
         if len(cameras) < len(known):
             raise PmvirError(f"{capture}: every frame needs intrinsics and a pose (the true ones)")
         masks = [cap.read_mask(i) for i in range(len(cap.frames))]
+        stems = [Path(frame.file).stem for frame in cap.frames]
         views = decode_views(cap, config)
     vis_opts = config.geometry.visibility
     visibility = vertex_visibility(
@@ -158,6 +203,7 @@ def run(
     rows = [
         {
             "variant": "start",
+            "observations": "-",
             "options": "(not refined)",
             "vertices": len(vertices),
             "accuracy": start.accuracy,
@@ -168,18 +214,20 @@ def run(
             "time": 0.0,
         }
     ]
-    for name, overrides in variants.items():
+    for kind, (name, overrides) in ((k, v) for k in observations for v in variants.items()):
         opts = RefineOptions.model_validate(
             merge_options(config.refine.model_dump(), merge_options({"solver": {"max_iterations": iterations}}, overrides))
         )
         with open_capture(capture) as cap:  # refine.demosaic may decode the frames once more
-            observations = refinement_observations(cap, views, list(range(len(views))), config.decode, opts)
+            fitted = refinement_observations(cap, views, list(range(len(views))), config.decode, opts)
+        if kind != "decoded":
+            fitted = noise_free(capture, stems, fitted, kind, opts.pho.intensity)
         t0 = time.perf_counter()
         refined = refine_surface(
             vertices,
             faces,
             cameras,
-            observations,
+            fitted,
             visibility,
             options=opts,
             visibility_fn=visibility_fn,
@@ -190,6 +238,7 @@ def run(
         rows.append(
             {
                 "variant": name,
+                "observations": kind,
                 "options": " ".join(f"{k}={v}" for k, v in overrides.items()),
                 "vertices": len(vertices),
                 "accuracy": ev.accuracy,
@@ -201,7 +250,7 @@ def run(
             }
         )
         print(
-            f"{name}: accuracy {100 * ev.accuracy:.4f}e-2, normal error {ev.normal_error:.2f} deg, {elapsed:.0f} s",
+            f"{name} ({kind}): accuracy {100 * ev.accuracy:.4f}e-2, normal error {ev.normal_error:.2f} deg, {elapsed:.0f} s",
             flush=True,
         )
     return rows

@@ -65,16 +65,17 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/refine.py",
         "MVIR (the same refinement without the polarimetric term)",
     ),
-    "refine_from_truth": (
-        "Refinement started from the true surface",
-        f"{PY} bench/refine_from_truth.py CAPTURE --variant mvir pol.enabled=false --variant full",
-        "MVIR",
-    ),
     "refine_from_truth_pathtraced": (
         "Refinement started from the true surface of a path-traced capture",
         f"{PY} bench/refine_from_truth.py CAPTURE --out bench/results/refine_from_truth_pathtraced.json "
         "--variant full --variant mvir pol.enabled=false --variant flat-15 'stages.tau_pol=[15,15,15]' "
         "--variant flat-5 'stages.tau_pol=[5,5,5]' --variant abs-4 pol.aop_noise_scale_deg=4",
+        "MVIR",
+    ),
+    "refine_from_truth_floor": (
+        "Refinement from the true surface with noise-free data: what leaves the true relief",
+        f"{PY} bench/refine_from_truth.py CAPTURE --out bench/results/refine_from_truth_floor.json "
+        "--observations decoded noise-free-pol noise-free",
         "MVIR",
     ),
     "relief_aop": (
