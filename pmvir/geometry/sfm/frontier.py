@@ -427,15 +427,6 @@ class _Problem:
         """(R, C, X) at the increments: R = R0 exp(w), C = C0 + dc, X = X0 + dx."""
         return torch.einsum("vij,vjk->vik", self.R0, _rodrigues(w)), self.C0 + dc, self.X0 + dx
 
-    def _frame(self, C: torch.Tensor, i: int, j: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The pencil's frame for pair (i, j): baseline direction b, a1 toward the centre, a2."""
-        b = C[j] - C[i]
-        b = b / b.norm()
-        a1 = self.centre - C[i]
-        a1 = a1 - (a1 @ b) * b
-        a1 = a1 / a1.norm()
-        return b, a1, torch.linalg.cross(b, a1)
-
     def _angles(self, R: torch.Tensor, k: int, a1: torch.Tensor, a2: torch.Tensor) -> torch.Tensor:
         rays = self.rays[k]
         assert rays is not None
@@ -447,11 +438,10 @@ class _Problem:
         masked = [k for k, r in enumerate(self.rays) if r is not None]
         for a, i in enumerate(masked):
             for j in masked[a + 1:]:
-                _, a1, a2 = self._frame(self.C0, i, j)
+                b, a1, a2 = _pencils(self.C0[i], self.C0[j], self.centre)
                 spans = [self._angles(self.R0, k, a1, a2) for k in (i, j)]
                 if all(s.abs().max() < MAX_ANGLE and (s.max() - s.min()) < MAX_SPAN for s in spans):
                     to_centre = self.centre - self.C0[i]
-                    b = (self.C0[j] - self.C0[i]) / (self.C0[j] - self.C0[i]).norm()
                     sin = (to_centre - (to_centre @ b) * b).norm() / to_centre.norm()
                     pairs.append((i, j))
                     scales.append(float(self.K[i, 0, 0] * sin))

@@ -350,9 +350,9 @@ def _first_then_second(
         fallback_images, workdir / "fallback", lambda f, s: report(0.5 + 0.45 * f, f"{s} (second images)")
     ))
     seconds = {"first_images": t1 - t0, "second_images": time.perf_counter() - t1}
-    registered_first = 0 if first is None else first.num_registered
-    if finished is not None:
-        registered_first = finished.num_registered
+    registered_first = (
+        finished.num_registered if finished is not None else 0 if first is None else first.num_registered
+    )
     # the model with more registered views first (ties: the first images'); only the kept one is finished
     errors = [first_error, second_error]
     runs = [(registered_first, r) for r in (first,) if r is not None]
