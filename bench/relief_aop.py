@@ -177,14 +177,20 @@ def dop_free(name: str) -> bool:
     return name.startswith("noise-free")
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("captures", type=Path, nargs="+", metavar="CAPTURE",
-                        help="synthetic captures (gt/views with normals)")
+def relief_arguments(description: str, captures_help: str, out: Path) -> argparse.Namespace:
+    """The command line of a benchmark over synthetic captures' relief pixels: the captures,
+    --relief-px, --relief-deg and --out (default ``out``)."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("captures", type=Path, nargs="+", metavar="CAPTURE", help=captures_help)
     parser.add_argument("--relief-px", type=float, default=4.0, help="blur (Gaussian sigma, px) of the smooth normals")
     parser.add_argument("--relief-deg", type=float, default=5.0, help="turn (deg) from the smooth normal that is relief")
-    parser.add_argument("--out", type=Path, default=ROOT / "results" / "relief_aop.json")
-    args = parser.parse_args()
+    parser.add_argument("--out", type=Path, default=out)
+    return parser.parse_args()
+
+
+def main() -> None:
+    args = relief_arguments(__doc__.splitlines()[0], "synthetic captures (gt/views with normals)",
+                            ROOT / "results" / "relief_aop.json")
     tables, data = [], {}
     for capture in args.captures:
         res = measure(capture, args.relief_px, args.relief_deg)

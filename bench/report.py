@@ -68,8 +68,8 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
     "refine_from_truth_pathtraced": (
         "Refinement started from the true surface of a path-traced capture",
         f"{PY} bench/refine_from_truth.py CAPTURE --out bench/results/refine_from_truth_pathtraced.json "
-        "--variant full --variant mvir pol.enabled=false --variant flat-15 'stages.tau_pol=[15,15,15]' "
-        "--variant flat-5 'stages.tau_pol=[5,5,5]' --variant abs-4 pol.aop_noise_scale_deg=4",
+        "--observations decoded noise-free-pol --variant full --variant mvir pol.enabled=false "
+        "--variant abs-4 pol.aop_noise_scale_deg=4",
         "MVIR",
     ),
     "refine_from_truth_floor": (
@@ -82,6 +82,11 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         "Decoded AoP at fine relief",
         f"{PY} bench/relief_aop.py CAPTURE",
         "the renderer's noise-free AoP",
+    ),
+    "aop_error_sources": (
+        "Where the decoded AoP's error comes from",
+        f"{PY} bench/aop_error_sources.py CAPTURE [CAPTURE ...] (captures rendered with pmvir synth --save-stokes)",
+        "the renderer's own AoP",
     ),
     "refine_speed": (
         "Refinement speed and memory",
