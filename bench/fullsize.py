@@ -7,7 +7,7 @@ resident memory). The child records each stage's own peak (the kernel's high-wat
 at every stage boundary through ``/proc/self/clear_refs``) and time; the mesh is evaluated
 against the ground truth. A size's views can be set apart (``--views-for 2448x2048=12``).
 Prints a table with each run's working size, vertices, time per stage, its time per megapixel
-and view, and its accuracy against the smallest run; writes bench/results/fullsize.json
+and view, its accuracy against the smallest run and its median normal error; writes bench/results/fullsize.json
 (``--append`` keeps the stored runs of the other sizes).
 
     .venv/bin/python bench/fullsize.py [--views 36] [--sizes 612x512 1224x1024 2448x2048] [--work DIR]
@@ -150,9 +150,10 @@ def fit_memory(runs: list[dict]) -> dict[str, float] | None:
 
 
 def _row(r: dict, reference: dict | None) -> list:
-    """One table row: sizes, vertices, peaks, seconds per stage, the time per megapixel and view, accuracy."""
+    """One table row: sizes, vertices, peaks, seconds per stage, the time per megapixel and view, accuracy,
+    completeness and the median normal error."""
     if "error" in r:
-        return [r["size"], r["views"], None, None, None, None, None, None, None, None, None, None, None, "failed"]
+        return [r["size"], r["views"], None, None, None, None, None, None, None, None, None, None, None, "failed", None]
     peaks, secs = r["stage_peak_gib"], r["stage_s"]
     res = r["resolution"] or {}
     per_mpv = round(r["total_s"] / r["megapixels_x_views"], 2)
@@ -165,6 +166,7 @@ def _row(r: dict, reference: dict | None) -> list:
         peaks.get("decode"), peaks.get("geometry"), peaks.get("refine"),
         secs.get("decode"), secs.get("geometry"), secs.get("refine"), per_mpv,
         f"{r['accuracy'] * 100:.4f}{versus}", f"{r['completeness'] * 100:.4f}",
+        None if r.get("normal_error_median") is None else round(r["normal_error_median"], 2),
     ]
 
 
@@ -199,6 +201,7 @@ def main() -> None:
     columns = [
         "frames", "views", "working size", "vertices", "peak RSS GiB", "decode GiB", "geometry GiB", "refine GiB",
         "decode s", "geometry s", "refine s", "s per MP x view", "accuracy x1e-2", "completeness x1e-2",
+        "normal error median deg",
     ]
     options = ", ".join(args.overrides) or "default options"
     tab = table(f"Full-size captures: peak memory and time per stage ({options})", columns, rows,
