@@ -19,8 +19,8 @@ What is inferred, and from what:
   white level, a PNG's ``sBIT`` or a TIFF's ``MaxSampleValue`` where present; otherwise
   the smallest of 12, 14 and 16 bits that holds the largest sample of all frames (12-bit
   data in 16-bit files keeps its values 0..4095, spec section 1).
-* **black level**: :attr:`InferOptions.black_level`, else the DNG's, else 0; the white
-  level the DNG's, else 2^bit_depth - 1.
+* **black level**: :attr:`InferOptions.black_level`, else the DNG's, else 0 (with a note when no frame
+  goes near 0: a pedestal the user may give); the white level the DNG's, else 2^bit_depth - 1.
 * **layout**: :attr:`InferOptions.layout` (IMX250MYR by default).
 * **intrinsics**: from EXIF where every frame has a focal length (:mod:`pmvir.io.exif`;
   the IMX250's 3.45 um pixel pitch turns a bare ``FocalLength`` into pixels), marked
@@ -181,6 +181,7 @@ class _Scan:
     size_file: str = ""
     container: dict[int, str] = field(default_factory=dict)  # bits -> a file with them
     peak: int = 0
+    floor: int | None = None  # the lowest of the frames' 0.01th-percentile samples (a black-level hint)
     declared: dict[str, int] = field(default_factory=dict)  # file -> bit depth its container declares
     dng: list[tuple[str, float, int]] = field(default_factory=list)  # (file, black, white)
     raw: RawFormat | None = None
@@ -211,6 +212,8 @@ def _scan(files: Sequence[Path], root: Path, options: InferOptions, period: int)
         bits = {"uint8": 8, "mono12p": 12}.get(raw.dtype, 16) if raw is not None else 8 * samples.dtype.itemsize
         scan.container.setdefault(bits, name)
         scan.peak = max(scan.peak, int(samples.max()))
+        low = int(np.partition(samples.ravel(), samples.size // 10_000)[samples.size // 10_000])
+        scan.floor = low if scan.floor is None else min(scan.floor, low)
         if fmt == "dng":
             black, white = dng_levels(p, label=name)
             scan.dng.append((name, black, white))
@@ -241,6 +244,10 @@ def _bit_depth(scan: _Scan, n_files: int, notes: list[str]) -> int:
     return depth
 
 
+#: Darkest samples at or above this fraction of the full scale make the black-level note point at a pedestal.
+_PEDESTAL_HINT = 0.005
+
+
 def _levels(scan: _Scan, options: InferOptions, bit_depth: int, notes: list[str]) -> tuple[float, float | None]:
     white: float | None = None
     black = 0.0
@@ -256,7 +263,11 @@ def _levels(scan: _Scan, options: InferOptions, bit_depth: int, notes: list[str]
     elif scan.dng:
         notes.append(f"black level {black:g}: from {scan.dng[0][0]}")
     else:
-        notes.append("black level 0: none given (--black-level), the files hold none")
+        note = "black level 0: none given (--black-level), the files hold none"
+        if scan.floor and scan.floor >= _PEDESTAL_HINT * (1 << bit_depth):
+            note += (f"; yet no frame goes below {scan.floor} (0.01 % of its samples): if the camera adds a "
+                     "pedestal, give it with --black-level")
+        notes.append(note)
     top = white if white is not None else float((1 << bit_depth) - 1)
     if not black < top:
         raise ConfigError(f"black level {black:g} must be below the white level {top:g} (bit depth {bit_depth})")

@@ -48,6 +48,21 @@ def test_twelve_bit_data_in_sixteen_bit_pngs_is_twelve_bit_with_the_default_layo
     assert any("layout IMX250MYR" in n for n in inferred.notes)
 
 
+def test_frames_that_never_go_near_zero_point_at_a_black_level_without_setting_one(tmp_path):
+    dark = [n for n in infer_manifest(_folder(tmp_path / "dark")).notes if n.startswith("black level")]
+    assert dark == ["black level 0: none given (--black-level), the files hold none"]
+    root = tmp_path / "pedestal"
+    root.mkdir()
+    for i in range(2):  # a 64 DN pedestal under every sample, as pmvir synth's sensor and many cameras add
+        samples = 64 + _samples(i, 3000)
+        samples[1, 1] = 64
+        write_frame(root / f"img{i}.png", samples, bit_depth=12)
+    inferred = infer_manifest(root)
+    assert inferred.manifest.sensor.black_level == 0  # a hint only: the level stays the user's to give
+    (note,) = [n for n in inferred.notes if n.startswith("black level")]
+    assert "no frame goes below 64" in note and "--black-level" in note
+
+
 def test_sixteen_bit_data_and_eight_bit_files(tmp_path):
     assert infer_manifest(_folder(tmp_path / "a", bit_depth=16, top=60000)).manifest.sensor.bit_depth == 16
     assert infer_manifest(_folder(tmp_path / "b", bit_depth=14, top=9000)).manifest.sensor.bit_depth == 14
