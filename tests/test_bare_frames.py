@@ -130,6 +130,9 @@ def test_a_bare_folder_of_frames_reconstructs_with_sfm(synthetic: Path, tmp_path
     assert report["capture"]["manifest"] == "inferred"
     poses = report["geometry"]["poses"]
     assert poses["mode"] == "sfm" and poses["registered_views"] >= 22, poses
+    left_out = [w for w in report["warnings"] if w.startswith("SfM registered")]  # named when any is
+    assert len(left_out) == (poses["registered_views"] < len(truth.frames)), report["warnings"]
+    assert all(name in left_out[0] for name in poses["unregistered"])
     cameras, _ = read_colmap_text_model(out / "poses")
     focal = np.array([c.params[0] for c in cameras.values()])
     # refined from the EXIF focal length (10% off) to within 3% of the truth

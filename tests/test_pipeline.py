@@ -24,6 +24,7 @@ from pmvir.pipeline import (
     refinement_options,
     run,
     specular_warning,
+    unregistered_warning,
     within_mask,
 )
 from pmvir.polarization.layout import ANGLES_DEG, IMX250MYR, mosaic
@@ -118,6 +119,14 @@ def test_specular_captures_are_refined_without_the_offset_scan() -> None:
     assert refinement_options(keep, 0.35).offset_scan.mode == default.offset_scan.mode
     assert "runs as set" in (specular_warning(0.35, keep) or "")
     assert specular_warning(0.1, default) is None
+
+
+def test_views_sfm_left_out_are_named_in_a_warning() -> None:
+    assert unregistered_warning(["a", "b", "c"], [True, True, True]) is None
+    warning = unregistered_warning(["000", "001", "002", "003"], [True, False, True, False]) or ""
+    assert warning.startswith("SfM registered 2 of 4 views; 001, 003 are left out")
+    many = unregistered_warning([f"{i:03d}" for i in range(40)], [i < 20 for i in range(40)]) or ""
+    assert "019" not in many and "020" in many and "031" in many and "032" not in many and "8 more" in many
 
 
 def test_masks_the_isolation_drew_get_no_silhouette_fits() -> None:
