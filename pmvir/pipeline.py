@@ -167,7 +167,7 @@ def unregistered_warning(names: Sequence[str], registered: Sequence[bool]) -> st
         f"SfM registered {len(names) - len(missing)} of {len(names)} views; {shown} are left out of the mesh, "
         "the albedo and the lighting. They share too few features with the registered views: views about "
         "10-20 degrees apart around the object register, and so do views given with their poses. "
-        "report.json (geometry.poses) says what each SfM step found."
+        "report.json's poses section says what each SfM step found."
     )
 
 
