@@ -158,6 +158,36 @@ def test_clean_mesh_keeps_one_manifold_component_without_slivers():
     assert triangle_min_angles(vc, fc).min() >= np.radians(2.0)
 
 
+def test_small_components_inside_the_largest_ones_hull_are_floaters_and_go():
+    """Of the supported components (min_support 200), one inside an open bowl's hull with under 1 % of
+    the bowl's support is removed as a floater; one as small outside the hull and one inside with more
+    support stay, and the report names all four."""
+    bowl_v, bowl_f = _icosphere(3, 1.0)
+    bowl_f = bowl_f[(bowl_v[bowl_f][:, :, 2] < 0.3).all(1)]  # a bowl open at the top
+    pieces = [(bowl_v, bowl_f, None)]
+    for centre in ((0.0, 0.0, -0.2), (2.0, 0.0, 0.0), (0.5, 0.0, -0.2)):  # floater, outside, inside but larger
+        small_v, small_f = _icosphere(1, 0.1)
+        pieces.append((small_v + np.array(centre), small_f, np.array(centre)))
+    offsets = np.cumsum([0] + [len(p[0]) for p in pieces[:-1]])
+    v = np.concatenate([p[0] for p in pieces])
+    f = np.concatenate([p[1] + o for p, o in zip(pieces, offsets, strict=True)])
+    bowl_points = 50_000  # support: 1 % of it is 500 points
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(4 * bowl_points, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    support = [d[d[:, 2] < 0.25][:bowl_points]]
+    for centre, n in zip((p[2] for p in pieces[1:]), (250, 250, 800), strict=True):
+        e = rng.normal(size=(n, 3))
+        support.append(centre + 0.1 * e / np.linalg.norm(e, axis=1, keepdims=True))
+    components: list[dict[str, object]] = []
+    vc, _ = clean_topology(v, f, support=np.concatenate(support), min_support=200, components=components)
+    kept = {(c["points"], c["kept"]) for c in components}
+    assert kept == {(bowl_points, True), (250, False), (250, True), (800, True)}, components
+    assert sum("floater" in str(c["why"]) for c in components) == 1
+    nearest = [np.linalg.norm(vc - p[2], axis=1).min() for p in pieces[1:]]
+    assert nearest[0] > 0.11 and nearest[1] < 0.11 and nearest[2] < 0.11  # the floater's vertices are gone
+
+
 def test_clean_topology_stops_at_a_pass_another_pass_would_not_change():
     """Its passes end once the mesh is manifold and consistently oriented: cleaning the result again
     changes nothing (a duplicated face, a fin and a bow-tie vertex are removed on the way)."""
