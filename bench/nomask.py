@@ -177,14 +177,16 @@ def main() -> int:
     ap.add_argument("--append", action="store_true",
                     help="keep the runs already in the result file (a new run replaces one of the same row key)")
     ap.add_argument("--masks", default="true,none",
-                    help="which runs per capture: true (its true masks), none (no masks), or both; with --append "
-                    "the stored rows of the other stay")
+                    help="which runs per capture, comma-separated: true (its true masks), none (no masks); with "
+                    "--append the stored rows of the other stay")
     ap.add_argument("--reuse", action="store_true",
                     help="keep a capture already rendered in --work with the same options instead of rendering it again")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="an option for every reconstruction (pmvir reconstruct --set), repeatable")
     ap.add_argument("--results", default="", help="write bench/results/NAME.json instead of nomask(_refine).json")
     args = ap.parse_args()
+    if not args.masks or not set(args.masks.split(",")) <= {"true", "none"}:
+        ap.error(f"--masks {args.masks!r}: expected true, none or true,none")
 
     earlier = RESULTS / f"{_name(args)}.json"
     runs = json.loads(earlier.read_text())["runs"] if args.append and earlier.exists() else []
