@@ -71,14 +71,14 @@ def _keep_components(mesh, support: np.ndarray | None, min_support: int) -> list
         return []
     largest = int(np.argmax(counts))
     votes = np.zeros(len(counts), np.int64)
+    vertices = np.asarray(mesh.vertices, np.float64)
+    vertex_cluster = np.full(len(vertices), -1, np.int64)
+    vertex_cluster[np.asarray(mesh.triangles).ravel()] = np.repeat(clusters, 3)
     if support is not None and len(support):
         from scipy.spatial import cKDTree
 
-        tri = np.asarray(mesh.triangles)
-        vertex_cluster = np.full(len(mesh.vertices), -1, np.int64)
-        vertex_cluster[tri.ravel()] = np.repeat(clusters, 3)
         used = np.flatnonzero(vertex_cluster >= 0)
-        _, nearest = cKDTree(np.asarray(mesh.vertices)[used]).query(support, k=1)
+        _, nearest = cKDTree(vertices[used]).query(support, k=1)
         votes = np.bincount(vertex_cluster[used[nearest]], minlength=len(counts))
     report = []
     keep = np.zeros(len(counts), bool)
@@ -92,8 +92,8 @@ def _keep_components(mesh, support: np.ndarray | None, min_support: int) -> list
             ok = bool(votes[c] >= min_support)
             why = f"{votes[c]} fused points {'>=' if ok else '<'} min_component_points {min_support}"
             if ok and min_support > 0 and votes[c] < FLOATER_MAX_SHARE * votes[largest]:
-                hull = _component_hull(mesh, clusters, largest) if hull is None else hull
-                if _inside_hull(hull, _component_vertices(mesh, clusters, c)):
+                hull = _hull_planes(vertices[vertex_cluster == largest]) if hull is None else hull
+                if _inside_hull(hull, vertices[vertex_cluster == c]):
                     ok = False
                     why = (f"a floater: {votes[c]} fused points, under {FLOATER_MAX_SHARE:.0%} of the largest "
                            "component's, inside its convex hull")
@@ -104,19 +104,13 @@ def _keep_components(mesh, support: np.ndarray | None, min_support: int) -> list
     return report
 
 
-def _component_vertices(mesh, clusters: np.ndarray, c: int) -> np.ndarray:
-    """(K, 3) float64 the vertices of component ``c`` (``clusters``: per triangle its component)."""
-    tri = np.asarray(mesh.triangles)[clusters == c]
-    return np.asarray(mesh.vertices, np.float64)[np.unique(tri)]
-
-
-def _component_hull(mesh, clusters: np.ndarray, c: int) -> np.ndarray | None:
-    """(H, 4) the facet planes (outward normal, offset) of component ``c``'s convex hull, or None
-    when it has none (flat or too few vertices)."""
+def _hull_planes(points: np.ndarray) -> np.ndarray | None:
+    """(H, 4) the facet planes (outward normal, offset) of the points' convex hull, or None when they
+    have none (flat or too few points)."""
     from scipy.spatial import ConvexHull, QhullError
 
     try:
-        return np.asarray(ConvexHull(_component_vertices(mesh, clusters, c)).equations)
+        return np.asarray(ConvexHull(points).equations)
     except (QhullError, ValueError):
         return None
 
