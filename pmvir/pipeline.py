@@ -157,14 +157,14 @@ def specular_warning(median_dop: float | None, options: RefineOptions) -> str | 
     )
 
 
-def unregistered_warning(names: Sequence[str], registered: Sequence[bool]) -> str | None:
-    """The warning for views SfM could not place (they are left out of the mesh, albedo and lighting), or None."""
-    missing = [name for name, ok in zip(names, registered, strict=True) if not ok]
+def unregistered_warning(missing: Sequence[str], views: int) -> str | None:
+    """The warning for the views SfM could not place (``missing``, of ``views``; they are left out of the
+    mesh, albedo and lighting), or None when there are none."""
     if not missing:
         return None
     shown = ", ".join(missing[:12]) + (f" and {len(missing) - 12} more" if len(missing) > 12 else "")
     return (
-        f"SfM registered {len(names) - len(missing)} of {len(names)} views; {shown} are left out of the mesh, "
+        f"SfM registered {views - len(missing)} of {views} views; {shown} are left out of the mesh, "
         "the albedo and the lighting. They share too few features with the registered views: views about "
         "10-20 degrees apart around the object register, and so do views given with their poses. "
         "report.json's poses section says what each SfM step found."
@@ -365,8 +365,8 @@ def run(
                     if cache is not None:
                         stage_cache.save_stage(cache, Stage.GEOMETRY, config, geometry)
                 write_geometry(result, geometry)
-                sections["geometry"] = geometry_report(geometry)
-                if (warning := unregistered_warning(geometry.names, geometry.registered)) is not None:
+                sections["geometry"] = report = geometry_report(geometry)
+                if (warning := unregistered_warning(report["poses"]["unregistered"], len(geometry.names))) is not None:
                     warnings.append(warning)
         if Stage.REFINE in stages:
             with progress.step(Stage.REFINE, weight[Stage.REFINE]) as p:
