@@ -212,11 +212,19 @@ def _check_pixels(label: str, width: int, height: int) -> None:
         )
 
 
+#: What a colour frame is missing: the mosaic the polarization and colour are decoded from.
+_RAW_HINT = (
+    "pmvir reads the sensor's raw mosaic (one sample per pixel, as the camera saves Mono8, Mono12 or "
+    "Mono16 frames), not a demosaiced colour image"
+)
+
+
 def _check_png_kind(label: str, bit_depth: int, colour_type: int) -> None:
     if colour_type != 0:
-        kinds = {2: "RGB", 3: "palette", 4: "grey+alpha", 6: "RGBA"}
+        kinds = {2: "an RGB", 3: "a palette", 4: "a grey+alpha", 6: "an RGBA"}
         raise FrameError(
-            label, f"expected a single-channel greyscale PNG, got a {kinds.get(colour_type, '?')} image"
+            label,
+            f"expected a single-channel greyscale PNG, got {kinds.get(colour_type, 'a colour')} image; {_RAW_HINT}",
         )
     if bit_depth not in (8, 16):
         raise FrameError(label, f"expected an 8- or 16-bit PNG, got {bit_depth}-bit")
@@ -241,7 +249,7 @@ def _tiff_page(tif: tifffile.TiffFile, label: str) -> tifffile.TiffPage:
         raise FrameError(label, "TIFF has no image")
     page = tif.pages.first
     if page.samplesperpixel != 1 or len(page.shape) != 2:
-        raise FrameError(label, f"expected a single-channel TIFF, got shape {page.shape}")
+        raise FrameError(label, f"expected a single-channel TIFF, got shape {page.shape}; {_RAW_HINT}")
     if page.dtype not in (np.dtype(np.uint8), np.dtype(np.uint16)):
         raise FrameError(label, f"expected an 8- or 16-bit unsigned TIFF, got {page.dtype}")
     _check_pixels(label, int(page.shape[1]), int(page.shape[0]))

@@ -279,8 +279,13 @@ def test_sift_image_is_exposure_invariant_8bit() -> None:
 
 
 def test_too_few_views_is_an_error(sfm_views: dict, tmp_path: Path) -> None:
-    with pytest.raises(ReconstructionError, match="too few views: 2 given"):
-        estimate_poses(sfm_views["images"][:2], sfm_views["names"][:2], options=SfmOptions(), workdir=tmp_path)
+    """Said once, before any SfM run: not again for the second images."""
+    images = sfm_views["images"][:2]
+    with pytest.raises(ReconstructionError, match="too few views: 2 given") as info:
+        estimate_poses(images, sfm_views["names"][:2], options=SfmOptions(), workdir=tmp_path,
+                       fallback_images=images)
+    assert str(info.value).count("too few views") == 1, str(info.value)
+    assert not (tmp_path / "without-upsampling").exists()
 
 
 def test_textureless_object_is_an_error_in_sfm(textureless_capture: Path, tmp_path: Path) -> None:

@@ -174,14 +174,14 @@ def test_rgb_png_is_multi_channel(tmp_path):
 
     p = tmp_path / "rgb.png"
     cv2.imwrite(str(p), np.zeros((8, 8, 3), np.uint8))
-    with pytest.raises(FrameError, match=r"rgb\.png.*single-channel.*RGB"):
+    with pytest.raises(FrameError, match=r"rgb\.png.*single-channel.*an RGB image.*raw mosaic"):
         read_frame(p)
 
 
 def test_rgb_tiff_is_multi_channel(tmp_path):
     p = tmp_path / "rgb.tif"
     tifffile.imwrite(p, np.zeros((8, 8, 3), np.uint16), photometric="rgb")
-    with pytest.raises(FrameError, match=r"rgb\.tif.*single-channel"):
+    with pytest.raises(FrameError, match=r"rgb\.tif.*single-channel.*raw mosaic"):
         read_frame(p)
 
 

@@ -275,6 +275,7 @@ def estimate_poses(
             views; too few 3D points. The message names the views that failed.
     """
     report = progress or (lambda fraction, step: None)
+    _enough_views(len(images), options)  # once, before any run (each run would say it again)
     known = cameras is not None and all(c is not None for c in cameras) and len(cameras) == len(images)
     if fallback_images is not None and len(fallback_images) != len(images):
         raise ShapeError(f"expected {len(images)} fallback images (one per view), got {len(fallback_images)}")
@@ -311,6 +312,14 @@ def estimate_poses(
         finish=lambda run, rep, t0: _finish(run, names, cameras, masks, options, rep, t0=t0),
         completable=lambda run: _completable(run, masks, options),
     ))
+
+
+def _enough_views(n: int, options: SfmOptions) -> None:
+    """Raise ReconstructionError when ``n`` views are fewer than ``sfm.min_registered_views``."""
+    if n < options.min_registered_views:
+        raise ReconstructionError(
+            f"too few views: {n} given, poses need at least min_registered_views = {options.min_registered_views}"
+        )
 
 
 def _first_then_second(
@@ -467,10 +476,7 @@ def _run_sfm(
     t_start = time.perf_counter()
     n = len(images)
     check_inputs(images, names, cameras, intrinsics, masks)
-    if n < options.min_registered_views:
-        raise ReconstructionError(
-            f"too few views: {n} given, poses need at least min_registered_views = {options.min_registered_views}"
-        )
+    _enough_views(n, options)
     known_cameras = [c for c in cameras or () if c is not None]
     known = cameras is not None and len(known_cameras) == n
     workdir = Path(workdir)
