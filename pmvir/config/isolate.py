@@ -73,9 +73,9 @@ class IsolateOptions(_Options):
         json_schema_extra=advanced(),
     )
     see_past: bool = Field(
-        default=False,
-        description="Pixels where a view's own stereo depth lands past the object are background (a knot's "
-        "loops over a textured table); off: wrong depths on a textureless object would carve it.",
+        default=True,
+        description="Pixels where a view's own stereo depth lands past the object, on a point another view "
+        "sees there in the same colour, are background (the table through a knot's loops).",
         json_schema_extra=advanced(),
     )
     cut_seen_through: bool = Field(

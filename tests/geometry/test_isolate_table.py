@@ -104,18 +104,18 @@ def test_the_drawn_masks_match_the_true_ones(table_runs):
 
 
 def test_seeing_past_the_object_is_an_option(table_runs, tmp_path, decode_capture):
-    """geometry.isolate.see_past hands the stereo depth maps to the isolation, which then counts the
-    points taken back that the views see past; off (the default), it has no such count. The mesh
-    still holds no table."""
+    """geometry.isolate.see_past (the default) hands the stereo depth maps to the isolation, which then
+    counts the points taken back that the views see past; off, it has no such count. The mesh still
+    holds no table."""
     from pmvir.config import GeometryOptions
 
     capture, default = table_runs["none"]
-    assert "seen_past" not in default.isolation.counts
+    assert "seen_past" in default.isolation.counts
     options = GeometryOptions()
-    options = options.model_copy(update={"isolate": options.isolate.model_copy(update={"see_past": True})})
+    options = options.model_copy(update={"isolate": options.isolate.model_copy(update={"see_past": False})})
     with open_capture(capture) as cap:
         g = run_geometry(cap, decode_capture(capture), options=options, workdir=tmp_path / "work")
-    assert "seen_past" in g.isolation.counts
+    assert "seen_past" not in g.isolation.counts
     gt = read_mesh(capture / "gt" / "mesh.ply")
     diag = bbox_diagonal(gt.vertices)
     lo, hi = gt.vertices.min(axis=0) - 0.02 * diag, gt.vertices.max(axis=0) + 0.02 * diag

@@ -58,13 +58,18 @@ given masks:
    probable foreground on the rest of it, probable background in a band of
    ``band_px`` around it, background beyond.
    The refined mask stays within that band.
-   **Seen past** (``see_past``, off by default; with the stereo depth
+   **Seen past** (``see_past``, on by default; with the stereo depth
    maps): where a view's own depths land farther than :data:`_FREE_REACH`
    spacings from every object point and column (most of the depths in a
    window: :func:`sees_past`), the view sees the table or the room past the
    object there (through a knot's loop, under an arch), and those pixels are
    background, whatever the splats and their closing cover, unless a solid
-   point lands on them. The points taken back
+   point lands on them. Such a depth counts only where another view's own
+   depth lands on the same point and shows it in the same colour
+   (:func:`seen_alike`, within :data:`_ALIKE_COLOUR` 8-bit levels): stereo
+   on a textureless wall matches the table behind it, and the views that
+   see that table point show the table's colours, not the wall's (without
+   the check, a path-traced mug on a turntable lost half its body). The points taken back
    within the box (step 4) that most views' depths pass behind
    (:func:`depth_past_share`) are left out first: strays in the air inside a
    loop, not a dark foot, which the views see where it is.
@@ -121,6 +126,11 @@ _FREE_REACH = 3.0
 #: (a window of :data:`_FREE_WINDOW` of the depth grid's diagonal, at least half of it known).
 _FREE_SHARE = 0.75
 _FREE_WINDOW = 0.02
+#: A depth past the object counts where another view's depth lands within this share of the point's
+#: depth of it ...
+_ALIKE_DEPTH = 0.01
+#: ... and that view shows it within this many 8-bit levels, in every channel, of this view's colour.
+_ALIKE_COLOUR = 24.0
 #: A point the stray filter left out and the object's box took back counts as the object's in
 #: :func:`sees_past` when under this share of the views' depths at its pixel lie beyond it
 #: (:func:`depth_past_share`): on a path-traced knot on a table (36 views of 612x512) 26 % of those
@@ -709,21 +719,93 @@ def _splat(points: np.ndarray, camera: Camera, spacing: float) -> np.ndarray:
     return np.asarray(closed, bool)
 
 
-def sees_past(depth: DepthMap, body: cKDTree, reach: float, shape: tuple[int, int]) -> np.ndarray:
+class SeenAlike(NamedTuple):
+    """What :func:`sees_past` checks a view's depths past the object against: per view its camera,
+    stereo depth map (None where it has none) and (H, W, 3) uint8 preview (module docstring, step 5)."""
+
+    cameras: Sequence[Camera | None]
+    depth_maps: Sequence[DepthMap | None]
+    previews: Sequence[np.ndarray]
+
+
+def _colour_at(camera: Camera, image: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N, 3) float32: the 3x3 mean of ``image`` (the camera's 8-bit preview) around the pixels ``points``
+    project to (clipped to the image; the mean leaves pixel noise out of colour comparisons)."""
+    uv, _ = project_points(camera, points)
+    h, w = image.shape[:2]
+    cols = np.floor(uv[:, 0] * w / camera.width).astype(np.int64)
+    rows = np.floor(uv[:, 1] * h / camera.height).astype(np.int64)
+    total = np.zeros((len(cols), image.shape[2]), np.float32)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            total += image[np.clip(rows + dr, 0, h - 1), np.clip(cols + dc, 0, w - 1)]
+    return total / 9.0
+
+
+def seen_alike(points: np.ndarray, colours: np.ndarray, index: int, views: SeenAlike) -> np.ndarray:
+    """(N,) bool: the points that some view other than ``index`` sees (its stereo depth at their pixel
+    within :data:`_ALIKE_DEPTH` of their depth) in ``colours`` (every channel within
+    :data:`_ALIKE_COLOUR` 8-bit levels of its :func:`_colour_at` there)."""
+    pts = np.asarray(points, np.float64)
+    out = np.zeros(len(pts), bool)
+    for j, (cam, dm, image) in enumerate(zip(views.cameras, views.depth_maps, views.previews, strict=True)):
+        if j == index or cam is None or dm is None:
+            continue
+        todo = np.flatnonzero(~out)
+        if not len(todo):
+            break
+        z, _, _, d = depth_at(dm, pts[todo])
+        on = todo[(d > 0) & (np.abs(d - z) <= _ALIKE_DEPTH * z)]
+        if len(on):
+            diff = np.abs(_colour_at(cam, image, pts[on]) - colours[on]).max(axis=1)
+            out[on[diff <= _ALIKE_COLOUR]] = True
+    return out
+
+
+def sees_past(
+    depth: DepthMap,
+    body: cKDTree,
+    reach: float,
+    shape: tuple[int, int],
+    *,
+    index: int | None = None,
+    views: SeenAlike | None = None,
+    where: np.ndarray | None = None,
+) -> np.ndarray:
     """(H, W) bool: the pixels where the view's own stereo depth lies beyond ``reach`` of every point
     of the object (``body``: the KD-tree of its points and columns) in at least :data:`_FREE_SHARE`
     of the known depths of a window around them: the view sees the table or the room there, past the
     object (a knot's loop, the gap under an arch), whatever the splatted points and columns cover.
+    With ``views`` (and ``index``, this view's position in them) a depth past the object counts
+    only where another view sees the point it lands on in the same colour (:func:`seen_alike`);
+    elsewhere it is unknown: stereo on a textureless wall matches the table behind it, whose colour
+    is not the wall's. ``where`` ((H, W) bool, the preview's grid) limits that check to the pixels
+    that matter (beyond them every depth is unknown).
     ``shape``: the preview's (H, W); the depth grid is resized to it."""
     rows, cols = np.nonzero(depth.valid)
     h, w = depth.depth.shape
     past = np.zeros((h, w), np.float32)
+    known_px = depth.valid.astype(np.float32)
     if len(rows):
         world = backproject(depth.camera, depth.depth[rows, cols], rows, cols)
         gap, _ = body.query(world, k=1, distance_upper_bound=reach)
-        past[rows, cols] = ~np.isfinite(gap)
+        beyond_px = ~np.isfinite(gap)
+        if views is not None and index is not None and beyond_px.any():
+            cam = views.cameras[index]
+            if cam is not None:
+                far = np.flatnonzero(beyond_px)
+                if where is not None:
+                    grid = cv2.resize(where.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+                    near = grid[rows[far], cols[far]]
+                    beyond_px[far[~near]] = False
+                    known_px[rows[far[~near]], cols[far[~near]]] = 0.0
+                    far = far[near]
+                alike = seen_alike(world[far], _colour_at(cam, views.previews[index], world[far]), index, views)
+                known_px[rows[far[~alike]], cols[far[~alike]]] = 0.0  # past, but unconfirmed: unknown
+                beyond_px[far[~alike]] = False
+        past[rows, cols] = beyond_px
     k = max(1, round(_FREE_WINDOW * float(np.hypot(h, w))))
-    known = cv2.blur(depth.valid.astype(np.float32), (2 * k + 1, 2 * k + 1))
+    known = cv2.blur(known_px, (2 * k + 1, 2 * k + 1))
     beyond = cv2.blur(past, (2 * k + 1, 2 * k + 1))
     free = (known >= 0.5) & (beyond >= _FREE_SHARE * np.maximum(known, 1e-6))
     return np.asarray(cv2.resize(free.astype(np.uint8), (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST), bool)
@@ -890,25 +972,29 @@ def isolate_object(
         below = columns_below(
             solid, plane, spacing, support=support, all_short=bool(counts["plane_from_far_points"]), seed=_SEED
         )
-    free: list[np.ndarray | None] = [None] * len(cameras)
     body = np.vstack([pts[chosen], below])  # the columns: the underside the points miss
-    if depth_maps is not None and len(body):
-        tree = cKDTree(body)
-        free = [
-            None if cam is None or dm is None else sees_past(dm, tree, _FREE_REACH * spacing, (cam.height, cam.width))
-            for cam, dm in zip(cameras, depth_maps, strict=True)
-        ]
+    tree = cKDTree(body) if depth_maps is not None and len(body) else None
+    views = None if depth_maps is None else SeenAlike(cameras, depth_maps, previews)
     masks: list[np.ndarray | None] = []
-    for cam, image, sees in zip(cameras, previews, free, strict=True):
+    for i, (cam, image) in enumerate(zip(cameras, previews, strict=True)):
         if cam is None:
             masks.append(None)
             continue
         seen = _splat(solid, cam, spacing)
         rough = seen | _splat(below, cam, spacing)
-        past = None if sees is None else sees & ~seen  # seen past the object, where no point of it lands
-        if past is not None:
-            rough &= ~past
         band = settings.band_px or 0.02 * float(np.hypot(cam.width, cam.height))
+        past = None
+        dm = None if depth_maps is None else depth_maps[i]
+        if tree is not None and dm is not None:
+            # the band GrabCut decides in, and the window of sees_past's share around it
+            r = round(band + _FREE_WINDOW * float(np.hypot(cam.width, cam.height))) + 1
+            where = cv2.dilate(rough.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)).astype(bool)
+            sees = sees_past(
+                dm, tree, _FREE_REACH * spacing, (cam.height, cam.width), index=i, views=views,
+                where=where,
+            )
+            past = sees & ~seen  # seen past the object, where no point of it lands
+            rough &= ~past
         mask = refine_mask(
             image, rough, band_px=band, iterations=settings.grabcut_iterations, core=seen, background=past
         )
