@@ -29,6 +29,7 @@ from pmvir.geometry.silhouette.isolate import (
     object_points,
     on_object,
     refine_mask,
+    seen_behind,
     sees_past,
     still_points,
     support_plane,
@@ -567,8 +568,30 @@ def test_points_in_the_air_inside_a_loop_are_seen_past():
     rng = np.random.default_rng(1)
     r, a = 0.25 * np.sqrt(rng.random(500)), rng.uniform(0, 2 * np.pi, 500)
     stray = np.column_stack([r * np.cos(a), r * np.sin(a), rng.uniform(0.05, 0.35, 500)])
-    assert np.all(depth_past_share(stray, depths, 0.03) > 0.9)
-    assert np.mean(depth_past_share(loop, depths, 0.03) < 0.5) > 0.8
+    assert np.all(depth_past_share(stray, depths, 0.03)[0] > 0.9)
+    assert np.mean(depth_past_share(loop, depths, 0.03)[0] < 0.5) > 0.8
+    assert np.all(seen_behind(stray, depths, 0.03))
+
+
+def test_a_point_the_object_hides_from_most_views_is_not_seen_behind():
+    """The loop's underside, hidden by its upper side from the views above: one view whose depth
+    passes it (at a silhouette, where stereo lands on the table) is every view that does not see a
+    surface in front of it, but an eighth of those with a depth there; the point stays."""
+    loop, cams, depths, _, _ = _loop_scene()
+    under = loop[loop[:, 2] < CENTRE[2] - 0.04]
+    hidden = depth_past_share(under, depths, 0.01)[0] == 0  # all but the silhouettes' pixels
+    assert hidden.mean() > 0.8
+    under = under[hidden]
+    cam, dm = cams[0], depths[0]
+    uv, _ = project_points(cam, under)
+    rows, cols = uv[:, 1].astype(int), uv[:, 0].astype(int)
+    passed = dm.depth.copy()
+    passed[rows, cols] += 1.0  # the table, a unit past the loop
+    wrong = [DepthMap(cam, passed, dm.score), *depths[1:]]
+    of_seeing, of_all = depth_past_share(under, wrong, 0.01)
+    assert np.mean(of_seeing >= 0.5) > 0.9  # the share among the views not seeing a surface in front
+    assert np.all(of_all <= 1 / 8 + 1e-9)
+    assert not seen_behind(under, wrong, 0.01).any()
 
 
 def test_the_masks_leave_out_what_the_views_see_past():
