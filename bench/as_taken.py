@@ -18,6 +18,7 @@ against the true ones. Prints a table and writes bench/results/as_taken.json; ``
 measures again only the runs without a finished result in ``--work``.
 
     .venv/bin/python bench/as_taken.py [--sizes 2448x2048] [--views 36] [--reference] [--work DIR] [--reuse]
+        [--set KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -69,14 +70,16 @@ def _bare_frames(capture: Path, out: Path) -> Path:
     return out
 
 
-def _reconstruct(capture: Path, out: Path, *, reuse: bool) -> str | None:
-    """``pmvir reconstruct`` under /usr/bin/time -v (its record kept in out/time-v.txt); the error, or None."""
+def _reconstruct(capture: Path, out: Path, *, reuse: bool, settings: list[str]) -> str | None:
+    """``pmvir reconstruct`` (with ``--set`` of each of ``settings``) under /usr/bin/time -v (its record kept
+    in out/time-v.txt); the error, or None."""
     time_v = out / "time-v.txt"
     if reuse and (out / "mesh.ply").is_file() and time_v.is_file():
         return None
     if out.exists():
         shutil.rmtree(out)
-    proc = subprocess.run(["/usr/bin/time", "-v", PMVIR, "reconstruct", str(capture), "--out", str(out), "--quiet"],
+    proc = subprocess.run(["/usr/bin/time", "-v", PMVIR, "reconstruct", str(capture), "--out", str(out), "--quiet",
+                           *(a for kv in settings for a in ("--set", kv))],
                           capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         return proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"exit status {proc.returncode}"
@@ -84,9 +87,11 @@ def _reconstruct(capture: Path, out: Path, *, reuse: bool) -> str | None:
     return None
 
 
-def _measure(kind: str, size: str, views: int, capture: Path, source: Path, out: Path, reuse: bool) -> dict:
+def _measure(
+    kind: str, size: str, views: int, capture: Path, source: Path, out: Path, reuse: bool, settings: list[str]
+) -> dict:
     row: dict = {"run": kind, "size": size, "views": views, "source": str(source)}
-    error = _reconstruct(source, out, reuse=reuse)
+    error = _reconstruct(source, out, reuse=reuse, settings=settings)
     if error is not None:
         return row | {"error": error}
     report = json.loads((out / "report.json").read_text())
@@ -150,6 +155,8 @@ def main() -> int:
                    help="also reconstruct each capture with its manifest (true poses) and the true masks")
     p.add_argument("--work", type=Path, default=Path("/tmp/pmvir-as-taken"), help="captures and results")
     p.add_argument("--reuse", action="store_true", help="keep the finished results found in --work")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="an option of every reconstruction, as `pmvir reconstruct --set` takes it")
     args = p.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     runs = []
@@ -160,7 +167,7 @@ def main() -> int:
             sources.append(("manifest and true masks", _with_true_masks(capture, args.work / f"masked_{size}_{args.views}v")))
         for kind, source in sources:
             out = args.work / f"out_{'bare' if kind == 'bare frames' else 'reference'}_{size}_{args.views}v"
-            runs.append(_measure(kind, size, args.views, capture, source, out, args.reuse))
+            runs.append(_measure(kind, size, args.views, capture, source, out, args.reuse, args.set))
             print(json.dumps(runs[-1], default=str), flush=True)
     columns = ["input", "frames", "views", "registered", "working size", "vertices", "peak RSS GiB", "poses s",
                "isolation s", "geometry s", "refine s", "total min", "initial accuracy x1e-2", "accuracy x1e-2",

@@ -15,7 +15,8 @@ the share of vertices farther than 2 % of the diagonal, the largest distance of 
 ones (no-mask runs) and the time. Prints a table and writes bench/results/nomask.json (the initial
 surface) or bench/results/nomask_refine.json (``--stop-after refine``: the refined mesh);
 ``--results NAME``: bench/results/NAME.json. ``--set KEY=VALUE`` passes an option to every
-reconstruction (e.g. ``geometry.isolate.see_past=true``).
+reconstruction (e.g. ``geometry.isolate.see_past=false``); the no-mask rows then read
+``none, see_past=false`` and stand beside those with the defaults in one table (``--append``).
 """
 
 from __future__ import annotations
@@ -123,6 +124,14 @@ def _key(row: dict) -> tuple:
     return row.get("shape", "blob"), row["scene"], row.get("capture"), row["renderer"], row["masks"]
 
 
+def _label(masks: str, settings: list[str]) -> str:
+    """The masks column: ``none`` followed by the options set (their last key), so that runs with and
+    without them stand in one table (``none, see_past=false``); ``true`` as it is (isolation does not run)."""
+    if masks != "none" or not settings:
+        return masks
+    return ", ".join([masks, *(kv.split("=", 1)[0].rsplit(".", 1)[-1] + "=" + kv.split("=", 1)[1] for kv in settings)])
+
+
 def _name(args: argparse.Namespace) -> str:
     """The result's name: the initial surface's runs and the refined mesh's are kept apart (``--results``: this)."""
     return args.results or ("nomask" if args.stop_after == "geometry" else "nomask_refine")
@@ -206,7 +215,7 @@ def main() -> int:
             if masks not in args.masks.split(","):
                 continue
             row = {"shape": shape, "scene": scene, "capture": f"{args.views} x {args.size}", "renderer": renderer,
-                   "masks": masks, "synth_seconds": synth_s, "arguments": " ".join(sys.argv[1:])}
+                   "masks": _label(masks, args.set), "synth_seconds": synth_s, "arguments": " ".join(sys.argv[1:])}
             row |= _measure(capture, args.work / shape / f"result-{scene}-{renderer}-{masks}", args.stop_after, args.set)
             same = [k for k, r in enumerate(runs) if _key(r) == _key(row)]
             if same:  # in the earlier row's place, so that the table keeps its order

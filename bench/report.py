@@ -43,21 +43,26 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/occlusion.py",
         "the same captures fused without the occlusion test",
     ),
-    "nomask": ("The object found without masks", f"{PY} bench/nomask.py", "the same captures with their true masks"),
-    "nomask_see_past": (
-        "The object found without masks, seeing past it (geometry.isolate.see_past)",
-        f"{PY} bench/nomask.py --set geometry.isolate.see_past=true --results nomask_see_past",
-        "the same captures with their true masks, and the default (see_past off) in the section above",
+    "nomask": (
+        "The object found without masks",
+        f"{PY} bench/nomask.py",
+        "the same captures with their true masks, and without seeing past the object in the section below",
+    ),
+    "nomask_no_see_past": (
+        "The object found without masks, not seeing past it (geometry.isolate.see_past off)",
+        f"{PY} bench/nomask.py --set geometry.isolate.see_past=false --results nomask_no_see_past",
+        "the same captures with their true masks, and the default (seeing past the object) in the section above",
     ),
     "nomask_refine": (
-        "The object found without masks: the refined mesh",
-        f"{PY} bench/nomask.py --stop-after refine",
+        "The object found without masks: the refined mesh, not seeing past it",
+        f"{PY} bench/nomask.py --stop-after refine --set geometry.isolate.see_past=false",
         "the same captures with their true masks",
     ),
     "as_taken": (
         "A folder of full-size frames as taken: no manifest, masks or poses",
-        f"{PY} bench/as_taken.py --reference",
-        "the same frames with their manifest (true poses) and true masks",
+        f"{PY} bench/as_taken.py --reference --set geometry.isolate.see_past=false",
+        "the same frames with their manifest (true poses) and true masks; not seeing past the object "
+        "(geometry.isolate.see_past off)",
     ),
     "subdivision": ("Visibility and subdivision", f"{PY} bench/subdivision.py", None),
     "refine": (
