@@ -297,14 +297,22 @@ def test_columns_reach_the_plane_unless_the_table_was_seen_under_them():
     assert short[np.isclose(short[:, 0], 0.1), 2].min() == pytest.approx(0.0, abs=1e-12)
 
 
-def test_grabcut_recovers_a_disc_from_a_shrunk_and_clipped_projection():
-    rng = np.random.default_rng(1)
-    h, w = 120, 160
-    noise = cv2.resize(rng.uniform(0, 1, (15, 20, 3)).astype(np.float32), (w, h), interpolation=cv2.INTER_CUBIC)
-    image = (40 + 120 * noise * np.array([0.3, 1.0, 0.6])).astype(np.uint8)  # textured green table
+def _red_disc_on_a_green_table(
+    seed: int, size: tuple[int, int], centre: tuple[int, int], radius: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W, 3) uint8 image of a red disc on a textured green table, and the disc's (H, W) uint8 mask."""
+    rng = np.random.default_rng(seed)
+    h, w = size
+    noise = cv2.resize(rng.uniform(0, 1, (h // 8, w // 8, 3)).astype(np.float32), (w, h), interpolation=cv2.INTER_CUBIC)
+    image = (40 + 120 * noise * np.array([0.3, 1.0, 0.6])).astype(np.uint8)
     truth = np.zeros((h, w), np.uint8)
-    cv2.circle(truth, (80, 60), 35, 1, -1)
-    image[truth > 0] = (200, 60, 50) + rng.integers(-20, 20, (int(truth.sum()), 3))  # a red object
+    cv2.circle(truth, centre, radius, 1, -1)
+    image[truth > 0] = (200, 60, 50) + rng.integers(-20, 20, (int(truth.sum()), 3))
+    return image, truth
+
+
+def test_grabcut_recovers_a_disc_from_a_shrunk_and_clipped_projection():
+    image, truth = _red_disc_on_a_green_table(1, (120, 160), (80, 60), 35)
     rough = np.zeros_like(truth)
     cv2.circle(rough, (80, 60), 30, 1, -1)
     rough[85:] = 0  # the lower part missed by the points
@@ -313,6 +321,20 @@ def test_grabcut_recovers_a_disc_from_a_shrunk_and_clipped_projection():
     iou = (out & t).sum() / (out | t).sum()
     assert iou > 0.95
     assert (rough.astype(bool) & t).sum() / (rough.astype(bool) | t).sum() < 0.8  # it had work to do
+
+
+def test_grabcut_takes_an_underside_beyond_its_band_only_within_the_reach():
+    image, truth = _red_disc_on_a_green_table(2, (160, 160), (80, 70), 50)
+    rough = truth.copy()
+    rough[82:] = 0  # the points stop 38 px above the object's lowest pixel: its underside in shadow
+    reach = np.zeros(truth.shape, bool)
+    reach[70:150, 30:131] = True  # the columns down to the table: the underside and the table beside it
+    t = truth.astype(bool)
+    alone = refine_mask(image, rough.astype(bool), band_px=8, iterations=4)
+    out = refine_mask(image, rough.astype(bool), band_px=8, iterations=4, reach=reach)
+    assert (t & ~alone).sum() > 0.1 * t.sum()  # the band alone cannot reach the lowest 30 px
+    assert (out & t).sum() / (out | t).sum() > 0.95
+    assert (out & reach & ~t).sum() < 0.05 * (reach & ~t).sum()  # the table within the reach stays out
 
 
 def test_inside_masks_keeps_points_in_every_silhouette():

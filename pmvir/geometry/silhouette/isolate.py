@@ -52,7 +52,10 @@ given masks:
    their lower half down to the plane (the underside the points miss; short,
    :data:`_COLUMN_SHARE` of the object's height, where stereo saw the table
    right under them: a knot's loops, and all short on a support found among
-   the far points, too few to show where the views saw it) are splatted
+   the far points, too few to show where the views saw it; their full length
+   then only widens the band below, as probable background, so that GrabCut
+   takes a shadowed underside the points miss by its colour, where columns
+   as foreground stood as a skirt on the table) are splatted
    (discs of the points' projected spacing), closed, and refined by GrabCut
    (OpenCV) on the view's 8-bit preview: certain foreground on the eroded projection of the points,
    probable foreground on the rest of it, probable background in a band of
@@ -855,6 +858,7 @@ def refine_mask(
     iterations: int,
     core: np.ndarray | None = None,
     background: np.ndarray | None = None,
+    reach: np.ndarray | None = None,
 ) -> np.ndarray:
     """GrabCut of one view inside a band around a rough mask (module docstring, step 4).
 
@@ -865,6 +869,9 @@ def refine_mask(
         iterations: GrabCut iterations (0: ``rough`` unchanged).
         core: (H, W) bool where the object surely is before erosion (default ``rough``).
         background: (H, W) bool where it surely is not (the view sees past it: :func:`sees_past`).
+        reach: (H, W) bool where GrabCut may also decide, as probable background (the band is
+            drawn around ``rough`` and ``reach``): the full length of columns a support found among
+            the far points leaves short (:func:`isolate_object`).
 
     Returns:
         (H, W) bool mask.
@@ -875,7 +882,7 @@ def refine_mask(
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
     r8 = rough.astype(np.uint8)
     core = cv2.erode(r8 if core is None else core.astype(np.uint8), disc).astype(bool)
-    outer = cv2.dilate(r8, disc).astype(bool)
+    outer = cv2.dilate(r8 if reach is None else (rough | reach).astype(np.uint8), disc).astype(bool)
     labels = np.full(rough.shape, cv2.GC_BGD, np.uint8)
     labels[outer] = cv2.GC_PR_BGD
     labels[rough] = cv2.GC_PR_FGD
@@ -986,12 +993,14 @@ def isolate_object(
         counts["seen_past"] = len(behind)
     solid = pts[chosen][solid_points(pts[chosen], spacing)]
     clearance = settings.plane_distance * float(np.median([np.linalg.norm(cam.center - look) for cam in reg]))
-    below = np.zeros((0, 3))
+    below = reach_below = np.zeros((0, 3))
     if plane is not None:
         support = pts[np.abs(pts @ plane[:3] + plane[3]) <= settings.plane_clearance * clearance]
         below = columns_below(
             solid, plane, spacing, support=support, all_short=bool(counts["plane_from_far_points"]), seed=_SEED
         )
+        if counts["plane_from_far_points"]:  # the short columns' full length: where GrabCut may still decide
+            reach_below = columns_below(solid, plane, spacing, support=support, seed=_SEED)
     body = np.vstack([pts[chosen], below])  # the columns: the underside the points miss
     tree = cKDTree(body) if depth_maps is not None and len(body) else None
     views = None if depth_maps is None else SeenAlike(cameras, depth_maps, previews)
@@ -1002,13 +1011,15 @@ def isolate_object(
             continue
         seen = _splat(solid, cam, spacing)
         rough = seen | _splat(below, cam, spacing)
+        reach = _splat(reach_below, cam, spacing) if len(reach_below) else None
         band = settings.band_px or 0.02 * float(np.hypot(cam.width, cam.height))
         past = None
         dm = None if depth_maps is None else depth_maps[i]
         if tree is not None and dm is not None:
             # the band GrabCut decides in, and the window of sees_past's share around it
             r = round(band + _FREE_WINDOW * float(np.hypot(cam.width, cam.height))) + 1
-            where = cv2.dilate(rough.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)).astype(bool)
+            band_of = rough if reach is None else rough | reach
+            where = cv2.dilate(band_of.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)).astype(bool)
             sees = sees_past(
                 dm, tree, _FREE_REACH * spacing, (cam.height, cam.width), index=i, views=views,
                 where=where,
@@ -1016,7 +1027,8 @@ def isolate_object(
             past = sees & ~seen  # seen past the object, where no point of it lands
             rough &= ~past
         mask = refine_mask(
-            image, rough, band_px=band, iterations=settings.grabcut_iterations, core=seen, background=past
+            image, rough, band_px=band, iterations=settings.grabcut_iterations, core=seen, background=past,
+            reach=reach,
         )
         masks.append(cv2.dilate(mask.astype(np.uint8), _GROW).astype(bool))
     isolation = Isolation(
