@@ -319,9 +319,10 @@ def without_seen_through(
     maps = dense.depth_maps if options.isolate.cut_seen_through else [None] * len(dense.depth_maps)
     if sheet is None and not any(dm is not None for dm in maps):
         return surface
+    spacing = point_spacing(points)
     v, f, count = cut_seen_through(
-        surface.vertices, surface.faces, maps, margin=MARGIN_SPACINGS * point_spacing(points),
-        support=points, min_angle_deg=options.surface.min_angle_deg, sheet=sheet,
+        surface.vertices, surface.faces, maps, margin=MARGIN_SPACINGS * spacing,
+        support=points, min_angle_deg=options.surface.min_angle_deg, sheet=sheet, spacing=spacing,
     )
     counts = surface.counts | {"seen_through_vertices": count}
     if sheet is not None:

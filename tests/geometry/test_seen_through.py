@@ -202,3 +202,26 @@ def test_a_sheet_lying_on_the_support_is_cut_and_the_object_s_foot_stays(setup):
     )
     assert "support_sheet_vertices" not in kept.counts
     assert (np.linalg.norm(kept.vertices[:, :2], axis=1) < RING - TUBE - 1e-6).sum() == len(sheet_v)
+
+
+def test_a_membrane_no_fused_point_supports_goes_where_most_views_see_past_it(setup):
+    """A third of the views' depths land on the membrane (stereo's chance matches there): the votes alone keep
+    it; far from every fused point, the views that see past it outvote them."""
+    (v, f), n_ring, maps = setup
+    ring, disc = ring_mesh(), membrane()
+    on_disc = depth_maps(joined(ring, disc, table()), cameras())
+    mixed = [on_disc[k] if k % 3 == 0 else dm for k, dm in enumerate(maps)]
+    spacing = 0.02  # the membrane's middle (radius < 0.1) lies more than UNSUPPORTED_SPACINGS of it from the ring
+    votes = seen_through(v, f, mixed, margin=MARGIN, points=ring[0], spacing=spacing)
+    middle = np.linalg.norm(v[n_ring:, :2], axis=1) < 0.08
+    assert votes.unsupported[n_ring:][middle].all() and not votes.unsupported[:n_ring].any()
+    assert (votes.at[n_ring:][middle] >= MAX_AT).all()  # the votes alone would keep it ...
+    assert (votes.past[n_ring:][middle] > votes.at[n_ring:][middle]).all()
+    assert votes.through[n_ring:][middle].all() and not votes.through[:n_ring].any()  # ... it goes, the ring stays
+    assert not seen_through(v, f, mixed, margin=MARGIN).through[n_ring:][middle].any()
+    # a fused point on the membrane supports it: the third of the views that land there keep it
+    supported = seen_through(v, f, mixed, margin=MARGIN, points=np.vstack([ring[0], disc[0]]), spacing=spacing)
+    assert not supported.unsupported.any() and not supported.through[n_ring:][middle].any()
+    v2, _, count = cut_seen_through(v, f, mixed, margin=MARGIN, support=ring[0], min_angle_deg=0.0, spacing=spacing)
+    assert count > 0 and not (np.linalg.norm(v2[:, :2], axis=1) < 0.08).any()
+    assert len(v2) >= n_ring  # the ring stays whole
