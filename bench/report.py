@@ -46,23 +46,22 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
     "nomask": (
         "The object found without masks",
         f"{PY} bench/nomask.py",
-        "the same captures with their true masks, and without seeing past the object in the section below",
+        "the same captures with their true masks, and without seeing past the object",
     ),
-    "nomask_no_see_past": (
-        "The object found without masks, not seeing past it (geometry.isolate.see_past off)",
-        f"{PY} bench/nomask.py --set geometry.isolate.see_past=false --results nomask_no_see_past",
-        "the same captures with their true masks, and the default (seeing past the object) in the section above",
+    "nomask_sparse": (
+        "The object found without masks: six shapes, 16 views of 320x256",
+        f"{PY} bench/nomask.py --shapes blob,knot,spring,gear,mug,rock --views 16 --size 320x256 --results nomask_sparse",
+        "the same captures with their true masks",
     ),
     "nomask_refine": (
-        "The object found without masks: the refined mesh, not seeing past it",
-        f"{PY} bench/nomask.py --stop-after refine --set geometry.isolate.see_past=false",
+        "The object found without masks: the refined mesh",
+        f"{PY} bench/nomask.py --stop-after refine --masks true,none",
         "the same captures with their true masks",
     ),
     "as_taken": (
         "A folder of full-size frames as taken: no manifest, masks or poses",
-        f"{PY} bench/as_taken.py --reference --set geometry.isolate.see_past=false",
-        "the same frames with their manifest (true poses) and true masks; not seeing past the object "
-        "(geometry.isolate.see_past off)",
+        f"{PY} bench/as_taken.py --reference",
+        "the same frames with their manifest (true poses) and true masks",
     ),
     "subdivision": ("Visibility and subdivision", f"{PY} bench/subdivision.py", None),
     "refine": (
