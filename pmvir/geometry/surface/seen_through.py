@@ -65,10 +65,12 @@ MAX_AT = 1.0
 #: ... and at least this many (averaged) see past it.
 MIN_PAST = 2.0
 #: A vertex farther than this many point spacings from every fused point is cut where more views see
-#: past it than lie on it. On 36 views of 612x512 (built-in renderer), the initial surface's vertices
-#: farther than 2 % of the diagonal: a knot on a table 111 -> 15 (3 with 4 spacings, 45 with 6), on a
-#: turntable 88 -> 29 (7 with 4, 50 with 6); see the benchmarks page for accuracy and completeness.
-UNSUPPORTED_SPACINGS = 5.0
+#: past it than lie on it. The vertices Poisson bulges out where stereo left a knot's underside
+#: without points lie 3.4-5 spacings from the nearest point and 2.0-2.8 % of the diagonal off the
+#: object. On 36 views of 612x512 (built-in renderer) the initial surface's vertices farther than 2 %
+#: of the diagonal, with 3.5 spacings: a knot on a table 1 (21 with 5), on a turntable 3 (60 with 5);
+#: accuracy and completeness per shape on the benchmarks page.
+UNSUPPORTED_SPACINGS = 3.5
 #: A cut that would take more than this share of the vertices is not made: stereo failed, the
 #: surface did not close an opening.
 MAX_CUT_SHARE = 0.5
