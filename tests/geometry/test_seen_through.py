@@ -225,3 +225,21 @@ def test_a_membrane_no_fused_point_supports_goes_where_most_views_see_past_it(se
     v2, _, count = cut_seen_through(v, f, mixed, margin=MARGIN, support=ring[0], min_angle_deg=0.0, spacing=spacing)
     assert count > 0 and not (np.linalg.norm(v2[:, :2], axis=1) < 0.08).any()
     assert len(v2) >= n_ring  # the ring stays whole
+
+
+def test_a_bulge_four_spacings_from_every_fused_point_is_unsupported(setup):
+    """Poisson's bulge under a knot's tube lies 3.4-5 point spacings from the nearest fused point: there
+    the views that see past a vertex outvote the third of them whose depths land on it."""
+    (v, f), n_ring, maps = setup
+    ring, disc = ring_mesh(), membrane()
+    on_disc = depth_maps(joined(ring, disc, table()), cameras())
+    mixed = [on_disc[k] if k % 3 == 0 else dm for k, dm in enumerate(maps)]
+    spacing = 0.035
+    radius = np.linalg.norm(v[n_ring:, :2], axis=1)
+    band = (radius > 0.05) & (radius < 0.08)  # about 0.14 from the ring's inner edge (radius 0.2)
+    nearest = np.min(np.linalg.norm(v[n_ring:][band][:, None, :] - ring[0][None], axis=2), axis=1) / spacing
+    assert band.any() and (nearest > 3.5).all() and (nearest < 5.0).all()  # the bulge's range
+    votes = seen_through(v, f, mixed, margin=MARGIN, points=ring[0], spacing=spacing)
+    assert (votes.at[n_ring:][band] >= MAX_AT).all()  # the votes alone would keep it
+    assert votes.unsupported[n_ring:][band].all() and not votes.unsupported[:n_ring].any()
+    assert votes.through[n_ring:][band].all() and not votes.through[:n_ring].any()
