@@ -53,6 +53,12 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/nomask.py --shapes blob,knot,spring,gear,mug,rock --views 16 --size 320x256 --results nomask_sparse",
         "the same captures with their true masks",
     ),
+    "nomask_stereo_grid": (
+        "The object found without masks: the stereo grid on 16 views of 320x256",
+        f"{PY} bench/nomask.py --shapes knot,spring --views 16 --size 320x256 --scenes table --masks none "
+        "--results nomask_stereo_grid [--append --set geometry.mvs.min_grid_px=256|320]",
+        "the default stereo grid (geometry.mvs.min_grid_px 160) on the same captures",
+    ),
     "nomask_refine": (
         "The object found without masks: the refined mesh",
         f"{PY} bench/nomask.py --stop-after refine --masks true,none",
