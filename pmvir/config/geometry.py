@@ -33,6 +33,19 @@ class MvsOptions(_Options):
         "many pixels.",
         json_schema_extra=advanced("px"),
     )
+    unmasked_full_grid_px: int = Field(
+        default=320, ge=0,
+        description="CPU stereo without masks: views whose longer side is at most this many pixels are matched "
+        "first at full resolution (ZNCC window 5 unless window is set), resolving the gaps between an object's "
+        "parts; 0: off.",
+        json_schema_extra=advanced("px"),
+    )
+    unmasked_full_min_consistent: float = Field(
+        default=0.15, ge=0.0, lt=1.0,
+        description="CPU stereo without masks: the full-resolution grid is kept when at least this mean fraction "
+        "of its depths is consistent, else the views are matched again on the half grid (noisy images), [0, 1).",
+        json_schema_extra=advanced(),
+    )
     colour: bool = Field(
         default=True,
         description="CPU stereo matches the three colour channels (ZNCC with covariances and variances "
@@ -57,8 +70,8 @@ class MvsOptions(_Options):
     )
     window: int | None = Field(
         default=None, ge=3, le=31,
-        description="ZNCC window side (px of the stereo grid, odd, 3..31). None: 3, or 7 for captures of at "
-        "most sparse_rig_views registered views.",
+        description="ZNCC window side (px of the stereo grid, odd, 3..31). None: 3; 5 on the full-resolution "
+        "grid of unmasked_full_grid_px; 7 for captures of at most sparse_rig_views registered views.",
         json_schema_extra=advanced("px"),
     )
     min_score: float = Field(

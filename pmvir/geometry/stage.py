@@ -425,6 +425,10 @@ def geometry_report(result: GeometryResult) -> dict[str, Any]:
             "points": len(dense.points),
             "valid_depths_per_view": dict(zip(result.names, dense.valid_depths, strict=True)),
             "fused_points_per_view": dict(zip(result.names, dense.fused_per_view, strict=True)),
+            "grid": dense.grid,  # the CPU stereo grid, WxH (mvs.scale, min_grid_px, unmasked_full_grid_px)
+            "window": dense.window,  # the CPU stereo's ZNCC window side
+            # mvs.unmasked_full_min_consistent: the full grid's mean consistent fraction when it was not kept
+            "full_grid_consistent": dense.full_grid_consistent,
         },
         "surface": {k: int(v) for k, v in result.surface.counts.items()}
         | {"components": [dict(c) for c in result.surface.components]},

@@ -55,6 +55,11 @@ _MIN_SUPPORT_POINTS = 20
 #: curved and thin parts; wider on sparse rigs, whose depths one other view confirms.
 _WINDOW = 3
 _SPARSE_RIG_WINDOW = 7
+#: The automatic window on the full-resolution grid of views without masks (``mvs.unmasked_full_grid_px``):
+#: about the image area of 3 on the half-resolution grid. Knot and spring on a table, 16 views of
+#: 320x256, no masks: vertices beyond 2 % of the diagonal 0.57-1.40 % with the half grid, 0.09-1.06 %
+#: with 5 on the full grid, 0.25-1.26 % with 7 (benchmarks page, the stereo grid without masks).
+_UNMASKED_FULL_WINDOW = 5
 
 
 @dataclass(frozen=True)
@@ -71,7 +76,12 @@ class DenseResult:
             passed the consistency filter; for a view without a mask, the fraction of its depths
             (-1: not computed: unregistered view or COLMAP backend).
         fused_per_view: per view the number of fused points it contributed (after thinning).
-        timings: seconds per step ('depth_maps', 'fusion').
+        timings: seconds per step ('depth_maps', 'fusion'; 'full_grid_not_kept': the part of
+            'depth_maps' spent on a full-resolution grid that was not kept).
+        grid: the CPU stereo grid, 'WxH' of the first depth map (None: COLMAP backend).
+        window: the CPU stereo's ZNCC window side (None: COLMAP backend).
+        full_grid_consistent: the full-resolution grid's mean consistent fraction when it was tried
+            and not kept (``mvs.unmasked_full_min_consistent``), else None.
     """
 
     points: DensePoints
@@ -82,6 +92,23 @@ class DenseResult:
     consistent_fraction: list[float]
     fused_per_view: list[int]
     timings: dict[str, float] = field(default_factory=dict)
+    grid: str | None = None
+    window: int | None = None
+    full_grid_consistent: float | None = None
+
+
+@dataclass(frozen=True)
+class _StereoInputs:
+    """What the CPU stereo matches: per view its image, mask, camera, name, source views and depth
+    range, and the registered views."""
+
+    images: Sequence[np.ndarray]
+    masks: Sequence[np.ndarray | None]
+    cameras: Sequence[Camera | None]
+    names: Sequence[str]
+    neighbours: list[list[int]]
+    registered: list[int]
+    ranges: list[tuple[float, float] | None]
 
 
 def resolve_backend(backend: str) -> str:
@@ -186,14 +213,25 @@ def dense_stereo(
             diag,
             progress,
         )
-    return _dense_cpu(images, masks, cameras, names, neighbours, registered, ranges, options, diag, progress)
+    inputs = _StereoInputs(images, masks, cameras, names, neighbours, registered, ranges)
+    return _dense_cpu(inputs, options, diag, progress)
 
 
 def grid_scale(image: np.ndarray, options: MvsOptions) -> float:
     """The CPU stereo grid's scale of one view: ``options.scale``, raised so that the longer side keeps
-    ``options.min_grid_px`` pixels (at most 1)."""
+    ``options.min_grid_px`` pixels (at most 1). Captures without masks may first try the full grid
+    (:func:`unmasked_full_grid`)."""
     longer = max(image.shape[:2])
     return float(min(1.0, max(options.scale, options.min_grid_px / max(longer, 1))))
+
+
+def unmasked_full_grid(images: Sequence[np.ndarray], masks: Sequence[np.ndarray | None], options: MvsOptions) -> bool:
+    """Whether no view has a mask and every view is at most ``options.unmasked_full_grid_px`` on its
+    longer side: the stereo then runs first on the full-resolution grid, kept when at least
+    ``options.unmasked_full_min_consistent`` of its depths are consistent on average."""
+    return all(m is None for m in masks) and all(
+        max(im.shape[:2]) <= options.unmasked_full_grid_px for im in images
+    )
 
 
 def depth_range(
@@ -219,37 +257,79 @@ def depth_range(
     return (near, far) if near < far else outer
 
 
-def stereo_window(options: MvsOptions, registered_views: int) -> int:
-    """The CPU stereo's ZNCC window side: ``options.window``, or when None 3 (7 for captures of at most
-    ``options.sparse_rig_views`` registered views: one confirming view then fuses a depth, so noise counts)."""
+def stereo_window(options: MvsOptions, registered_views: int, *, unmasked_full: bool = False) -> int:
+    """The CPU stereo's ZNCC window side: ``options.window``, or when None 3 (5 on the full-resolution
+    grid of views without masks, ``unmasked_full``; 7 for captures of at most ``options.sparse_rig_views``
+    registered views: one confirming view then fuses a depth, so noise counts)."""
     if options.window is not None:
         return options.window
-    return _SPARSE_RIG_WINDOW if registered_views <= options.sparse_rig_views else _WINDOW
+    if registered_views <= options.sparse_rig_views:
+        return _SPARSE_RIG_WINDOW
+    return _UNMASKED_FULL_WINDOW if unmasked_full else _WINDOW
 
 
-def _dense_cpu(
-    images: Sequence[np.ndarray],
-    masks: Sequence[np.ndarray | None],
-    cameras: Sequence[Camera | None],
-    names: Sequence[str],
-    neighbours: list[list[int]],
-    registered: list[int],
-    ranges: list[tuple[float, float] | None],
-    options: MvsOptions,
-    diag: float,
-    progress: Progress,
-) -> DenseResult:
+def _dense_cpu(inputs: _StereoInputs, options: MvsOptions, diag: float, progress: Progress) -> DenseResult:
+    images, masks, cameras, names = inputs.images, inputs.masks, inputs.cameras, inputs.names
+    neighbours, registered = inputs.neighbours, inputs.registered
     n = len(images)
     t0 = time.perf_counter()
+    full = unmasked_full_grid([images[i] for i in registered], [masks[i] for i in registered], options)
+    tried: float | None = None  # the full grid's mean consistent fraction, when it was not kept
+    seconds_full = 0.0  # the time of the full grid's depth maps and fusion, when they were not kept
+    if full:
+        depth_maps, valid, views = _depth_maps(inputs, options, progress, full=True)
+        pts_f, views_f, counts_f, fraction = _fused(depth_maps, valid, views, masks, neighbours, options, registered)
+        kept = [fraction[i] for i in registered if fraction[i] >= 0]
+        if kept and float(np.mean(kept)) < options.unmasked_full_min_consistent:
+            tried, full = float(np.mean(kept)), False  # too noisy for the full grid: the half grid averages it
+            seconds_full = time.perf_counter() - t0
+    if not full:
+        depth_maps, valid, views = _depth_maps(inputs, options, progress, full=False)
+        pts_f, views_f, counts_f, fraction = _fused(depth_maps, valid, views, masks, neighbours, options, registered)
+    t1 = time.perf_counter()
+    if options.voxel > 0:
+        keep = voxel_thin(pts_f, options.voxel * diag)
+        pts_f, views_f, counts_f = pts_f[keep], views_f[keep], counts_f[keep]
+    dense = DensePoints(
+        points=pts_f, normals=estimate_normals(pts_f, views_f, cameras), views=views_f, consistent=counts_f
+    )
+    first = next(m for m in depth_maps if m is not None) if any(m is not None for m in depth_maps) else None
+    result = DenseResult(
+        points=dense,
+        backend="cpu",
+        neighbours=neighbours,
+        depth_maps=depth_maps,
+        valid_depths=valid,
+        consistent_fraction=fraction,
+        fused_per_view=np.bincount(views_f, minlength=n).tolist(),
+        timings={"depth_maps": t1 - t0, "fusion": time.perf_counter() - t1}
+        | ({"full_grid_not_kept": seconds_full} if tried is not None else {}),
+        grid=None if first is None else f"{first.depth.shape[1]}x{first.depth.shape[0]}",
+        window=stereo_window(options, len(registered), unmasked_full=full),
+        full_grid_consistent=tried,
+    )
+    _check_enough(result, names, registered, options)
+    return result
+
+
+def _depth_maps(
+    inputs: _StereoInputs, options: MvsOptions, progress: Progress, *, full: bool
+) -> tuple[list[DepthMap | None], list[int], list[StereoView | None]]:
+    """Per view its depth map, its number of depths (-1: none computed) and its stereo view: on the
+    full-resolution grid of views without masks (``full``, :func:`unmasked_full_grid`) or on
+    :func:`grid_scale`'s."""
+    images, masks, cameras, names = inputs.images, inputs.masks, inputs.cameras, inputs.names
+    neighbours, registered, ranges = inputs.neighbours, inputs.registered, inputs.ranges
+    n = len(images)
     views: list[StereoView | None] = [None] * n
     for i in registered:
         if neighbours[i] or any(i in neighbours[j] for j in registered):
-            views[i] = prepare_view(
-                images[i], masks[i], _camera(cameras, i), scale=grid_scale(images[i], options), colour=options.colour
-            )
+            scale = 1.0 if full else grid_scale(images[i], options)
+            views[i] = prepare_view(images[i], masks[i], _camera(cameras, i), scale=scale, colour=options.colour)
     depth_maps: list[DepthMap | None] = [None] * n
     valid = [-1] * n
-    window = stereo_window(options, len(registered))
+    window = stereo_window(options, len(registered), unmasked_full=full)
+    grid = "full-resolution grid, " if full else ""
 
     def sweep(i: int) -> DepthMap | None:
         ref, rng = views[i], ranges[i]
@@ -266,39 +346,34 @@ def _dense_cpu(
     try:
         futures = [pool.submit(sweep, i) for i in registered]
         for k, (i, future) in enumerate(zip(registered, futures, strict=True)):
-            progress.update(k / len(registered), f"depth map {k + 1}/{len(registered)} (view {names[i]})")
+            progress.update(k / len(registered), f"depth map {k + 1}/{len(registered)} ({grid}view {names[i]})")
             depth = depth_maps[i] = future.result()
             if depth is not None:
                 valid[i] = int(depth.valid.sum())
     finally:  # a cancel (or a failed sweep) drops the sweeps not started
         pool.shutdown(wait=True, cancel_futures=True)
-    t1 = time.perf_counter()
-    progress.update(1.0, "fusing depth maps")
+    return depth_maps, valid, views
+
+
+def _fused(
+    depth_maps: list[DepthMap | None],
+    valid: list[int],
+    views: list[StereoView | None],
+    masks: Sequence[np.ndarray | None],
+    neighbours: list[list[int]],
+    options: MvsOptions,
+    registered: list[int],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[float]]:
+    """The consistent depths fused (:func:`_fuse`: points, their views and confirming counts) and per
+    view the fraction of its object's pixels (without a mask, of its depths) that are consistent."""
     pts_f, views_f, counts_f = _fuse(depth_maps, neighbours, options, len(registered))
-    consistent = np.bincount(views_f, minlength=n)
-    fraction = [-1.0] * n
+    consistent = np.bincount(views_f, minlength=len(views))
+    fraction = [-1.0] * len(views)
     for i, view in enumerate(views):
         if view is not None:  # of the object's pixels; without a mask, of the depths found
             base = int(view.mask.sum()) if masks[i] is not None else max(valid[i], 0)
             fraction[i] = float(consistent[i] / max(base, 1))
-    if options.voxel > 0:
-        keep = voxel_thin(pts_f, options.voxel * diag)
-        pts_f, views_f, counts_f = pts_f[keep], views_f[keep], counts_f[keep]
-    dense = DensePoints(
-        points=pts_f, normals=estimate_normals(pts_f, views_f, cameras), views=views_f, consistent=counts_f
-    )
-    result = DenseResult(
-        points=dense,
-        backend="cpu",
-        neighbours=neighbours,
-        depth_maps=depth_maps,
-        valid_depths=valid,
-        consistent_fraction=fraction,
-        fused_per_view=np.bincount(views_f, minlength=n).tolist(),
-        timings={"depth_maps": t1 - t0, "fusion": time.perf_counter() - t1},
-    )
-    _check_enough(result, names, registered, options)
-    return result
+    return pts_f, views_f, counts_f, fraction
 
 
 def _fuse(
