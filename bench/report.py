@@ -56,8 +56,9 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
     "nomask_stereo_grid": (
         "The object found without masks: the stereo grid on 16 views of 320x256",
         f"{PY} bench/nomask.py --shapes knot,spring --views 16 --size 320x256 --scenes table --masks none "
-        "--results nomask_stereo_grid [--append --set geometry.mvs.min_grid_px=256|320]",
-        "the default stereo grid (geometry.mvs.min_grid_px 160) on the same captures",
+        "--results nomask_stereo_grid [--append --set geometry.mvs.unmasked_full_grid_px=0 "
+        "[--set geometry.mvs.min_grid_px=256]] [--append --set geometry.mvs.window=3|7]",
+        "the half-resolution grid (geometry.mvs.unmasked_full_grid_px 0) on the same captures",
     ),
     "nomask_refine": (
         "The object found without masks: the refined mesh",
