@@ -35,9 +35,8 @@ class MvsOptions(_Options):
     )
     unmasked_full_grid_px: int = Field(
         default=320, ge=0,
-        description="CPU stereo without masks: views whose longer side is at most this many pixels are matched "
-        "first at full resolution (ZNCC window 5 unless window is set), resolving the gaps between an object's "
-        "parts; 0: off.",
+        description="CPU stereo without masks: views at most this many pixels on the longer side are matched "
+        "first at full resolution (window 5), resolving gaps between an object's parts; 0: off.",
         json_schema_extra=advanced("px"),
     )
     unmasked_full_min_consistent: float = Field(
