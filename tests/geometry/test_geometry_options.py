@@ -50,3 +50,25 @@ def test_views_without_masks_up_to_unmasked_full_grid_px_try_the_full_grid():
     assert not unmasked_full_grid([small, small], [None, mask], auto)  # one mask: the half grid
     assert not unmasked_full_grid([small, large], [None, None], auto)  # above 320 px: the half grid
     assert not unmasked_full_grid([small, small], [None, None], MvsOptions(unmasked_full_grid_px=0))
+
+
+def test_sift_sees_i_min_in_sfm_with_i_int_as_fallback_by_default():
+    """sfm.grey 'auto' (the default): SfM on I_min, then I_int; known poses on I_int; 'int'/'min' no fallback."""
+    import numpy as np
+
+    from pmvir.geometry.stage import sift_inputs
+    from pmvir.polarization.stokes import PolarizationImages
+
+    z = np.zeros((4, 4), np.float32)
+    views = [
+        PolarizationImages(
+            i_int=np.full((4, 4, 3), 0.8, np.float32), i_min=np.full((4, 4, 3), 0.2, np.float32),
+            aop=z, dop=z, valid=z > 0,
+        )
+    ] * 3
+    assert GeometryOptions().sfm.grey == "auto"
+    sift, fallback = sift_inputs(views, "auto", known=False)
+    assert all(np.all(im == 0.2) for im in sift) and fallback is not None and all(np.all(im == 0.8) for im in fallback)
+    for grey, known, level in (("auto", True, 0.8), ("int", False, 0.8), ("min", False, 0.2), ("min", True, 0.2)):
+        sift, fallback = sift_inputs(views, grey, known=known)
+        assert fallback is None and all(np.all(im == level) for im in sift), (grey, known)
