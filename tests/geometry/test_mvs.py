@@ -253,8 +253,12 @@ def test_views_without_masks_are_matched_on_the_full_grid_where_its_depths_agree
         "unmasked": ([None] * 8, MvsOptions(**common, unmasked_full_min_consistent=0.0)),
         "unmasked, too few consistent": ([None] * 8, MvsOptions(**common)),
     }
+    reported: list[tuple[float, str]] = []
     results = {
-        name: dense_stereo(s.images[views], masks, s.cameras[views], s.points, names=s.names[views], options=options)
+        name: dense_stereo(
+            s.images[views], masks, s.cameras[views], s.points, names=s.names[views], options=options,
+            progress=Progress(lambda stage, f, m: reported.append((f, m))) if "too few" in name else None,
+        )
         for name, (masks, options) in runs.items()
     }
     h, w = s.images[0].shape[:2]
@@ -269,6 +273,11 @@ def test_views_without_masks_are_matched_on_the_full_grid_where_its_depths_agree
     tried = results["unmasked, too few consistent"].full_grid_consistent
     assert tried is not None and 0.0 < tried < 0.15
     assert "full_grid_not_kept" in results["unmasked, too few consistent"].timings
+    # the full grid's try takes the first 80 % of the progress bar, the half grid's depth maps the rest
+    full_try = [f for f, m in reported if "full-resolution grid" in m]
+    half = [f for f, m in reported if m.startswith("depth map") and "full-resolution" not in m]
+    assert len(full_try) == 8 and len(half) == 8 and max(full_try) < 0.8 <= min(half) < max(half) < 1.0
+    assert reported[-1] == (1.0, "fusing depth maps")
     # on the object the full grid fuses more points (measured: 50,776 against 38,696 within 1 % of the
     # diagonal)
     near = {}

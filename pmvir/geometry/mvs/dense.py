@@ -60,6 +60,8 @@ _SPARSE_RIG_WINDOW = 7
 #: 320x256, no masks: vertices beyond 2 % of the diagonal 0.57-1.40 % with the half grid, 0.09-1.06 %
 #: with 5 on the full grid, 0.25-1.26 % with 7 (benchmarks page, the stereo grid without masks).
 _UNMASKED_FULL_WINDOW = 5
+#: The share of the stereo's progress bar a full-resolution grid takes when it is tried first.
+_FULL_GRID_SPAN = 0.8
 
 
 @dataclass(frozen=True)
@@ -276,15 +278,21 @@ def _dense_cpu(inputs: _StereoInputs, options: MvsOptions, diag: float, progress
     full = unmasked_full_grid([images[i] for i in registered], [masks[i] for i in registered], options)
     tried: float | None = None  # the full grid's mean consistent fraction, when it was not kept
     seconds_full = 0.0  # the time of the full grid's depth maps and fusion, when they were not kept
+    # the progress bar never goes back: a full grid takes the first 80 % of it (four times the half grid's
+    # pixels), and the half grid, when it follows, the rest
+    half_from = 0.0
     if full:
-        depth_maps, valid, views = _depth_maps(inputs, options, progress, full=True)
+        depth_maps, valid, views = _depth_maps(inputs, options, progress, full=True, span=(0.0, _FULL_GRID_SPAN))
+        progress.update(_FULL_GRID_SPAN, "fusing the full-resolution depth maps")
         pts_f, views_f, counts_f, fraction = _fused(depth_maps, valid, views, masks, neighbours, options, registered)
         kept = [fraction[i] for i in registered if fraction[i] >= 0]
         if kept and float(np.mean(kept)) < options.unmasked_full_min_consistent:
             tried, full = float(np.mean(kept)), False  # too noisy for the full grid: the half grid averages it
             seconds_full = time.perf_counter() - t0
+            half_from = _FULL_GRID_SPAN
     if not full:
-        depth_maps, valid, views = _depth_maps(inputs, options, progress, full=False)
+        depth_maps, valid, views = _depth_maps(inputs, options, progress, full=False, span=(half_from, 1.0))
+        progress.update(1.0, "fusing depth maps")
         pts_f, views_f, counts_f, fraction = _fused(depth_maps, valid, views, masks, neighbours, options, registered)
     t1 = time.perf_counter()
     if options.voxel > 0:
@@ -293,7 +301,7 @@ def _dense_cpu(inputs: _StereoInputs, options: MvsOptions, diag: float, progress
     dense = DensePoints(
         points=pts_f, normals=estimate_normals(pts_f, views_f, cameras), views=views_f, consistent=counts_f
     )
-    first = next(m for m in depth_maps if m is not None) if any(m is not None for m in depth_maps) else None
+    first = next((m for m in depth_maps if m is not None), None)
     result = DenseResult(
         points=dense,
         backend="cpu",
@@ -313,11 +321,11 @@ def _dense_cpu(inputs: _StereoInputs, options: MvsOptions, diag: float, progress
 
 
 def _depth_maps(
-    inputs: _StereoInputs, options: MvsOptions, progress: Progress, *, full: bool
+    inputs: _StereoInputs, options: MvsOptions, progress: Progress, *, full: bool, span: tuple[float, float]
 ) -> tuple[list[DepthMap | None], list[int], list[StereoView | None]]:
     """Per view its depth map, its number of depths (-1: none computed) and its stereo view: on the
     full-resolution grid of views without masks (``full``, :func:`unmasked_full_grid`) or on
-    :func:`grid_scale`'s."""
+    :func:`grid_scale`'s; progress moves across ``span`` (from, to) of the step's bar."""
     images, masks, cameras, names = inputs.images, inputs.masks, inputs.cameras, inputs.names
     neighbours, registered, ranges = inputs.neighbours, inputs.registered, inputs.ranges
     n = len(images)
@@ -346,7 +354,8 @@ def _depth_maps(
     try:
         futures = [pool.submit(sweep, i) for i in registered]
         for k, (i, future) in enumerate(zip(registered, futures, strict=True)):
-            progress.update(k / len(registered), f"depth map {k + 1}/{len(registered)} ({grid}view {names[i]})")
+            at = span[0] + (span[1] - span[0]) * k / len(registered)
+            progress.update(at, f"depth map {k + 1}/{len(registered)} ({grid}view {names[i]})")
             depth = depth_maps[i] = future.result()
             if depth is not None:
                 valid[i] = int(depth.valid.sum())
