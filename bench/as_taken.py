@@ -1,8 +1,9 @@
 """A capture as people take it: a folder of full-size frames, an object on a table, no manifest, masks or poses.
 
-Per size (default 2448x2048) a built-in capture of an object standing on a textured table is
-rendered (``pmvir synth --scene table --no-masks``: blob, plastic, environment light, ``--views``
-views from above the table, seed 0) and its frames alone are copied into a bare folder. That
+Per size (default 2448x2048) a capture of an object standing on a textured table is rendered
+(``pmvir synth --scene table --no-masks``: ``--shape`` (blob), plastic, environment light, ``--views``
+views from above the table, seed 0, by ``--renderer``: builtin, or mitsuba at ``--spp``) and its
+frames alone are copied into a bare folder. That
 folder is reconstructed with ``pmvir reconstruct FOLDER`` and the default options, under
 ``/usr/bin/time -v`` (the run's peak resident memory): pmvir infers the manifest, estimates the
 intrinsics and poses by SfM and finds the object itself. With ``--reference`` the same frames
@@ -14,11 +15,13 @@ camera centres to the true ones (``pmvir evaluate --align``): accuracy of the in
 and of the refined mesh, completeness, the median normal error, the largest vertex distance and
 the share of vertices farther than 2 % of the diagonal, the largest distance of the vertices
 within 2 % of the diagonal above the table (the table left in the mesh), and the masks' IoU
-against the true ones. Prints a table and writes bench/results/as_taken.json; ``--reuse``
-measures again only the runs without a finished result in ``--work``.
+against the true ones. Prints a table and writes bench/results/as_taken.json (``--results NAME``:
+NAME.json; ``--append`` keeps its runs, a new one replacing the run of the same input, size and views;
+a run with ``--set`` options names them beside its input); ``--reuse`` measures again only the runs
+without a finished result in ``--work``.
 
-    .venv/bin/python bench/as_taken.py [--sizes 2448x2048] [--views 36] [--reference] [--work DIR] [--reuse]
-        [--set KEY=VALUE ...]
+    .venv/bin/python bench/as_taken.py [--sizes 2448x2048] [--views 36] [--shape blob] [--renderer builtin]
+        [--spp 32] [--reference] [--work DIR] [--reuse] [--set KEY=VALUE ...] [--results NAME] [--append]
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from _results import table, write_results
+from _results import RESULTS, table, write_results
 from fullsize import GIB, _peak_rss_bytes
 from nomask import _mask_iou, _with_true_masks, vertex_distances
 
@@ -50,13 +53,13 @@ PMVIR = str(Path(sys.executable).with_name("pmvir"))
 SEED = 0
 
 
-def _capture(size: str, views: int, work: Path) -> Path:
+def _capture(size: str, views: int, work: Path, args: argparse.Namespace) -> Path:
     """The rendered capture (cached in ``work``): frames, its manifest, gt/ with the true masks."""
-    cap = work / f"cap_{size}_{views}v"
+    cap = work / f"cap_{args.shape}_{args.renderer}_{size}_{views}v"
     if not (cap / "capture.json").is_file():
-        subprocess.run([PMVIR, "synth", "--shape", "blob", "--scene", "table", "--no-masks", "--views", str(views),
-                        "--size", size, "--lighting", "envmap", "--seed", str(SEED), "--out", str(cap), "--force",
-                        "--quiet"], check=True)
+        subprocess.run([PMVIR, "synth", "--shape", args.shape, "--scene", "table", "--no-masks", "--views", str(views),
+                        "--size", size, "--lighting", "envmap", "--renderer", args.renderer, "--spp", str(args.spp),
+                        "--seed", str(SEED), "--out", str(cap), "--force", "--quiet"], check=True)
     return cap
 
 
@@ -90,7 +93,8 @@ def _reconstruct(capture: Path, out: Path, *, reuse: bool, settings: list[str]) 
 def _measure(
     kind: str, size: str, views: int, capture: Path, source: Path, out: Path, reuse: bool, settings: list[str]
 ) -> dict:
-    row: dict = {"run": kind, "size": size, "views": views, "source": str(source)}
+    label = ", ".join([kind, *settings])  # a run with options other than the defaults names them
+    row: dict = {"run": label, "size": size, "views": views, "source": str(source)}
     error = _reconstruct(source, out, reuse=reuse, settings=settings)
     if error is not None:
         return row | {"error": error}
@@ -130,17 +134,23 @@ def _measure(
     }
 
 
+COLUMNS = ["input", "frames", "views", "registered", "working size", "vertices", "peak RSS GiB", "poses s",
+           "isolation s", "geometry s", "refine s", "total min", "initial accuracy x1e-2", "accuracy x1e-2",
+           "completeness x1e-2", "accuracy after ICP x1e-2", "ICP move x1e-2", "camera fit RMSE x1e-2",
+           "normal error median deg", "max dist (diag)", "> 2 % diag", "max dist near table", "mask IoU"]
+
+
 def _row(r: dict) -> list:
     head = [r["run"], r["size"], r["views"]]
     if "error" in r:
-        return head + [f"failed: {r['error']}"] + [None] * 18
+        return head + [f"failed: {r['error']}"] + [None] * (len(COLUMNS) - 4)
     g, s = r["geometry_seconds"], r["seconds"]
     return head + [
         f"{r['registered']}/{r['views']}", r["working_size"], r["vertices"], r["peak_rss_gib"],
         g.get("poses"), None if r["isolation"] is None else g.get("isolation"), s.get("geometry"), s.get("refine"),
         round(s["total"] / 60, 1),
         round(100 * r["initial_accuracy"], 4), round(100 * r["accuracy"], 4), round(100 * r["completeness"], 3),
-        round(100 * r["icp_accuracy"], 4), round(100 * r["icp_shift"], 3),
+        round(100 * r["icp_accuracy"], 4), round(100 * r["icp_shift"], 3), round(100 * r["alignment_rmse"], 3),
         round(r["normal_error_median"], 2), round(r["max_vertex_distance"], 4),
         f"{100 * r['share_beyond_2pct']:.2f} %", round(r["max_distance_near_table"], 4),
         None if r["mask_iou"] is None else round(r["mask_iou"], 3),
@@ -151,6 +161,12 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--sizes", nargs="+", default=["2448x2048"], help="frame sizes WxH (default 2448x2048)")
     p.add_argument("--views", type=int, default=36, help="views per capture (default 36)")
+    p.add_argument("--shape", default="blob", help="built-in shape (pmvir synth --shape; default blob)")
+    p.add_argument("--renderer", default="builtin", choices=["builtin", "mitsuba"], help="renderer (default builtin)")
+    p.add_argument("--spp", type=int, default=32, help="mitsuba's samples per pixel (default 32)")
+    p.add_argument("--results", default="as_taken", help="write bench/results/NAME.json (default as_taken)")
+    p.add_argument("--append", action="store_true",
+                   help="keep the runs already in the result file (a new run replaces one of the same input, size and views)")
     p.add_argument("--reference", action="store_true",
                    help="also reconstruct each capture with its manifest (true poses) and the true masks")
     p.add_argument("--work", type=Path, default=Path("/tmp/pmvir-as-taken"), help="captures and results")
@@ -159,36 +175,39 @@ def main() -> int:
                    help="an option of every reconstruction, as `pmvir reconstruct --set` takes it")
     args = p.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
-    runs = []
+    earlier = RESULTS / f"{args.results}.json"
+    runs = json.loads(earlier.read_text())["runs"] if args.append and earlier.exists() else []
     for size in args.sizes:
-        capture = _capture(size, args.views, args.work)
-        sources = [("bare frames", _bare_frames(capture, args.work / f"frames_{size}_{args.views}v"))]
+        capture = _capture(size, args.views, args.work, args)
+        tag = f"{args.shape}_{args.renderer}_{size}_{args.views}v"
+        sources = [("bare frames", _bare_frames(capture, args.work / f"frames_{tag}"))]
         if args.reference:
-            sources.append(("manifest and true masks", _with_true_masks(capture, args.work / f"masked_{size}_{args.views}v")))
+            sources.append(("manifest and true masks", _with_true_masks(capture, args.work / f"masked_{tag}")))
         for kind, source in sources:
-            out = args.work / f"out_{'bare' if kind == 'bare frames' else 'reference'}_{size}_{args.views}v"
-            runs.append(_measure(kind, size, args.views, capture, source, out, args.reuse, args.set))
+            out = args.work / f"out_{'bare' if kind == 'bare frames' else 'reference'}_{tag}"
+            row = _measure(kind, size, args.views, capture, source, out, args.reuse, args.set)
+            runs = [r for r in runs if (r["run"], r["size"], r["views"]) != (row["run"], size, args.views)] + [row]
             print(json.dumps(runs[-1], default=str), flush=True)
-    columns = ["input", "frames", "views", "registered", "working size", "vertices", "peak RSS GiB", "poses s",
-               "isolation s", "geometry s", "refine s", "total min", "initial accuracy x1e-2", "accuracy x1e-2",
-               "completeness x1e-2", "accuracy after ICP x1e-2", "ICP move x1e-2", "normal error median deg", "max dist (diag)", "> 2 % diag",
-               "max dist near table", "mask IoU"]
+    columns = COLUMNS
     rows = [_row(r) for r in runs]
     print(" | ".join(columns))
     for row in rows:
         print(" | ".join("-" if v is None else str(v) for v in row))
     tab = table(
         "A folder of frames of an object on a table: no manifest, masks or poses", columns, rows,
-        note="Capture: blob standing on a textured table, builtin renderer, plastic, envmap lighting, seed 0, "
+        note=f"Capture: {args.shape} standing on a textured table, {args.renderer} renderer"
+        f"{f' ({args.spp} spp)' if args.renderer == 'mitsuba' else ''}, plastic, envmap lighting, seed 0, "
         "views from above the table. 'bare frames': the frames alone (manifest inferred, intrinsics and "
         "poses by SfM, the object found without masks); 'manifest and true masks': the same frames with "
         "the rendered manifest and the true masks. Meshes aligned to the ground truth by a similarity "
         "from the camera centres ('after ICP': that similarity refined by ICP on the true surface, pmvir evaluate "
-        "--icp, and the largest move it made); distances in GT bounding-box diagonals; 'near table': vertices within "
+        "--icp, and the largest move it made; 'camera fit RMSE': the camera centres' residual after that "
+        "similarity, the poses' own error); distances in GT bounding-box diagonals; 'near table': vertices within "
         "2 % of the diagonal above the table; peak RSS of the whole run from /usr/bin/time -v.",
     )
-    peer = "the same frames with their manifest (true poses) and true masks" if args.reference else None
-    out = write_results("as_taken", title="Captures as people take them", tables=[tab], peer=peer,
+    referenced = any(r["run"].startswith("manifest and true masks") for r in runs)
+    peer = "the same frames with their manifest (true poses) and true masks" if referenced else None
+    out = write_results(args.results, title="Captures as people take them", tables=[tab], peer=peer,
                         data={"options": vars(args) | {"work": str(args.work)}, "runs": runs})
     print(f"wrote {out}")
     return 0

@@ -70,6 +70,12 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/as_taken.py --reference",
         "the same frames with their manifest (true poses) and true masks",
     ),
+    "as_taken_knot_pathtraced": (
+        "A path-traced knot on a table as taken: 36 frames of 612x512, no manifest, masks or poses",
+        f"{PY} bench/as_taken.py --sizes 612x512 --shape knot --renderer mitsuba --reference "
+        "--results as_taken_knot_pathtraced [--append --set geometry.sfm.sift_equalize=false]",
+        "the same frames with their manifest (true poses) and true masks",
+    ),
     "subdivision": ("Visibility and subdivision", f"{PY} bench/subdivision.py", None),
     "refine": (
         "Refinement against ground truth (the paper's Tables 3 and 4)",
