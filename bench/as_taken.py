@@ -27,6 +27,7 @@ without a finished result in ``--work``.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import shutil
 import subprocess
@@ -184,7 +185,9 @@ def main() -> int:
         if args.reference:
             sources.append(("manifest and true masks", _with_true_masks(capture, args.work / f"masked_{tag}")))
         for kind, source in sources:
-            out = args.work / f"out_{'bare' if kind == 'bare frames' else 'reference'}_{tag}"
+            # runs with other options in folders of their own, so that --reuse never takes one for another
+            options = "_" + hashlib.sha1(" ".join(args.set).encode()).hexdigest()[:8] if args.set else ""
+            out = args.work / f"out_{'bare' if kind == 'bare frames' else 'reference'}_{tag}{options}"
             row = _measure(kind, size, args.views, capture, source, out, args.reuse, args.set)
             runs = [r for r in runs if (r["run"], r["size"], r["views"]) != (row["run"], size, args.views)] + [row]
             print(json.dumps(runs[-1], default=str), flush=True)
