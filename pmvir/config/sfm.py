@@ -59,6 +59,18 @@ class SfmOptions(_Options):
         "surfaces.",
         json_schema_extra=advanced(),
     )
+    sift_denoise: float = Field(
+        default=0.0, ge=0.0, le=50.0,
+        description="Non-local-means denoising of SIFT's 8-bit grey images before equalization, strength in "
+        "grey levels, 0..50 (0: off). Noisy frames keep fewer spurious features.",
+        json_schema_extra=advanced(),
+    )
+    denoised_runs: float = Field(
+        default=5.0, ge=0.0, le=50.0,
+        description="SfM runs first on images denoised with this strength (grey levels) and not equalized, "
+        "kept if every view registers, and last where views are still left out. 0..50, 0: off.",
+        json_schema_extra=advanced(),
+    )
     exhaustive_matching_max_views: int = Field(
         default=50, ge=2,
         description="Match every pair of views up to this many views; above it, each view is matched with "

@@ -24,6 +24,7 @@ from __future__ import annotations
 import itertools
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -131,6 +132,10 @@ def test_sfm_recovers_camera_centres_and_focal_length(sfm_views: dict, tmp_path:
     assert 0.0 < model.mean_reprojection_error < 1.0
     assert len(model.points) >= 500 and model.point_views is not None and len(model.point_views) == len(model.points)
     assert {"images", "features", "matching", "mapping", "refinement", "total"} <= set(model.timings)
+    # SfM on denoised, not equalized images without upsampling placed every view: no other run was made
+    assert model.extras[0] == {"step": "denoised_first", "seconds": model.extras[0]["seconds"], "kept": True,
+                               "registered": 36}
+    assert not (tmp_path / "without-upsampling").exists() and not (tmp_path / "database.db").exists()
 
 
 def test_sfm_holds_given_intrinsics_fixed(sfm_views: dict, tmp_path: Path) -> None:
@@ -273,6 +278,84 @@ def test_sift_image_is_exposure_invariant_8bit() -> None:
     assert np.array_equal(a, sift_image(image * 7.0, mask, equalize=False))
     assert np.percentile(a[mask], 99.5) >= 250
     assert sift_image(image, mask).shape == (64, 80)
+
+
+def test_sift_image_denoising_flattens_noise_and_keeps_edges() -> None:
+    """sift_denoise: non-local means on the 8-bit image; 0 leaves the image as it was."""
+    rng = np.random.default_rng(1)
+    image = np.full((96, 96), 0.2, np.float32)
+    image[:, 48:] = 0.6
+    noisy = np.clip(image + rng.normal(0.0, 0.02, image.shape), 0.0, None).astype(np.float32)
+    plain, clean = sift_image(noisy, equalize=False), sift_image(noisy, equalize=False, denoise=10.0)
+    assert np.array_equal(plain, sift_image(noisy, equalize=False, denoise=0.0))
+    flat = (slice(8, 88), slice(8, 40))
+    assert clean[flat].std() < 0.3 * plain[flat].std(), (clean[flat].std(), plain[flat].std())
+    step = clean[:, 52].astype(float).mean() - clean[:, 44].astype(float).mean()
+    assert step > 0.9 * (plain[:, 52].astype(float).mean() - plain[:, 44].astype(float).mean())
+
+
+def test_denoised_runs_where_views_are_left_out(sfm_views: dict, tmp_path: Path) -> None:
+    """Two views blanked: SfM on denoised, not equalized images without upsampling leaves them out, so the
+    usual runs follow, and where they leave them out too, SfM on denoised upsampled images
+    (workdir/denoised) once more: the usual model is kept (a tie), and the extras and timings say what the
+    denoised runs cost and gave. With denoised_runs 0 there are no such runs."""
+    blank = (14, 20)
+    images = [np.full_like(im, 0.3) if i in blank else im for i, im in enumerate(sfm_views["images"])]
+    names = sfm_views["names"]
+    options = SfmOptions()
+    steps: list[tuple[float, str]] = []
+    model = estimate_poses(images, names, options=options, workdir=tmp_path / "a",
+                           progress=lambda f, s: steps.append((f, s)))
+    assert model.num_registered == 34
+    first, last = model.extras[0], model.extras[-1]
+    assert first["step"] == "denoised_first" and not first["kept"] and first["registered"] < 36
+    assert last["step"] == "denoised" and last["registered_before"] == last["registered"] == 34 and not last["kept"]
+    assert model.timings["denoised"] == last["seconds"] > 0
+    assert model.timings["denoised_first"] == first["seconds"] > 0
+    assert model.timings["total"] >= first["seconds"] + last["seconds"] + model.timings["mapping"]
+    written = tmp_path / "a" / "denoised" / "images" / "00000.png"
+    expected = sift_image(images[0], equalize=False, denoise=options.denoised_runs)
+    assert np.array_equal(cv2.imread(str(written), cv2.IMREAD_GRAYSCALE), expected)
+    assert (tmp_path / "a" / "denoised-first" / "database.db").is_file()
+    fractions = [f for f, _ in steps]
+    assert fractions == sorted(fractions) and steps[-1] == (1.0, "poses done"), steps
+    assert sum(s == "poses done" for _, s in steps) == 1, steps
+    assert any(s.endswith("(denoised images)") for _, s in steps), steps
+
+    off = estimate_poses(images, names, options=options.model_copy(update={"denoised_runs": 0.0}),
+                         workdir=tmp_path / "b")
+    assert off.num_registered == 34 and not list((tmp_path / "b").glob("denoised*"))
+    assert all(not e["step"].startswith("denoised") for e in off.extras)
+
+
+def _fake_model(registered: int, n: int = 6) -> SparseModel:
+    cam = Camera(K=np.diag([100.0, 100.0, 1.0]), R=np.eye(3), t=np.zeros(3), width=64, height=64)
+    return SparseModel(
+        cameras=[cam if i < registered else None for i in range(n)], points=np.zeros((0, 3)), point_colors=None,
+        point_views=None, mean_reprojection_error=0.5, registered=[i < registered for i in range(n)],
+        known_poses=False, timings={"total": 1.0},
+    )
+
+
+def test_denoised_run_is_kept_only_with_more_views() -> None:
+    """_denoised_retry keeps the model with more registered views (ties: the first), counts both runs'
+    time, and fails only when both runs failed, with both reasons."""
+    from pmvir.geometry.sfm.poses import _denoised_retry
+
+    kept = _denoised_retry(_fake_model(3), None, 7.0, lambda: _fake_model(5))
+    assert kept.num_registered == 5 and kept.extras[-1]["kept"] and kept.timings["without_denoising"] == 7.0
+    assert kept.timings["total"] >= 7.0
+    tie = _denoised_retry(_fake_model(4), None, 7.0, lambda: _fake_model(4))
+    assert not tie.extras[-1]["kept"] and "denoised" in tie.timings and "without_denoising" not in tie.timings
+
+    def fails() -> SparseModel:
+        raise ReconstructionError("SfM registered 1 of 6 views")
+
+    assert _denoised_retry(_fake_model(4), None, 7.0, fails).extras[-1]["registered"] == 0
+    first = ReconstructionError("SfM registered 2 of 6 views")
+    with pytest.raises(ReconstructionError, match="2 of 6 views; on denoised images: SfM registered 1 of 6"):
+        _denoised_retry(None, first, 7.0, fails)
+    assert _denoised_retry(None, first, 7.0, lambda: _fake_model(6)).num_registered == 6
 
 
 # -- bad inputs: each a clear ReconstructionError (or ValueError for inconsistent arguments)
@@ -472,7 +555,8 @@ def test_rematch_rounds_lengthen_tracks_with_sfm_poses(sfm_views: dict, tmp_path
         model = estimate_poses(
             [sfm_views["images"][i] for i in ring], [sfm_views["names"][i] for i in ring],
             intrinsics=[true[0].K] * len(ring), masks=[sfm_views["masks"][i] for i in ring],
-            options=SfmOptions(rematch_rounds=rounds, rematch_min_track=min_track, sift_upsample=True),
+            options=SfmOptions(rematch_rounds=rounds, rematch_min_track=min_track, sift_upsample=True,
+                               denoised_runs=0),
             workdir=tmp_path / f"r{rounds}-{min_track}",
         )
         assert model.num_registered == len(ring)
@@ -500,13 +584,14 @@ def test_fallback_images_register_the_views_the_first_ones_leave_out(sfm_views: 
     features: they register in no model, 24 of 36 do) are registered from the second images, and the
     model says it came from them; only the kept model is held to the masks (the first images' 24-view model,
     discarded, is not: that was 5-23 s of wasted work on the benchmark models); first images that register
-    every view are kept without a second run, and (sift_upsample 'auto') without an upsampled one."""
+    every view are kept without a second run, and (sift_upsample 'auto') without an upsampled one (the
+    runs on denoised images are off: test_denoised_runs_where_views_are_left_out)."""
     true = sfm_views["cameras"]
     blanked = [np.full_like(im, 0.3) if i < 12 else im for i, im in enumerate(sfm_views["images"])]
     steps: list[tuple[float, str]] = []
     model = estimate_poses(
         blanked, sfm_views["names"], intrinsics=[true[0].K] * 36, masks=sfm_views["masks"],
-        options=SfmOptions(), workdir=tmp_path / "a", fallback_images=sfm_views["images"],
+        options=SfmOptions(denoised_runs=0), workdir=tmp_path / "a", fallback_images=sfm_views["images"],
         progress=lambda f, s: steps.append((f, s)),
     )
     assert model.fallback and model.registered == [True] * 36
@@ -526,7 +611,8 @@ def test_fallback_images_register_the_views_the_first_ones_leave_out(sfm_views: 
     calls: list[tuple[float, str]] = []
     model = estimate_poses(
         [sfm_views["images"][i] for i in ring], [sfm_views["names"][i] for i in ring],
-        intrinsics=[true[0].K] * len(ring), masks=[sfm_views["masks"][i] for i in ring], options=SfmOptions(),
+        intrinsics=[true[0].K] * len(ring), masks=[sfm_views["masks"][i] for i in ring],
+        options=SfmOptions(denoised_runs=0),
         workdir=tmp_path / "b", fallback_images=[np.full_like(sfm_views["images"][i], 0.3) for i in ring],
         progress=lambda f, s: calls.append((f, s)),
     )

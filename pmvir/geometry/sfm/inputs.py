@@ -21,17 +21,21 @@ EXPOSURE_PERCENTILE = 99.5
 SCRATCH_PNG = [cv2.IMWRITE_PNG_COMPRESSION, 0]
 
 
-def sift_image(image: np.ndarray, mask: np.ndarray | None = None, *, equalize: bool = True) -> np.ndarray:
+def sift_image(
+    image: np.ndarray, mask: np.ndarray | None = None, *, equalize: bool = True, denoise: float = 0.0
+) -> np.ndarray:
     """The 8-bit grey image SIFT sees.
 
     Args:
         image: (H, W, C) or (H, W) float linear intensities (any positive scale).
         mask: optional (H, W) bool foreground; the exposure is set on it.
         equalize: apply CLAHE (clip limit 2, 8 x 8 tiles).
+        denoise: strength h (grey levels) of OpenCV's non-local-means denoising (7 x 7 patches
+            searched over 21 x 21 pixels) before the equalization; 0: none.
 
     Returns:
         (H, W) uint8: the channel mean scaled so its 99.5th percentile (over the mask)
-        is 1, sRGB-encoded, optionally equalized.
+        is 1, sRGB-encoded, optionally denoised and equalized.
     """
     grey = image.mean(axis=2) if image.ndim == 3 else image
     if grey.ndim != 2:
@@ -41,6 +45,8 @@ def sift_image(image: np.ndarray, mask: np.ndarray | None = None, *, equalize: b
     level = float(np.percentile(values, EXPOSURE_PERCENTILE)) if values.size else 0.0
     scale = 1.0 / level if level > 1e-12 else 1.0
     out: np.ndarray = np.rint(srgb_encode(grey * np.float32(scale)) * 255.0).astype(np.uint8)
+    if denoise > 0:
+        out = cv2.fastNlMeansDenoising(out, None, float(denoise), 7, 21)
     if equalize:
         out = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(out)
     return out
@@ -92,7 +98,7 @@ def write_inputs(
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * options.mask_erosion_px + 1,) * 2)
     for i, (im, name) in enumerate(zip(images, files, strict=True)):
         mask = None if masks is None else masks[i]
-        cv2.imwrite(str(image_dir / name), sift_image(im, mask, equalize=options.sift_equalize), SCRATCH_PNG)
+        cv2.imwrite(str(image_dir / name), sift_image(im, mask, equalize=options.sift_equalize, denoise=options.sift_denoise), SCRATCH_PNG)
         if has_masks:
             m = np.full(im.shape[:2], 255, np.uint8) if mask is None else mask.astype(np.uint8) * 255
             cv2.imwrite(str(mask_dir / f"{name}.png"), cv2.erode(m, kernel), SCRATCH_PNG)

@@ -29,9 +29,14 @@ The COLMAP plumbing (database, matching, mapping, refinement) is in
 :mod:`pmvir.geometry.sfm.colmap`.
 
 SIFT sees an 8-bit grey image per view (:func:`~pmvir.geometry.sfm.inputs.sift_image`): the channel mean,
-exposed so the 99.5th percentile of the foreground is white, sRGB-encoded and
-(``sift_equalize``) contrast-equalized with CLAHE. Masks, eroded by
-``sfm.mask_erosion_px`` (default 4) so that no feature sits on the silhouette
+exposed so the 99.5th percentile of the foreground is white, sRGB-encoded, optionally denoised by
+non-local means (``sift_denoise``) and (``sift_equalize``) contrast-equalized with CLAHE. SfM runs
+first on images denoised and not equalized (``sfm.denoised_runs``) and keeps that model when every
+view registers: on noisy frames the equalization lifts the noise into features that match nowhere
+and the noise moves the rest; smooth, weakly textured objects need the equalization, and the runs
+described above follow. Where they leave views out, SfM runs last on the denoised images upsampled.
+
+Masks, eroded by ``sfm.mask_erosion_px`` (default 4) so that no feature sits on the silhouette
 (a silhouette is no fixed surface point), restrict
 where features are detected. Where masks are
 given, sparse points must also project into every view's mask (grown by
@@ -94,7 +99,9 @@ class SparseModel:
             (known poses) or "mapping" and "refinement" (SfM), "frontier" and
             "silhouette_registration" (SfM with masks), "finish" (those two and the checks), and
             "total"; with ``fallback_images``, "first_images" or "second_images": the run not kept;
-            "without_upsampling": the run without SIFT upsampling when it was not kept.
+            "without_upsampling": the run without SIFT upsampling when it was not kept; "denoised_first"
+            (the first run, on denoised images, ``sfm.denoised_runs``) when it was not kept; "denoised"
+            (the last run, on denoised images) or "without_denoising" (the runs before it), the one not kept.
         names: the views' names, in capture order.
         num_features: SIFT features per view.
         point_observations: per point a (k, 3) float64 array of its observations: view index,
@@ -115,8 +122,10 @@ class SparseModel:
             views, and why later rounds were skipped), ``join`` (models joined, stats before and after),
             ``without_upsampling`` (SfM without SIFT upsampling: registered views, whether it was kept),
             ``second_images`` (the SfM run on ``fallback_images`` and the registered views of both),
-            ``frontier`` (its report) and ``silhouette_registration`` (views registered); a step that did
-            not run says why (``skipped``).
+            ``frontier`` (its report), ``silhouette_registration`` (views registered) and ``denoised`` (SfM
+            on denoised images: registered views before and with it, whether it was kept); a step that did
+            not run says why (``skipped``); ``denoised_first`` (the first run, on denoised images: registered
+            views, whether it was kept) leads.
     """
 
     cameras: list[Camera | None]
@@ -265,6 +274,12 @@ def estimate_poses(
             SfM refines it (SIMPLE_PINHOLE, principal point at the image centre). Used only for
             views whose intrinsics are not given.
 
+    With ``sfm.denoised_runs`` above 0, SfM runs first on ``images`` denoised (non-local means) and not
+    equalized, without upsampling where ``sift_upsample`` is 'auto' (in ``workdir/denoised-first``), and
+    that model is kept when every view registers. Otherwise the runs above follow, and where they still
+    leave views out (or fail) and ``sift_upsample`` is 'auto', SfM runs once more on the denoised images
+    upsampled (in ``workdir/denoised``); the model with more registered views is kept (ties: the first).
+
     Returns:
         The SparseModel; in known-pose mode its cameras are the given objects.
 
@@ -279,6 +294,120 @@ def estimate_poses(
     known = cameras is not None and all(c is not None for c in cameras) and len(cameras) == len(images)
     if fallback_images is not None and len(fallback_images) != len(images):
         raise ShapeError(f"expected {len(images)} fallback images (one per view), got {len(fallback_images)}")
+    if known or options.denoised_runs <= 0:
+        return _cascade(images, names, cameras, intrinsics, masks, options, workdir, report, fallback_images,
+                        focal_priors, known=known)
+    n = len(images)
+    denoised = _denoised_options(options)
+    # SfM on denoised images first ('auto': without upsampling), kept when every view registers
+    auto = options.sift_upsample == "auto"
+    t0 = time.perf_counter()
+    quick, quick_error = _attempt(lambda: _run_sfm(
+        images, cameras, intrinsics, masks, denoised.model_copy(update={"sift_upsample": not auto and
+                                                                        options.sift_upsample}),
+        Path(workdir) / "denoised-first", lambda f, s: report(0.15 * f, f"{s} (denoised images)"),
+        names=names, focal_priors=focal_priors, complete_or_stop=True,
+    ))
+    if quick is not None and quick.num_registered == n:
+        try:
+            model = _finish(quick, names, cameras, masks, denoised, report)
+        except ReconstructionError as exc:
+            quick_error = exc
+        else:
+            model.extras.insert(0, _denoised_entry(quick, None, time.perf_counter() - t0, kept=True))
+            return model
+    tried = _denoised_entry(quick, quick_error, time.perf_counter() - t0, kept=False)
+    t1 = time.perf_counter()
+    cascade: SparseModel | None = None
+    error: ReconstructionError | None = None
+    try:  # (its "poses done" waits: the upsampled run on denoised images may follow)
+        cascade = _cascade(
+            images, names, cameras, intrinsics, masks, options, workdir,
+            lambda f, s: report(0.15 + 0.75 * min(f, 0.99), s) if f < 1.0 else None,
+            fallback_images, focal_priors, known=False,
+        )
+    except ReconstructionError as exc:
+        error = exc
+    if auto and (cascade is None or cascade.num_registered < n):
+        cascade = _denoised_retry(
+            cascade, error, time.perf_counter() - t1,
+            lambda: _finish(_run_sfm(
+                images, cameras, intrinsics, masks, denoised, Path(workdir) / "denoised",
+                lambda f, s: report(0.9 + 0.1 * min(f, 0.99), f"{s} (denoised images)"), names=names,
+                focal_priors=focal_priors,
+            ), names, cameras, masks, denoised, lambda f, s: None),
+        )
+    if cascade is None:
+        assert error is not None
+        raise error
+    cascade.extras.insert(0, tried)
+    cascade.timings["denoised_first"] = tried["seconds"]
+    cascade.timings["total"] += tried["seconds"]
+    report(1.0, "poses done")
+    return cascade
+
+
+def _denoised_entry(run: _SfmRun | None, error: ReconstructionError | None, seconds: float, *, kept: bool) -> dict:
+    """The ``extras`` entry of the first SfM run, on denoised images (``sfm.denoised_runs``)."""
+    entry: dict = {"step": "denoised_first", "seconds": seconds, "kept": kept,
+                   "registered": 0 if run is None else run.num_registered}
+    if error is not None:
+        entry["error"] = str(error)
+    return entry
+
+
+def _denoised_options(options: SfmOptions) -> SfmOptions:
+    """The options of SfM's run on denoised images (``sfm.denoised_runs``): denoised, not equalized,
+    upsampled."""
+    return options.model_copy(update={"sift_denoise": options.denoised_runs, "sift_equalize": False,
+                                      "sift_upsample": options.sift_upsample is not False})
+
+
+def _denoised_retry(
+    model: SparseModel | None, error: ReconstructionError | None, seconds: float, retry: Callable[[], SparseModel]
+) -> SparseModel:
+    """The model with more registered views of ``model`` (SfM's usual runs, which took ``seconds``; None
+    where they failed with ``error``) and ``retry()`` (SfM on denoised, upsampled images); ties keep
+    ``model``. The kept model's extras get a ``denoised`` step, its timings the time of the one not kept
+    ("denoised" or "without_denoising"), in the total as well."""
+    t0 = time.perf_counter()
+    other: SparseModel | None = None
+    try:
+        other = retry()
+    except ReconstructionError as exc:
+        if model is None:
+            raise ReconstructionError(f"{error}; on denoised images: {exc}") from exc
+    spent = time.perf_counter() - t0
+    before = 0 if model is None else model.num_registered
+    after = 0 if other is None else other.num_registered
+    kept = model if model is not None and (other is None or before >= after) else other
+    assert kept is not None  # (both None raised above)
+    kept.extras.append({"step": "denoised", "seconds": spent, "registered_before": before, "registered": after,
+                        "kept": kept is other})
+    if kept is other:
+        kept.timings["without_denoising"] = seconds
+    else:
+        kept.timings["denoised"] = spent
+    kept.timings["total"] = seconds + spent
+    return kept
+
+
+def _cascade(
+    images: Sequence[np.ndarray],
+    names: Sequence[str],
+    cameras: Sequence[Camera | None] | None,
+    intrinsics: Sequence[np.ndarray | None] | None,
+    masks: Sequence[np.ndarray | None] | None,
+    options: SfmOptions,
+    workdir: str | Path,
+    report: Progress,
+    fallback_images: Sequence[np.ndarray] | None,
+    focal_priors: Sequence[float | None] | None,
+    *,
+    known: bool,
+) -> SparseModel:
+    """SfM without upsampling, with it, and on the fallback images, as far as views are left out (or
+    the known-pose triangulation): :func:`estimate_poses` without the run on denoised images."""
     tried: dict | None = None  # the SfM run without SIFT upsampling, when it was not kept
     if options.sift_upsample == "auto":
         options = options.model_copy(update={"sift_upsample": True})  # what every run below uses
