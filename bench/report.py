@@ -73,7 +73,7 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
     "as_taken_knot_pathtraced": (
         "A path-traced knot on a table as taken: 36 frames of 612x512, no manifest, masks or poses",
         f"{PY} bench/as_taken.py --sizes 612x512 --shape knot --renderer mitsuba --reference "
-        "--results as_taken_knot_pathtraced [--append --set geometry.sfm.sift_equalize=false]",
+        "--results as_taken_knot_pathtraced [--append --set geometry.sfm.denoised_runs=0]",
         "the same frames with their manifest (true poses) and true masks",
     ),
     "subdivision": ("Visibility and subdivision", f"{PY} bench/subdivision.py", None),

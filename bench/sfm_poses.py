@@ -110,8 +110,10 @@ def _run(capture: Path, mode: str, workdir: Path, options: SfmOptions, *, plain:
         row |= _centre_errors(reg, np.stack([model.cameras[i].center for i in reg]), true)
         row["extras"] = model.extras
         if plain:  # side by side: pycolmap's plain pipeline on the SIFT images ours saw
-            quick = any(e["step"] == "without_upsampling" and e["kept"] for e in model.extras)
-            sift_dir = workdir / ("without-upsampling" if quick else "fallback" if model.fallback else "") / "images"
+            kept = [e["step"] for e in model.extras if e.get("kept") is True]
+            run_dir = {"denoised_first": "denoised-first", "denoised": "denoised",
+                       "without_upsampling": "without-upsampling"}
+            sift_dir = workdir / (run_dir[kept[0]] if kept else "fallback" if model.fallback else "") / "images"
             row["plain"] = _plain_colmap(sift_dir, workdir / "plain", true, names, options.seed)
             row["ratio_wall"] = row["timings"]["total"] / row["plain"]["timings"]["total"]
             row["ratio_cpu"] = row["cpu_s"] / row["plain"]["cpu_s"]
