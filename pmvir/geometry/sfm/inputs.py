@@ -29,13 +29,16 @@ def sift_image(
     Args:
         image: (H, W, C) or (H, W) float linear intensities (any positive scale).
         mask: optional (H, W) bool foreground; the exposure is set on it.
-        equalize: apply CLAHE (clip limit 2, 8 x 8 tiles).
+        equalize: apply CLAHE (clip limit 2, 8 x 8 tiles); without it the 0.5th percentile (over
+            the mask) is black instead, so an unknown pedestal (a black level left in the
+            intensities) does not lift the shadows.
         denoise: strength h (grey levels) of OpenCV's non-local-means denoising (7 x 7 patches
             searched over 21 x 21 pixels) before the equalization; 0: none.
 
     Returns:
         (H, W) uint8: the channel mean scaled so its 99.5th percentile (over the mask)
-        is 1, sRGB-encoded, optionally denoised and equalized.
+        is 1 (and, not equalized, shifted so its 0.5th is 0), sRGB-encoded, optionally denoised
+        and equalized.
     """
     grey = image.mean(axis=2) if image.ndim == 3 else image
     if grey.ndim != 2:
@@ -43,6 +46,10 @@ def sift_image(
     grey = np.nan_to_num(grey.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
     values = grey[mask] if mask is not None and mask.any() else grey.ravel()
     level = float(np.percentile(values, EXPOSURE_PERCENTILE)) if values.size else 0.0
+    black = 0.0 if equalize or not values.size else float(np.percentile(values, 100.0 - EXPOSURE_PERCENTILE))
+    if level - black > 1e-12:
+        grey = np.maximum(grey - np.float32(black), 0.0)
+        level -= black
     scale = 1.0 / level if level > 1e-12 else 1.0
     out: np.ndarray = np.rint(srgb_encode(grey * np.float32(scale)) * 255.0).astype(np.uint8)
     if denoise > 0:
