@@ -56,7 +56,7 @@ class SfmOptions(_Options):
     sift_equalize: bool = Field(
         default=True,
         description="Equalize the 8-bit grey images (CLAHE) before SIFT: more features on weakly textured "
-        "surfaces.",
+        "surfaces. Off: the 0.5th percentile is taken as black instead.",
         json_schema_extra=advanced(),
     )
     sift_denoise: float = Field(

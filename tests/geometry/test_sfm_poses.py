@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import itertools
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -34,6 +35,7 @@ from pmvir.config import SfmOptions
 from pmvir.decode import decode_frame
 from pmvir.errors import ReconstructionError, ShapeError
 from pmvir.evaluate import SurfaceQuery
+from pmvir.geometry.sfm import inputs
 from pmvir.geometry.sfm.align import umeyama
 from pmvir.geometry.sfm.inputs import sift_image
 from pmvir.geometry.sfm.matching import fundamental_matrix, sampson_error
@@ -301,16 +303,27 @@ def test_sift_image_denoising_flattens_noise_and_keeps_edges() -> None:
 def test_denoised_runs_where_views_are_left_out(sfm_views: dict, tmp_path: Path) -> None:
     """Two views blanked: SfM on denoised, not equalized images without upsampling leaves them out, so the
     usual runs follow, and where they leave them out too, SfM on denoised upsampled images
-    (workdir/denoised) once more: the usual model is kept (a tie), and the extras and timings say what the
+    (workdir/denoised, each image denoised once for both runs) once more: the usual model is kept (a tie), and the extras and timings say what the
     denoised runs cost and gave. With denoised_runs 0 there are no such runs."""
     blank = (14, 20)
     images = [np.full_like(im, 0.3) if i in blank else im for i, im in enumerate(sfm_views["images"])]
     names = sfm_views["names"]
     options = SfmOptions()
     steps: list[tuple[float, str]] = []
-    model = estimate_poses(images, names, options=options, workdir=tmp_path / "a",
-                           progress=lambda f, s: steps.append((f, s)))
+    denoised_images: list[float] = []
+    real_sift_image = inputs.sift_image
+
+    def counting(*args: Any, **kwargs: Any) -> np.ndarray:
+        if kwargs.get("denoise", 0.0) > 0:
+            denoised_images.append(kwargs["denoise"])
+        return real_sift_image(*args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(inputs, "sift_image", counting)
+        model = estimate_poses(images, names, options=options, workdir=tmp_path / "a",
+                               progress=lambda f, s: steps.append((f, s)))
     assert model.num_registered == 34
+    assert len(denoised_images) == len(images)  # the last run copies the first run's denoised images
     first, last = model.extras[0], model.extras[-1]
     assert first["step"] == "denoised_first" and not first["kept"] and first["registered"] < 36
     assert last["step"] == "denoised" and last["registered_before"] == last["registered"] == 34 and not last["kept"]

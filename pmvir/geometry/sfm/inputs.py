@@ -91,9 +91,16 @@ def check_inputs(
 
 
 def write_inputs(
-    workdir: Path, images: Sequence[np.ndarray], masks: Sequence[np.ndarray | None] | None, options: SfmOptions
+    workdir: Path,
+    images: Sequence[np.ndarray],
+    masks: Sequence[np.ndarray | None] | None,
+    options: SfmOptions,
+    *,
+    reuse: Path | None = None,
 ) -> tuple[Path, Path | None, list[str]]:
-    """SIFT images (and COLMAP masks: 0 = no features) under ``workdir``; returns dirs and file names."""
+    """SIFT images (and COLMAP masks: 0 = no features) under ``workdir``; returns dirs and file names.
+    ``reuse``: a folder of SIFT images an earlier run wrote from the same images, masks and image
+    options (``sift_equalize``, ``sift_denoise``); its files are copied instead of computed again."""
     image_dir, mask_dir = workdir / "images", workdir / "masks"
     for d in (image_dir, mask_dir, workdir / "sparse"):
         shutil.rmtree(d, ignore_errors=True)
@@ -105,7 +112,11 @@ def write_inputs(
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * options.mask_erosion_px + 1,) * 2)
     for i, (im, name) in enumerate(zip(images, files, strict=True)):
         mask = None if masks is None else masks[i]
-        cv2.imwrite(str(image_dir / name), sift_image(im, mask, equalize=options.sift_equalize, denoise=options.sift_denoise), SCRATCH_PNG)
+        if reuse is not None and (reuse / name).is_file():
+            shutil.copyfile(reuse / name, image_dir / name)
+        else:
+            sift = sift_image(im, mask, equalize=options.sift_equalize, denoise=options.sift_denoise)
+            cv2.imwrite(str(image_dir / name), sift, SCRATCH_PNG)
         if has_masks:
             m = np.full(im.shape[:2], 255, np.uint8) if mask is None else mask.astype(np.uint8) * 255
             cv2.imwrite(str(mask_dir / f"{name}.png"), cv2.erode(m, kernel), SCRATCH_PNG)

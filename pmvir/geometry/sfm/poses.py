@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import functools
 import math
+import shutil
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -278,7 +279,8 @@ def estimate_poses(
     equalized, without upsampling where ``sift_upsample`` is 'auto' (in ``workdir/denoised-first``), and
     that model is kept when every view registers. Otherwise the runs above follow, and where they still
     leave views out (or fail) and ``sift_upsample`` is 'auto', SfM runs once more on the denoised images
-    upsampled (in ``workdir/denoised``); the model with more registered views is kept (ties: the first).
+    upsampled (in ``workdir/denoised``, reusing the first run's images); the model with more registered
+    views is kept (ties: the first).
 
     Returns:
         The SparseModel; in known-pose mode its cameras are the given objects.
@@ -301,6 +303,8 @@ def estimate_poses(
     denoised = _denoised_options(options)
     # SfM on denoised images first ('auto': without upsampling), kept when every view registers
     auto = options.sift_upsample == "auto"
+    first_images = Path(workdir) / "denoised-first" / "images"
+    shutil.rmtree(first_images, ignore_errors=True)  # (the last run reuses what this call writes there)
     t0 = time.perf_counter()
     quick, quick_error = _attempt(lambda: _run_sfm(
         images, cameras, intrinsics, masks, denoised.model_copy(update={"sift_upsample": not auto and
@@ -334,7 +338,7 @@ def estimate_poses(
             lambda: _finish(_run_sfm(
                 images, cameras, intrinsics, masks, denoised, Path(workdir) / "denoised",
                 lambda f, s: report(0.9 + 0.1 * min(f, 0.99), f"{s} (denoised images)"), names=names,
-                focal_priors=focal_priors,
+                focal_priors=focal_priors, reuse_images=first_images,
             ), names, cameras, masks, denoised, lambda f, s: None),
         )
     if cascade is None:
@@ -599,9 +603,11 @@ def _run_sfm(
     names: Sequence[str],
     focal_priors: Sequence[float | None] | None = None,
     complete_or_stop: bool = False,
+    reuse_images: Path | None = None,
 ) -> _SfmRun:
     """COLMAP's features, matches and model (or triangulation with known poses) on one set of images
-    (``complete_or_stop``: see :func:`~.colmap.run_colmap`)."""
+    (``complete_or_stop``: see :func:`~.colmap.run_colmap`; ``reuse_images``: see
+    :func:`~.inputs.write_inputs`)."""
     t_start = time.perf_counter()
     n = len(images)
     check_inputs(images, names, cameras, intrinsics, masks)
@@ -614,7 +620,7 @@ def _run_sfm(
 
     report(0.0, "writing SIFT images")
     t0 = time.perf_counter()
-    image_dir, mask_dir, files = write_inputs(workdir, images, masks, options)
+    image_dir, mask_dir, files = write_inputs(workdir, images, masks, options, reuse=reuse_images)
     timings["images"] = time.perf_counter() - t0
     Ks = [view_intrinsics(i, cameras, intrinsics) for i in range(n)]
     extras: list[dict] = []
