@@ -254,7 +254,11 @@ def geometric_smoothness_term(
 
     N'_r,avg is the normalized mean of the unit normals of the faces sharing an
     edge with face r. The angle is computed as atan2(|a x b|, a . b), equal to
-    arccos(a . b) for unit vectors but with a finite gradient at zero angle.
+    arccos(a . b) for unit vectors but with a finite gradient at zero angle. A face of
+    zero area (collinear corners) has no unit normal, nor has a face whose neighbours'
+    normals cancel: their |a x b| and a . b are both near 0, where atan2's gradient
+    1 / (|a x b|^2 + (a . b)^2) is unbounded, so they count 0, and a face of zero area
+    adds nothing to its neighbours' mean.
 
     Args:
         normals: (F, 3) unit face normals N'_r.
@@ -265,13 +269,16 @@ def geometric_smoothness_term(
     Returns:
         scalar tensor.
     """
+    whole = ((normals * normals).sum(-1) > 0.25).detach()  # (faces of zero area: a normal near 0)
+    normals = torch.where(whole[:, None], normals, 0.0)  # ... whose 1/|e1 x e2| gradient stays out
     avg = torch.zeros_like(normals).index_add(0, face_pairs[:, 0], normals.index_select(0, face_pairs[:, 1]))
     avg = normalize(avg)
     cross = torch.linalg.cross(normals, avg, dim=1)
     sin = torch.sqrt((cross * cross).sum(-1).clamp_min(1e-30))
     cos = (normals * avg).sum(-1)
-    angle = torch.atan2(sin, cos)
-    return ((angle / math.pi) ** t * has_neighbour.to(angle.dtype)).sum()
+    unit = (sin * sin + cos * cos).detach() > 0.25  # (1 for unit a and b)
+    angle = torch.atan2(torch.where(unit, sin, 0.0), torch.where(unit, cos, 1.0))
+    return ((angle / math.pi) ** t * (has_neighbour & unit).to(angle.dtype)).sum()
 
 
 def photometric_smoothness_term(

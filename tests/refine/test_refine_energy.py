@@ -312,6 +312,35 @@ def test_gsm_is_zero_on_a_plane_and_grows_with_bending() -> None:
     assert 0 < energies[0] < energies[1]
 
 
+def test_gsm_gradient_stays_bounded_at_a_face_of_zero_area() -> None:
+    """A face with collinear corners (a sliver the initial surface can hold) has no unit normal: it
+    counts 0 in E_gsm, and the gradient stays of the order of a smooth mesh's (its atan2 at (0, 0)
+    gave gradients of 1e17 that stalled the first L-BFGS step), equal to the gradient without it."""
+    xs, ys = np.meshgrid(np.arange(5.0), np.arange(5.0))
+    rng = np.random.default_rng(3)
+    v = np.stack([xs.ravel(), ys.ravel(), 0.2 * rng.standard_normal(25)], axis=1)
+    quads = [
+        (r * 5 + c, r * 5 + c + 1, (r + 1) * 5 + c, (r + 1) * 5 + c + 1) for r in range(4) for c in range(4)
+    ]
+    f = np.array([t for a, b, c, d in quads for t in ((a, b, d), (a, d, c))])
+    v[7] = 0.5 * (v[6] + v[12])  # face 10, (6, 7, 12), loses its area
+    assert tuple(f[10]) == (6, 7, 12)
+    ft = torch.from_numpy(f)
+    fp = torch.from_numpy(face_adjacency(f))
+    has = torch.ones(len(f), dtype=torch.bool)
+    x = torch.from_numpy(v).requires_grad_(True)
+    normals = face_normals(x, ft)
+    assert float(normals[10].norm()) < 0.5  # the zero-area face: no unit normal
+    energy = geometric_smoothness_term(normals, fp, has, t=2.2)
+    (grad,) = torch.autograd.grad(energy, x)
+    assert torch.isfinite(grad).all() and float(grad.abs().max()) < 100.0
+    without = has.clone()
+    without[10] = False
+    x2 = torch.from_numpy(v).requires_grad_(True)
+    (grad2,) = torch.autograd.grad(geometric_smoothness_term(face_normals(x2, ft), fp, without, t=2.2), x2)
+    assert torch.allclose(grad, grad2)
+
+
 def test_psm_weights_follow_chromaticity_and_intensity() -> None:
     colour = np.array([[0.5, 0.4, 0.3], [0.5, 0.4, 0.3], [0.25, 0.2, 0.15], [0.3, 0.4, 0.5], [0.0, 0.0, 0.0]])
     observed = np.array([True, True, True, True, False])
