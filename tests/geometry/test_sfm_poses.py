@@ -303,8 +303,9 @@ def test_sift_image_denoising_flattens_noise_and_keeps_edges() -> None:
 def test_denoised_runs_where_views_are_left_out(sfm_views: dict, tmp_path: Path) -> None:
     """Two views blanked: SfM on denoised, not equalized images without upsampling leaves them out, so the
     usual runs follow, and where they leave them out too, SfM on denoised upsampled images
-    (workdir/denoised, each image denoised once for both runs) once more: the usual model is kept (a tie), and the extras and timings say what the
-    denoised runs cost and gave. With denoised_runs 0 there are no such runs."""
+    (workdir/denoised, each image denoised once for both runs) once more: the usual model is kept (a
+    tie), and the extras and timings say what the denoised runs cost and gave. With denoised_runs 0
+    there are no such runs."""
     blank = (14, 20)
     images = [np.full_like(im, 0.3) if i in blank else im for i, im in enumerate(sfm_views["images"])]
     names = sfm_views["names"]

@@ -315,7 +315,7 @@ def test_gsm_is_zero_on_a_plane_and_grows_with_bending() -> None:
 def test_gsm_gradient_stays_bounded_at_a_face_of_zero_area() -> None:
     """A face with collinear corners (a sliver the initial surface can hold) has no unit normal: it
     counts 0 in E_gsm, and the gradient stays of the order of a smooth mesh's (its atan2 at (0, 0)
-    gave gradients of 1e17 that stalled the first L-BFGS step), equal to the gradient without it."""
+    gave gradients above 1e17 that stalled the first L-BFGS step), equal to the gradient without it."""
     xs, ys = np.meshgrid(np.arange(5.0), np.arange(5.0))
     rng = np.random.default_rng(3)
     v = np.stack([xs.ravel(), ys.ravel(), 0.2 * rng.standard_normal(25)], axis=1)
@@ -339,6 +339,24 @@ def test_gsm_gradient_stays_bounded_at_a_face_of_zero_area() -> None:
     x2 = torch.from_numpy(v).requires_grad_(True)
     (grad2,) = torch.autograd.grad(geometric_smoothness_term(face_normals(x2, ft), fp, without, t=2.2), x2)
     assert torch.allclose(grad, grad2)
+
+
+def test_gsm_gradient_stays_finite_where_neighbour_normals_cancel() -> None:
+    """A face folded between two neighbours whose normals are opposite (a fin of the initial surface)
+    has a neighbour mean of 0: it counts 0 in E_gsm and the gradient stays finite, where atan2 at
+    (0, 0) gave infinite gradients; the unfolded neighbour still counts."""
+    v = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.3, 0.3, 0.0]])
+    f = np.array([[0, 1, 2], [1, 3, 2], [1, 0, 4]])  # face 0's neighbours: +z (face 1) and -z (face 2)
+    ft = torch.from_numpy(f)
+    fp = torch.from_numpy(face_adjacency(f))
+    has = torch.ones(len(f), dtype=torch.bool)
+    x = torch.from_numpy(v).requires_grad_(True)
+    normals = face_normals(x, ft)
+    assert float(normals[1, 2]) == pytest.approx(1.0) and float(normals[2, 2]) == pytest.approx(-1.0)
+    energy = geometric_smoothness_term(normals, fp, has, t=2.2)
+    (grad,) = torch.autograd.grad(energy, x)
+    assert torch.isfinite(grad).all()
+    assert float(energy) == pytest.approx(1.0)  # face 2 sees face 0 at 180 degrees, face 1 at 0; face 0: 0
 
 
 def test_psm_weights_follow_chromaticity_and_intensity() -> None:
