@@ -77,6 +77,12 @@ given masks:
    (:func:`seen_behind`) are left out first: strays in the air inside a
    loop, not a dark foot, which the views see where it is, nor the hidden
    foot of a rock, which the object itself hides from most views.
+   **Support seen** (with a support plane): the pixels of the rough mask that
+   no solid point covers are looked at on the plane. Where the plane's points
+   under a 3x3 patch of such a pixel look alike in a quarter of the other views
+   that see them, and in three at least (:func:`on_support`), the view sees the
+   table there, and those pixels are background too: stereo on a noisy,
+   low-contrast table leaves too few depths in a knot's loops for seeing past.
 6. **Points**: the dense points inside every view's mask (where they project
    into the image) and above the plane's inlier distance are the object's
    (``Isolation.keep``). The geometric stage then fuses the stereo depth maps
@@ -96,7 +102,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pmvir.camera import Camera
+from pmvir.camera import Camera, sample_bilinear
 from pmvir.config.isolate import IsolateOptions
 from pmvir.errors import ConfigError, ReconstructionError
 from pmvir.geometry.mvs.fusion import backproject, depth_at
@@ -135,6 +141,20 @@ _FREE_WINDOW = 0.02
 _ALIKE_DEPTH = 0.01
 #: ... and that view shows it within this many 8-bit levels, in every channel, of this view's colour.
 _ALIKE_COLOUR = 24.0
+#: A pixel of a view's rough mask that no solid point covers shows the support plane (a knot's loop,
+#: where stereo on a noisy low-contrast table leaves too few depths for :func:`sees_past`) where the
+#: plane's points under a 3x3 patch of it, :data:`_PLANE_STEP_PX` apart on the previews blurred by
+#: :data:`_PLANE_BLUR_PX`, look the same in at least :data:`_PLANE_SHARE` of the other views that
+#: see them in the image, and in at least :data:`_PLANE_MIN_VIEWS`: a mean absolute difference within
+#: :data:`_PLANE_COLOUR` 8-bit levels. Views where the object hides the point show another colour and
+#: count against it, hence the low share; the object's own pixels show the table's colours at the
+#: plane point behind them only by chance, in every view alike. On a path-traced knot on a table
+#: (36 views of 612x512, 32 spp, true poses) the masks' IoU rose from 0.78 to 0.87 (:func:`on_support`).
+_PLANE_BLUR_PX = 1.5
+_PLANE_STEP_PX = 2.0
+_PLANE_COLOUR = 12.0
+_PLANE_SHARE = 0.25
+_PLANE_MIN_VIEWS = 3
 #: A point the stray filter left out and the object's box took back counts as the object's in
 #: :func:`sees_past` unless at least this share of the views' depths at its pixel lie beyond it, of
 #: those that do not see a surface in front of it (:func:`depth_past_share`): on a path-traced knot
@@ -822,6 +842,54 @@ def sees_past(
     return np.asarray(cv2.resize(free.astype(np.uint8), (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST), bool)
 
 
+def on_support(
+    index: int, cameras: Sequence[Camera | None], blurred: Sequence[np.ndarray], plane: np.ndarray,
+    where: np.ndarray,
+) -> np.ndarray:
+    """(H, W) bool: the pixels ``where`` ((H, W) bool, view ``index``'s image grid) that show the support
+    ``plane`` (a, b, c, d: a x + b y + c z + d = 0): the plane's points under a 3x3 patch around the
+    pixel look alike in the other views that see them (:data:`_PLANE_SHARE` and the constants above it).
+    ``blurred``: per view the (H, W, 3) preview blurred by :data:`_PLANE_BLUR_PX`."""
+    cam = cameras[index]
+    out = np.zeros(where.shape, bool)
+    if cam is None or not where.any():
+        return out
+    h, w = where.shape
+    rows, cols = np.nonzero(where)
+    scale = np.array([cam.width / w, cam.height / h])  # preview pixels to the camera's
+    step = _PLANE_STEP_PX * np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], float)
+    uv = ((np.stack([cols, rows], 1)[:, None, :] + 0.5 + step[None]) * scale).reshape(-1, 2)
+    rays = cam.ray_directions(uv)
+    normal, offset = np.asarray(plane[:3], np.float64), float(plane[3])
+    along = rays @ normal
+    t = -(normal @ cam.center + offset) / np.where(np.abs(along) < 1e-12, 1e-12, along)
+    points = cam.center + t[:, None] * rays
+    ahead = (t > 0).reshape(-1, 9).all(axis=1)
+    own = _patch_colours(blurred[index], uv / scale)
+    agree = np.zeros(len(rows), np.int64)
+    seen = np.zeros(len(rows), np.int64)
+    for j, other in enumerate(cameras):
+        if j == index or other is None:
+            continue
+        q, z = other.project(points)
+        hj, wj = blurred[j].shape[:2]
+        q = q * np.array([wj / other.width, hj / other.height])
+        inside = ((z > 0) & (q[:, 0] >= 1) & (q[:, 1] >= 1) & (q[:, 0] <= wj - 1) & (q[:, 1] <= hj - 1))
+        inside = inside.reshape(-1, 9).all(axis=1) & ahead
+        diff = np.abs(_patch_colours(blurred[j], q) - own).mean(axis=(1, 2))
+        seen += inside
+        agree += inside & (diff <= _PLANE_COLOUR)
+    alike = (agree >= _PLANE_MIN_VIEWS) & (agree >= _PLANE_SHARE * seen)
+    out[rows[alike], cols[alike]] = True
+    return out
+
+
+def _patch_colours(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(N, 9, 3) float32: ``image`` ((H, W, 3)) sampled bilinearly at ``uv`` ((9 N, 2), its own pixels)."""
+    channels = [sample_bilinear(image[..., c], uv[:, 0], uv[:, 1]) for c in range(image.shape[2])]
+    return np.stack(channels, axis=1).reshape(-1, 9, image.shape[2]).astype(np.float32)
+
+
 def depth_past_share(
     points: np.ndarray, depth_maps: Sequence[DepthMap | None], margin: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -1004,6 +1072,7 @@ def isolate_object(
     body = np.vstack([pts[chosen], below])  # the columns: the underside the points miss
     tree = cKDTree(body) if depth_maps is not None and len(body) else None
     views = None if depth_maps is None else SeenAlike(cameras, depth_maps, previews)
+    blurred = [cv2.GaussianBlur(im.astype(np.float32), (0, 0), _PLANE_BLUR_PX) for im in previews]
     masks: list[np.ndarray | None] = []
     for i, (cam, image) in enumerate(zip(cameras, previews, strict=True)):
         if cam is None:
@@ -1026,6 +1095,10 @@ def isolate_object(
             )
             past = sees & ~seen  # seen past the object, where no point of it lands
             rough &= ~past
+        if plane is not None:  # the support seen inside the rough mask, where no point of the object lands
+            table = on_support(i, cameras, blurred, plane, rough & ~seen)
+            past = table if past is None else past | table
+            rough &= ~table
         mask = refine_mask(
             image, rough, band_px=band, iterations=settings.grabcut_iterations, core=seen, background=past,
             reach=reach,
