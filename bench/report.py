@@ -48,6 +48,12 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/nomask.py",
         "the same captures with their true masks, and without seeing past the object",
     ),
+    "nomask_support": (
+        "The object found without masks: the table seen through the object by its colours, built-in renderer",
+        f"{PY} bench/nomask.py --views 36 --size 612x512 --masks none --shapes blob,knot,mug,rock "
+        "--renderers builtin --results nomask_support",
+        None,
+    ),
     "nomask_sparse": (
         "The object found without masks: six shapes, 16 views of 320x256",
         f"{PY} bench/nomask.py --shapes blob,knot,spring,gear,mug,rock --views 16 --size 320x256 --results nomask_sparse",
