@@ -1072,7 +1072,9 @@ def isolate_object(
     body = np.vstack([pts[chosen], below])  # the columns: the underside the points miss
     tree = cKDTree(body) if depth_maps is not None and len(body) else None
     views = None if depth_maps is None else SeenAlike(cameras, depth_maps, previews)
-    blurred = [cv2.GaussianBlur(im.astype(np.float32), (0, 0), _PLANE_BLUR_PX) for im in previews]
+    blurred = [] if plane is None else [  # (on_support's previews: only where there is a support plane)
+        cv2.GaussianBlur(im.astype(np.float32), (0, 0), _PLANE_BLUR_PX) for im in previews
+    ]
     masks: list[np.ndarray | None] = []
     for i, (cam, image) in enumerate(zip(cameras, previews, strict=True)):
         if cam is None:
