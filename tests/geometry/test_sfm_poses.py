@@ -35,7 +35,7 @@ from pmvir.config import SfmOptions
 from pmvir.decode import decode_frame
 from pmvir.errors import ReconstructionError, ShapeError
 from pmvir.evaluate import SurfaceQuery
-from pmvir.geometry.sfm import inputs
+from pmvir.geometry.sfm import inputs, poses
 from pmvir.geometry.sfm.align import umeyama
 from pmvir.geometry.sfm.inputs import sift_image
 from pmvir.geometry.sfm.matching import fundamental_matrix, sampson_error
@@ -300,8 +300,33 @@ def test_sift_image_denoising_flattens_noise_and_keeps_edges() -> None:
     assert step > 0.9 * (plain[:, 52].astype(float).mean() - plain[:, 44].astype(float).mean())
 
 
+def test_denoised_images_that_place_most_views_skip_the_usual_runs(sfm_views: dict, tmp_path: Path) -> None:
+    """Two views blanked: SfM on denoised, not equalized images without upsampling places the other 34
+    (at least half), so the same images upsampled come next (workdir/denoised, each image denoised
+    once), and as they place at least three quarters of the views, the usual runs are not made."""
+    blank = (14, 20)
+    images = [np.full_like(im, 0.3) if i in blank else im for i, im in enumerate(sfm_views["images"])]
+    steps: list[tuple[float, str]] = []
+    model = estimate_poses(images, sfm_views["names"], options=SfmOptions(), workdir=tmp_path,
+                           progress=lambda f, s: steps.append((f, s)))
+    assert model.num_registered == 34 and not model.registered[14] and not model.registered[20]
+    first, kept, skipped = model.extras[0], model.extras[-2], model.extras[-1]
+    assert first["step"] == "denoised_first" and not first["kept"] and 18 <= first["registered"] < 36
+    assert kept["step"] == "denoised" and kept["kept"] and kept["registered"] == 34
+    assert kept["registered_before"] == first["registered"]
+    assert skipped["step"] == "usual_runs" and "at least 75%" in skipped["skipped"]
+    # no usual run was made: neither the one without upsampling nor the one on the fallback images
+    assert sorted(p.name for p in tmp_path.iterdir() if p.is_dir()) == ["denoised", "denoised-first"]
+    assert model.timings["denoised_first"] == first["seconds"] > 0
+    assert model.timings["total"] >= first["seconds"] + model.timings["mapping"]
+    fractions = [f for f, _ in steps]
+    assert fractions == sorted(fractions) and steps[-1] == (1.0, "poses done"), steps
+    assert sum(s == "poses done" for _, s in steps) == 1, steps
+
+
 def test_denoised_runs_where_views_are_left_out(sfm_views: dict, tmp_path: Path) -> None:
-    """Two views blanked: SfM on denoised, not equalized images without upsampling leaves them out, so the
+    """Two views blanked, and the upsampled denoised run made only after the usual runs (its lead share
+    raised above 1): SfM on denoised, not equalized images without upsampling leaves them out, so the
     usual runs follow, and where they leave them out too, SfM on denoised upsampled images
     (workdir/denoised, each image denoised once for both runs) once more: the usual model is kept (a
     tie), and the extras and timings say what the denoised runs cost and gave. With denoised_runs 0
@@ -321,6 +346,7 @@ def test_denoised_runs_where_views_are_left_out(sfm_views: dict, tmp_path: Path)
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(inputs, "sift_image", counting)
+        mp.setattr(poses, "_DENOISED_LEAD", 1.01)
         model = estimate_poses(images, names, options=options, workdir=tmp_path / "a",
                                progress=lambda f, s: steps.append((f, s)))
     assert model.num_registered == 34

@@ -35,6 +35,9 @@ first on images denoised and not equalized (``sfm.denoised_runs``) and keeps tha
 view registers: on noisy frames the equalization lifts the noise into features that match nowhere
 and the noise moves the rest; smooth, weakly textured objects need the equalization, and the runs
 described above follow. Where they leave views out, SfM runs last on the denoised images upsampled.
+Where the first run placed at least half the views, the denoised images evidently carry the matches:
+their upsampled run comes right after it, and the usual runs follow only where it places fewer than
+three quarters of the views.
 
 Masks, eroded by ``sfm.mask_erosion_px`` (default 4) so that no feature sits on the silhouette
 (a silhouette is no fixed surface point), restrict
@@ -83,6 +86,15 @@ _HULL_TOLERANCE_PX = 3
 #: Failure messages call views with fewer SIFT features than this (median) textureless.
 _FEW_FEATURES = 100
 
+#: SfM on denoised images: where the first run (not upsampled) places at least this share of the
+#: views, the upsampled run on the same images comes next, before the usual (equalized) runs. The
+#: path-traced knot on a table: 18 of 36 views, then 33 upsampled, while the usual runs placed none
+#: in 197 s; the Stanford dragon and armadillo (smooth, need the equalization): 8-12 of 36.
+_DENOISED_LEAD = 0.5
+
+#: ... and where that upsampled run places at least this share, it is kept without the usual runs.
+_DENOISED_KEEP = 0.75
+
 
 @dataclass
 class SparseModel:
@@ -126,7 +138,8 @@ class SparseModel:
             ``frontier`` (its report), ``silhouette_registration`` (views registered) and ``denoised`` (SfM
             on denoised images: registered views before and with it, whether it was kept); a step that did
             not run says why (``skipped``); ``denoised_first`` (the first run, on denoised images: registered
-            views, whether it was kept) leads.
+            views, whether it was kept) leads; ``usual_runs`` says why they were skipped after an upsampled
+            denoised run that placed enough views.
     """
 
     cameras: list[Camera | None]
@@ -280,7 +293,9 @@ def estimate_poses(
     that model is kept when every view registers. Otherwise the runs above follow, and where they still
     leave views out (or fail) and ``sift_upsample`` is 'auto', SfM runs once more on the denoised images
     upsampled (in ``workdir/denoised``, reusing the first run's images); the model with more registered
-    views is kept (ties: the first).
+    views is kept (ties: the first). Where the first run placed at least ``_DENOISED_LEAD`` of the views,
+    that upsampled run is made right after it, and kept without the runs above where it places at least
+    ``_DENOISED_KEEP`` of them (extras: a skipped ``usual_runs`` step).
 
     Returns:
         The SparseModel; in known-pose mode its cameras are the given objects.
@@ -321,6 +336,38 @@ def estimate_poses(
             model.extras.insert(0, _denoised_entry(quick, None, time.perf_counter() - t0, kept=True))
             return model
     tried = _denoised_entry(quick, quick_error, time.perf_counter() - t0, kept=False)
+
+    def denoised_upsampled(start: float, span: float) -> SparseModel:
+        """SfM on the first run's denoised images, upsampled; progress over ``span`` from ``start``."""
+        return _finish(_run_sfm(
+            images, cameras, intrinsics, masks, denoised, Path(workdir) / "denoised",
+            lambda f, s: report(start + span * min(f, 0.99), f"{s} (denoised images)"), names=names,
+            focal_priors=focal_priors, reuse_images=first_images,
+        ), names, cameras, masks, denoised, lambda f, s: None)
+
+    # the denoised images placed many views: their upsampled run comes before the usual runs, which
+    # are made only where it leaves too many views out
+    early: SparseModel | None = None
+    early_error: ReconstructionError | None = None
+    early_s = 0.0
+    if auto and quick is not None and quick.num_registered >= _DENOISED_LEAD * n:
+        t_early = time.perf_counter()
+        try:
+            early = denoised_upsampled(0.15, 0.15)
+        except ReconstructionError as exc:
+            early_error = exc
+        early_s = time.perf_counter() - t_early
+        if early is not None and early.num_registered >= _DENOISED_KEEP * n:
+            early.extras.insert(0, tried)
+            early.extras.append({"step": "denoised", "seconds": early_s, "registered_before": quick.num_registered,
+                                 "registered": early.num_registered, "kept": True})
+            early.extras.append({"step": "usual_runs", "seconds": 0.0, "skipped": (
+                f"the denoised images placed {quick.num_registered} of {n} views, then {early.num_registered} "
+                f"upsampled (at least {_DENOISED_KEEP:.0%})")})
+            early.timings["denoised_first"] = tried["seconds"]
+            early.timings["total"] += tried["seconds"]
+            report(1.0, "poses done")
+            return early
     t1 = time.perf_counter()
     cascade: SparseModel | None = None
     error: ReconstructionError | None = None
@@ -333,14 +380,12 @@ def estimate_poses(
     except ReconstructionError as exc:
         error = exc
     if auto and (cascade is None or cascade.num_registered < n):
-        cascade = _denoised_retry(
-            cascade, error, time.perf_counter() - t1,
-            lambda: _finish(_run_sfm(
-                images, cameras, intrinsics, masks, denoised, Path(workdir) / "denoised",
-                lambda f, s: report(0.9 + 0.1 * min(f, 0.99), f"{s} (denoised images)"), names=names,
-                focal_priors=focal_priors, reuse_images=first_images,
-            ), names, cameras, masks, denoised, lambda f, s: None),
-        )
+        if early is not None or early_error is not None:  # the upsampled denoised run was made first
+            cascade = _denoised_retry(cascade, error, time.perf_counter() - t1,
+                                      functools.partial(_made, early, early_error), spent=early_s)
+        else:
+            cascade = _denoised_retry(cascade, error, time.perf_counter() - t1,
+                                      functools.partial(denoised_upsampled, 0.9, 0.1))
     if cascade is None:
         assert error is not None
         raise error
@@ -367,13 +412,23 @@ def _denoised_options(options: SfmOptions) -> SfmOptions:
                                       "sift_upsample": options.sift_upsample is not False})
 
 
+def _made(model: SparseModel | None, error: ReconstructionError | None) -> SparseModel:
+    """A run made earlier, as :func:`_denoised_retry`'s ``retry``: its model, or its error raised."""
+    if model is None:
+        assert error is not None
+        raise error
+    return model
+
+
 def _denoised_retry(
-    model: SparseModel | None, error: ReconstructionError | None, seconds: float, retry: Callable[[], SparseModel]
+    model: SparseModel | None, error: ReconstructionError | None, seconds: float, retry: Callable[[], SparseModel],
+    *, spent: float | None = None,
 ) -> SparseModel:
     """The model with more registered views of ``model`` (SfM's usual runs, which took ``seconds``; None
-    where they failed with ``error``) and ``retry()`` (SfM on denoised, upsampled images); ties keep
-    ``model``. The kept model's extras get a ``denoised`` step, its timings the time of the one not kept
-    ("denoised" or "without_denoising"), in the total as well."""
+    where they failed with ``error``) and ``retry()`` (SfM on denoised, upsampled images; ``spent``: its
+    seconds where it was made earlier); ties keep ``model``. The kept model's extras get a ``denoised``
+    step, its timings the time of the one not kept ("denoised" or "without_denoising"), in the total as
+    well."""
     t0 = time.perf_counter()
     other: SparseModel | None = None
     try:
@@ -381,7 +436,8 @@ def _denoised_retry(
     except ReconstructionError as exc:
         if model is None:
             raise ReconstructionError(f"{error}; on denoised images: {exc}") from exc
-    spent = time.perf_counter() - t0
+    if spent is None:
+        spent = time.perf_counter() - t0
     before = 0 if model is None else model.num_registered
     after = 0 if other is None else other.num_registered
     kept = model if model is not None and (other is None or before >= after) else other
