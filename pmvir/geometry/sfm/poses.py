@@ -35,9 +35,9 @@ first on images denoised and not equalized (``sfm.denoised_runs``) and keeps tha
 view registers: on noisy frames the equalization lifts the noise into features that match nowhere
 and the noise moves the rest; smooth, weakly textured objects need the equalization, and the runs
 described above follow. Where they leave views out, SfM runs last on the denoised images upsampled.
-Where the first run placed at least half the views, the denoised images evidently carry the matches:
-their upsampled run comes right after it, and the usual runs follow only where it places fewer than
-three quarters of the views.
+Where the first run placed 40 % to three quarters of the views, the denoised images evidently carry
+the matches: their upsampled run comes right after it, and the usual runs follow only where it places
+fewer than three quarters of the views.
 
 Masks, eroded by ``sfm.mask_erosion_px`` (default 4) so that no feature sits on the silhouette
 (a silhouette is no fixed surface point), restrict
@@ -86,11 +86,13 @@ _HULL_TOLERANCE_PX = 3
 #: Failure messages call views with fewer SIFT features than this (median) textureless.
 _FEW_FEATURES = 100
 
-#: SfM on denoised images: where the first run (not upsampled) places at least this share of the
-#: views, the upsampled run on the same images comes next, before the usual (equalized) runs. The
+#: SfM on denoised images: where the first run (not upsampled) places a share of the views in this
+#: range, the upsampled run on the same images comes next, before the usual (equalized) runs. The
 #: path-traced knot on a table: 18 of 36 views, then 33 upsampled, while the usual runs placed none
-#: in 197 s; the Stanford dragon and armadillo (smooth, need the equalization): 8-12 of 36.
-_DENOISED_LEAD = 0.5
+#: in 197 s. Below it the equalized images are needed (the Stanford dragon and armadillo, smooth:
+#: 8-12 of 36); above it they complete the model more cheaply (the built-in knot on a table: 34 of 36,
+#: then 36 on the equalized images upsampled, where the denoised ones placed 34).
+_DENOISED_LEAD = (0.4, 0.75)
 
 #: ... and where that upsampled run places at least this share, it is kept without the usual runs.
 _DENOISED_KEEP = 0.75
@@ -293,7 +295,7 @@ def estimate_poses(
     that model is kept when every view registers. Otherwise the runs above follow, and where they still
     leave views out (or fail) and ``sift_upsample`` is 'auto', SfM runs once more on the denoised images
     upsampled (in ``workdir/denoised``, reusing the first run's images); the model with more registered
-    views is kept (ties: the first). Where the first run placed at least ``_DENOISED_LEAD`` of the views,
+    views is kept (ties: the first). Where the first run placed a share of the views within ``_DENOISED_LEAD``,
     that upsampled run is made right after it, and kept without the runs above where it places at least
     ``_DENOISED_KEEP`` of them (extras: a skipped ``usual_runs`` step).
 
@@ -350,7 +352,7 @@ def estimate_poses(
     early: SparseModel | None = None
     early_error: ReconstructionError | None = None
     early_s = 0.0
-    if auto and quick is not None and quick.num_registered >= _DENOISED_LEAD * n:
+    if auto and quick is not None and _DENOISED_LEAD[0] * n <= quick.num_registered < _DENOISED_LEAD[1] * n:
         t_early = time.perf_counter()
         try:
             early = denoised_upsampled(0.15, 0.15)
