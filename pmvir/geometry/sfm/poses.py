@@ -90,7 +90,7 @@ _FEW_FEATURES = 100
 #: range, the upsampled run on the same images comes next, before the usual (equalized) runs. The
 #: path-traced knot on a table: 18 of 36 views, then 33 upsampled, while the usual runs placed none
 #: in 197 s; the built-in mug on a turntable without masks: 17, then 36 (centres 2.4 % of the
-#: diagonal off), while the usual runs made a wrong model (39 % off) in 150 s. Below it the equalized images are needed (the Stanford dragon and armadillo, smooth:
+#: diagonal off), while the usual runs made a wrong model (39 % off) in 153 s. Below it the equalized images are needed (the Stanford dragon and armadillo, smooth:
 #: 8-12 of 36); above it they complete the model more cheaply (the built-in knot on a table: 34 of 36,
 #: then 36 on the equalized images upsampled, where the denoised ones placed 34).
 _DENOISED_LEAD = (0.4, 0.75)
