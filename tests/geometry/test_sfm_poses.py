@@ -326,6 +326,19 @@ def test_denoised_images_that_place_most_views_skip_the_usual_runs(sfm_views: di
     assert fractions == sorted(fractions) and steps[-1] == (1.0, "poses done"), steps
     assert sum(s == "poses done" for _, s in steps) == 1, steps
 
+    # the upsampled run placing too few to be kept alone: the usual runs follow, and the two are compared
+    # (a tie keeps the usual model), the denoised run counted once, not made again
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(poses, "_DENOISED_LEAD", (0.5, 1.0))
+        mp.setattr(poses, "_DENOISED_KEEP", 1.01)
+        both = estimate_poses(images, sfm_views["names"], options=SfmOptions(), workdir=tmp_path / "b")
+    assert both.num_registered == 34
+    last = both.extras[-1]
+    assert last["step"] == "denoised" and not last["kept"] and last["registered_before"] == last["registered"] == 34
+    assert both.timings["denoised"] == last["seconds"] > 0
+    assert sum(e["step"] == "denoised" for e in both.extras) == 1
+    assert (tmp_path / "b" / "without-upsampling").is_dir() and (tmp_path / "b" / "denoised").is_dir()
+
 
 def test_denoised_runs_where_views_are_left_out(sfm_views: dict, tmp_path: Path) -> None:
     """Two views blanked: SfM on denoised, not equalized images without upsampling leaves them out (34 of

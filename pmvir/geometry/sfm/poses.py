@@ -90,9 +90,10 @@ _FEW_FEATURES = 100
 #: range, the upsampled run on the same images comes next, before the usual (equalized) runs. The
 #: path-traced knot on a table: 18 of 36 views, then 33 upsampled, while the usual runs placed none
 #: in 197 s; the built-in mug on a turntable without masks: 17, then 36 (centres 2.4 % of the
-#: diagonal off), while the usual runs made a wrong model (39 % off) in 153 s. Below it the equalized images are needed (the Stanford dragon and armadillo, smooth:
-#: 8-12 of 36); above it they complete the model more cheaply (the built-in knot on a table: 34 of 36,
-#: then 36 on the equalized images upsampled, where the denoised ones placed 34).
+#: diagonal off), while the usual runs made a wrong model (39 % off) in 153 s. Below it the equalized
+#: images are needed (the Stanford dragon and armadillo, smooth: 8-12 of 36); above it they complete
+#: the model more cheaply (the built-in knot on a table: 34 of 36, then 36 on the equalized images
+#: upsampled, where the denoised ones placed 34).
 _DENOISED_LEAD = (0.4, 0.75)
 
 #: ... and where that upsampled run places at least this share, it is kept without the usual runs.
@@ -382,13 +383,12 @@ def estimate_poses(
         )
     except ReconstructionError as exc:
         error = exc
-    if auto and (cascade is None or cascade.num_registered < n):
-        if early is not None or early_error is not None:  # the upsampled denoised run was made first
-            cascade = _denoised_retry(cascade, error, time.perf_counter() - t1,
-                                      functools.partial(_made, early, early_error), spent=early_s)
-        else:
-            cascade = _denoised_retry(cascade, error, time.perf_counter() - t1,
-                                      functools.partial(denoised_upsampled, 0.9, 0.1))
+    if early is not None or early_error is not None:  # made first: compared and counted in any case
+        cascade = _denoised_retry(cascade, error, time.perf_counter() - t1,
+                                  functools.partial(_made, early, early_error), spent=early_s)
+    elif auto and (cascade is None or cascade.num_registered < n):
+        cascade = _denoised_retry(cascade, error, time.perf_counter() - t1,
+                                  functools.partial(denoised_upsampled, 0.9, 0.1))
     if cascade is None:
         assert error is not None
         raise error
