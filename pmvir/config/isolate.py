@@ -78,6 +78,12 @@ class IsolateOptions(_Options):
         "sees there in the same colour, are background (the table through a knot's loops).",
         json_schema_extra=advanced(),
     )
+    see_support: bool = Field(
+        default=True,
+        description="Pixels of the rough mask where the support plane's points behind them look alike in the "
+        "other views are background (a knot's loops); false keeps a plain object's bare foot whole.",
+        json_schema_extra=advanced(),
+    )
     cut_seen_through: bool = Field(
         default=True,
         description="Vertices of the initial surface that no view's stereo depth lies on and some views' "

@@ -691,3 +691,24 @@ def test_the_masks_leave_out_the_table_seen_through_a_loop_without_depths(monkey
         drawn[name] = np.mean([m[h].mean() for m, h in zip(iso.masks, holes, strict=True)])
         assert np.mean([(t & ~m).sum() / t.sum() for m, t in zip(iso.masks, on_loop, strict=True)]) < 0.05
     assert drawn["off"] > 0.08 and drawn["on"] < 0.02, drawn
+
+
+def test_the_support_is_not_looked_for_by_its_colours_when_asked(monkeypatch):
+    """``geometry.isolate.see_support=false``: the masks drawn for the loop over its table leave the
+    support seen by its colours alone (:func:`on_support` is not asked), and take in the table seen
+    through the loop as the closed splats cover it."""
+    loop, cams, _, on_loop, previews = _loop_scene()
+    rng = np.random.default_rng(2)
+    table = np.column_stack([rng.uniform(-1, 1, (30_000, 2)), rng.normal(0, 0.002, 30_000)])
+    points = np.concatenate([table, loop])
+    asked = []
+    real = isolate_module.on_support
+    monkeypatch.setattr(isolate_module, "on_support", lambda *a, **k: asked.append(a[0]) or real(*a, **k))
+    masks = {}
+    for see in (True, False):
+        asked.clear()
+        iso = isolate_object(points, cams, previews, settings=IsolateOptions(see_support=see))
+        assert (len(asked) == len(cams)) if see else not asked
+        masks[see] = np.mean([m.sum() for m in iso.masks])
+        assert np.mean([(t & ~m).sum() / t.sum() for m, t in zip(iso.masks, on_loop, strict=True)]) < 0.05
+    assert masks[False] > 1.1 * masks[True], masks

@@ -77,12 +77,15 @@ given masks:
    (:func:`seen_behind`) are left out first: strays in the air inside a
    loop, not a dark foot, which the views see where it is, nor the hidden
    foot of a rock, which the object itself hides from most views.
-   **Support seen** (with a support plane): the pixels of the rough mask that
-   no solid point covers are looked at on the plane. Where the plane's points
-   under a 3x3 patch of such a pixel look alike in a quarter of the other views
-   that see them, and in three at least (:func:`on_support`), the view sees the
-   table there, and those pixels are background too: stereo on a noisy,
-   low-contrast table leaves too few depths in a knot's loops for seeing past.
+   **Support seen** (``see_support``, on by default; with a support plane): the
+   pixels of the rough mask that no solid point covers are looked at on the
+   plane. Where the plane's points under a 3x3 patch of such a pixel look alike
+   in a quarter of the other views that see them, and in three at least
+   (:func:`on_support`), the view sees the table there, and those pixels are
+   background too: stereo on a noisy, low-contrast table leaves too few depths
+   in a knot's loops for seeing past. It errs at a plain foot that stereo
+   leaves bare: the plane point behind such a pixel lies under the object, the
+   other views show the same patch of the object there, and the colours agree.
 6. **Points**: the dense points inside every view's mask (where they project
    into the image) and above the plane's inlier distance are the object's
    (``Isolation.keep``). The geometric stage then fuses the stereo depth maps
@@ -1097,7 +1100,7 @@ def isolate_object(
             )
             past = sees & ~seen  # seen past the object, where no point of it lands
             rough &= ~past
-        if plane is not None:  # the support seen inside the rough mask, where no point of the object lands
+        if plane is not None and settings.see_support:  # the support seen in the rough mask, where no point lands
             table = on_support(i, cameras, blurred, plane, rough & ~seen)
             past = table if past is None else past | table
             rough &= ~table
