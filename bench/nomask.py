@@ -39,6 +39,7 @@ from _results import RESULTS, table, write_results
 
 from pmvir.evaluate import SurfaceQuery, bbox_diagonal, evaluate
 from pmvir.io.ply import Mesh, read_mesh
+from pmvir.synth.options import SynthOptions
 
 PMVIR = str(Path(sys.executable).with_name("pmvir"))
 
@@ -107,6 +108,11 @@ def _measure(capture: Path, result: Path, stop_after: str, settings: list[str]) 
     }
 
 
+#: Options of ``pmvir synth`` this benchmark leaves at their defaults: a capture rendered with others
+#: (another lighting or seed) is not reused.
+_DEFAULTED = ("material", "lighting", "texture", "seed", "noise", "roughness")
+
+
 def _rendered_as(capture: Path, shape: str, scene: str, renderer: str, args: argparse.Namespace) -> bool:
     """Whether ``capture`` holds a rendering with these options (its gt/synth.json)."""
     path = capture / "gt" / "synth.json"
@@ -115,8 +121,10 @@ def _rendered_as(capture: Path, shape: str, scene: str, renderer: str, args: arg
     made = json.loads(path.read_text())
     o = made.get("options", {})
     width, height = (int(x) for x in args.size.split("x"))
+    defaults = all(o.get(k) == SynthOptions.model_fields[k].default for k in _DEFAULTED)
     return (made.get("source", {}).get("shape") == shape and o.get("scene") == scene and o.get("renderer") == renderer
-            and o.get("views") == args.views and o.get("size") == [width, height] and o.get("spp") == args.spp)
+            and o.get("views") == args.views and o.get("size") == [width, height] and o.get("spp") == args.spp
+            and defaults)
 
 
 def _key(row: dict) -> tuple:
