@@ -152,7 +152,8 @@ _ALIKE_COLOUR = 24.0
 #: :data:`_PLANE_COLOUR` 8-bit levels. Views where the object hides the point show another colour and
 #: count against it, hence the low share; the object's own pixels show the table's colours at the
 #: plane point behind them only by chance, in every view alike. On a path-traced knot on a table
-#: (36 views of 612x512, 32 spp, true poses) the masks' IoU rose from 0.78 to 0.87 (:func:`on_support`).
+#: (36 views of 612x512, 32 spp, true poses) the masks' IoU is 0.891 with the step and 0.769 without
+#: (:func:`on_support`; ``geometry.isolate.see_support``).
 _PLANE_BLUR_PX = 1.5
 _PLANE_STEP_PX = 2.0
 _PLANE_COLOUR = 12.0
