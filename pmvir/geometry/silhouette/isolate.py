@@ -1076,7 +1076,8 @@ def isolate_object(
     body = np.vstack([pts[chosen], below])  # the columns: the underside the points miss
     tree = cKDTree(body) if depth_maps is not None and len(body) else None
     views = None if depth_maps is None else SeenAlike(cameras, depth_maps, previews)
-    blurred = [] if plane is None else [  # (on_support's previews: only where there is a support plane)
+    see_support = plane is not None and settings.see_support
+    blurred = [] if not see_support else [  # on_support's previews
         cv2.GaussianBlur(im.astype(np.float32), (0, 0), _PLANE_BLUR_PX) for im in previews
     ]
     masks: list[np.ndarray | None] = []
@@ -1101,7 +1102,7 @@ def isolate_object(
             )
             past = sees & ~seen  # seen past the object, where no point of it lands
             rough &= ~past
-        if plane is not None and settings.see_support:  # the support seen in the rough mask, where no point lands
+        if see_support and plane is not None:  # the support seen in the rough mask, where no point lands
             table = on_support(i, cameras, blurred, plane, rough & ~seen)
             past = table if past is None else past | table
             rough &= ~table
