@@ -565,7 +565,8 @@ def test_match_ratio_option_reaches_colmap_matching(sfm_views: dict, tmp_path: P
 def test_views_are_numbered_in_order_and_known_pose_matches_repeat(sfm_views: dict, tmp_path: Path) -> None:
     """COLMAP numbers images as its extraction threads finish them; pmvir imports them first, so
     the image ids follow the views' order and two runs write the same known-pose matches (the
-    matching visits pairs in image-id order and its ratio test is one-sided)."""
+    matching visits pairs in image-id order and its ratio test is one-sided), the first matching its
+    pairs on one thread, the second on two."""
     import pycolmap
 
     from pmvir.geometry.sfm.inputs import write_inputs
@@ -579,7 +580,9 @@ def test_views_are_numbered_in_order_and_known_pose_matches_repeat(sfm_views: di
         database = tmp_path / f"run{run}" / "database.db"
         sizes = [im.shape[:2] for im in images]
         extract_features(database, image_dir, mask_dir, files, sizes, [c.K for c in cameras], opts)
-        match_known_poses(database, files, cameras)
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setenv("OMP_NUM_THREADS", str(run + 1))  # the pool's threads (pmvir.threads.usable_threads)
+            match_known_poses(database, files, cameras)
         db = pycolmap.Database.open(str(database))
         try:
             name = {im.image_id: im.name for im in db.read_all_images()}
