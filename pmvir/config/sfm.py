@@ -50,7 +50,8 @@ class SfmOptions(_Options):
     sift_upsample: bool | Literal["auto"] = Field(
         default="auto",
         description="SIFT on the images upsampled 2x (COLMAP first_octave -1): more small features, 3x the "
-        "extraction time. 'auto': only when SfM without it leaves a view out (always with known poses).",
+        "extraction time. 'auto': only when SfM without it leaves a view out; with known poses, only where "
+        "masks are given.",
         json_schema_extra=advanced(),
     )
     sift_equalize: bool = Field(

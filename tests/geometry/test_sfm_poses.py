@@ -447,6 +447,26 @@ def test_textureless_object_with_known_poses_needs_no_sparse_points(textureless_
     assert model.cameras == data["cameras"]
 
 
+def test_known_poses_upsample_sift_only_where_masks_bound_the_features(sfm_views: dict, tmp_path: Path) -> None:
+    """sift_upsample 'auto' with known poses: without masks SIFT sees the views as they are (the features
+    of sift_upsample false, fewer than upsampled), with masks upsampled (the features of true)."""
+    images, masks, cameras = sfm_views["images"][:8], sfm_views["masks"][:8], sfm_views["cameras"][:8]
+    names = sfm_views["names"][:8]
+
+    def features(upsample: bool | str, with_masks: bool) -> list[int]:
+        options = KNOWN_POSE_OPTIONS.model_copy(update={"sift_upsample": upsample})
+        where = tmp_path / f"{upsample}-{with_masks}"
+        model = estimate_poses(images, names, cameras=cameras, masks=masks if with_masks else None,
+                               options=options, workdir=where)
+        assert model.cameras == cameras
+        return model.num_features
+
+    unmasked = features("auto", False)
+    assert unmasked == features(False, False)
+    assert sum(unmasked) < 0.8 * sum(features(True, False))
+    assert features("auto", True) == features(True, True)
+
+
 def test_non_overlapping_frames_are_an_error_in_sfm(unrelated_capture: Path, tmp_path: Path) -> None:
     data = _load(unrelated_capture)
     with pytest.raises(ReconstructionError, match=r"registered 0 of 8 views.*overlap") as info:
