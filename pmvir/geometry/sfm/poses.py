@@ -96,7 +96,7 @@ _FEW_FEATURES = 100
 
 #: SfM on denoised images: where the first run (not upsampled) places a share of the views in this
 #: range, the upsampled run on the same images comes next, before the usual (equalized) runs. The
-#: path-traced knot on a table: 18 of 36 views, then 33 upsampled, while the usual runs placed none
+#: path-traced knot on a table: 19 of 36 views, then 33 upsampled, while the usual runs placed none
 #: in 197 s; the built-in mug on a turntable without masks: 17, then 36 (centres 2.4 % of the
 #: diagonal off), while the usual runs made a wrong model (39 % off) in 153 s. Below it the equalized
 #: images are needed (the Stanford dragon and armadillo, smooth: 8-12 of 36); above it they complete
