@@ -486,7 +486,7 @@ def _cascade(
         # of them; not without masks (module docstring)
         unmasked = masks is None or all(m is None for m in masks)
         options = options.model_copy(update={"sift_upsample": not (known and unmasked)})  # what every run below uses
-        if not known:  # (known poses: triangulation keeps every feature it can get)
+        if not known:  # (known poses: one triangulation, no run to try first)
             # SfM without upsampling first (a third of the extraction time); kept when every view registers
             t_try = time.perf_counter()
             quick, quick_error = _attempt(lambda: _run_sfm(
