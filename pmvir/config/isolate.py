@@ -81,7 +81,7 @@ class IsolateOptions(_Options):
     see_support: bool = Field(
         default=True,
         description="Pixels of the rough mask where the support plane's points behind them look alike in the "
-        "other views are background (a knot's loops); false keeps a plain object's bare foot whole.",
+        "other views, and no depth stands in front of the plane, are background (a knot's loops).",
         json_schema_extra=advanced(),
     )
     cut_seen_through: bool = Field(

@@ -83,9 +83,14 @@ given masks:
    in a quarter of the other views that see them, and in three at least
    (:func:`on_support`), the view sees the table there, and those pixels are
    background too: stereo on a noisy, low-contrast table leaves too few depths
-   in a knot's loops for seeing past. It errs at a plain foot that stereo
-   leaves bare: the plane point behind such a pixel lies under the object, the
-   other views show the same patch of the object there, and the colours agree.
+   in a knot's loops for seeing past. At an object's foot, whose points the
+   plane's band took, the plane point behind a pixel lies under the object, by
+   its surface, and the other views show the same patch of the object there:
+   the colours agree. So the pixels whose own depth stands in front of the
+   plane, where another view sees that depth's point alike
+   (:func:`in_front_of_support`), and those in the colour of a plain object
+   beside them (:func:`plain_object_colour`) are not looked at, and what is
+   found is opened by a 3x3 square (scattered pixels are left to GrabCut).
 6. **Points**: the dense points inside every view's mask (where they project
    into the image) and above the plane's inlier distance are the object's
    (``Isolation.keep``). The geometric stage then fuses the stereo depth maps
@@ -159,6 +164,23 @@ _PLANE_STEP_PX = 2.0
 _PLANE_COLOUR = 12.0
 _PLANE_SHARE = 0.25
 _PLANE_MIN_VIEWS = 3
+#: :func:`on_support`'s pixels are opened by this square (the scattered ones, at an object's foot
+#: where the plane point behind a pixel lies by its surface and the views agree by chance, are left to
+#: GrabCut, as are those a rough mask's outline cuts thin): on the path-traced mug on a turntable
+#: (36 views of 612x512, true poses, :func:`in_front_of_support` without the other views) the
+#: completeness went from 1.26e-2 to 1.02e-2 with it (0.78e-2 with the true masks); as hard
+#: background, 172 such pixels of one view's foot took a strip of 6,300 with them in GrabCut.
+_PLANE_OPEN = np.ones((3, 3), np.uint8)
+#: A pixel whose colour is within :data:`_PLANE_COLOUR` of the mean of the object's pixels (those its
+#: points cover) in a window of this share of the preview's diagonal around it ...
+_PLAIN_WINDOW = 0.05
+#: ... where they fill at least this share of the window and deviate by at most this many 8-bit
+#: levels in every channel (a plain object) is not looked at by :func:`on_support`
+#: (:func:`plain_object_colour`: the foot of a plain object, where stereo has no depth to stand in
+#: front of the plane; on the plain cylinder of the tests all of a bare foot passes for the support
+#: without the check and under 5 % of it with it; the path-traced mug, textured, is the same).
+_PLAIN_MIN_SHARE = 0.05
+_PLAIN_STD = 6.0
 #: A point the stray filter left out and the object's box took back counts as the object's in
 #: :func:`sees_past` unless at least this share of the views' depths at its pixel lie beyond it, of
 #: those that do not see a surface in front of it (:func:`depth_past_share`): on a path-traced knot
@@ -848,12 +870,15 @@ def sees_past(
 
 def on_support(
     index: int, cameras: Sequence[Camera | None], blurred: Sequence[np.ndarray], plane: np.ndarray,
-    where: np.ndarray,
+    where: np.ndarray, *, object_px: np.ndarray | None = None,
 ) -> np.ndarray:
     """(H, W) bool: the pixels ``where`` ((H, W) bool, view ``index``'s image grid) that show the support
     ``plane`` (a, b, c, d: a x + b y + c z + d = 0): the plane's points under a 3x3 patch around the
     pixel look alike in the other views that see them (:data:`_PLANE_SHARE` and the constants above it).
-    ``blurred``: per view the (H, W, 3) preview blurred by :data:`_PLANE_BLUR_PX`."""
+    ``blurred``: per view the (H, W, 3) preview blurred by :data:`_PLANE_BLUR_PX`. ``object_px``: the
+    view's pixels that the object's points cover; a pixel in the colour of a plain object beside it
+    (:func:`plain_object_colour`) is not looked at: under a plain foot every view shows the object's
+    one colour at the plane point behind the pixel, and they all agree."""
     cam = cameras[index]
     out = np.zeros(where.shape, bool)
     if cam is None or not where.any():
@@ -870,6 +895,15 @@ def on_support(
     points = cam.center + t[:, None] * rays
     ahead = (t > 0).reshape(-1, 9).all(axis=1)
     own = _patch_colours(blurred[index], uv / scale)
+    if object_px is not None:  # the colour of a plain object beside the pixel: no evidence either way
+        local, plain = plain_object_colour(blurred[index], object_px)
+        near = np.abs(own[:, 4] - local[rows, cols]).mean(axis=1) <= _PLANE_COLOUR  # the patch's centre
+        asked = ~(plain[rows, cols] & near)
+        if not asked.all():
+            keep = np.flatnonzero(asked)
+            rows, cols, own = rows[keep], cols[keep], own[keep]
+            uv = uv.reshape(-1, 9, 2)[keep].reshape(-1, 2)
+            points, ahead = points.reshape(-1, 9, 3)[keep].reshape(-1, 3), ahead[keep]
     agree = np.zeros(len(rows), np.int64)
     seen = np.zeros(len(rows), np.int64)
     for j, other in enumerate(cameras):
@@ -886,6 +920,56 @@ def on_support(
     alike = (agree >= _PLANE_MIN_VIEWS) & (agree >= _PLANE_SHARE * seen)
     out[rows[alike], cols[alike]] = True
     return out
+
+
+def in_front_of_support(
+    camera: Camera, depth_map: DepthMap, plane: np.ndarray, where: np.ndarray, margin: float,
+    *, index: int | None = None, views: SeenAlike | None = None,
+) -> np.ndarray:
+    """(H, W) bool: the pixels ``where`` ((H, W) bool, the camera's image grid) whose own stereo depth
+    lies more than ``margin`` in front of the support ``plane`` along their ray: they see something
+    standing on it (the foot of an object, whose points the plane's band took), not the support.
+    With ``views`` (``index``: this view's place in them) only where another view sees the depth's
+    point alike (:func:`seen_alike`): a mismatch of stereo on a noisy table seen through a knot's
+    loop lands in front of it as well, where no other view confirms it."""
+    out = np.zeros(where.shape, bool)
+    rows, cols = np.nonzero(where)
+    if not len(rows):
+        return out
+    scale = np.array([camera.width / where.shape[1], camera.height / where.shape[0]])
+    rays = camera.ray_directions((np.stack([cols, rows], 1) + 0.5) * scale)
+    normal, offset = np.asarray(plane[:3], np.float64), float(plane[3])
+    along = rays @ normal
+    t = -(normal @ camera.center + offset) / np.where(np.abs(along) < 1e-12, 1e-12, along)
+    z, _, _, d = depth_at(depth_map, camera.center + t[:, None] * rays)
+    front = np.flatnonzero((t > 0) & (d > 0) & (d < z - margin))
+    if views is not None and index is not None and len(front):
+        ray = rays[front]
+        world = camera.center + ray * (d[front] / (ray @ camera.R[2]))[:, None]
+        image = views.previews[index]
+        front = front[seen_alike(world, _colour_at(camera, image, world), index, views)]
+    out[rows[front], cols[front]] = True
+    return out
+
+
+def plain_object_colour(image: np.ndarray, object_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mean colour ((H, W, 3) float32) of the ``object_px`` pixels of ``image`` in a window of
+    :data:`_PLAIN_WINDOW` of its diagonal around each pixel, and where ((H, W) bool) they are plain:
+    at least :data:`_PLAIN_MIN_SHARE` of the window, every channel's deviation within
+    :data:`_PLAIN_STD` 8-bit levels."""
+    h, w = object_px.shape
+    r = max(1, round(_PLAIN_WINDOW * float(np.hypot(h, w))))
+    ksize = (2 * r + 1, 2 * r + 1)
+    weight = object_px.astype(np.float32)
+    count = cv2.boxFilter(weight, -1, ksize, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    img = image.astype(np.float32)
+    total = cv2.boxFilter(img * weight[..., None], -1, ksize, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    square = cv2.boxFilter(img * img * weight[..., None], -1, ksize, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    n = np.maximum(count, 1.0)[..., None]
+    mean = total / n
+    std = np.sqrt(np.maximum(square / n - mean * mean, 0.0))
+    plain = (count >= _PLAIN_MIN_SHARE * ksize[0] * ksize[1]) & (std.max(axis=2) <= _PLAIN_STD)
+    return mean, plain
 
 
 def _patch_colours(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -1103,7 +1187,11 @@ def isolate_object(
             past = sees & ~seen  # seen past the object, where no point of it lands
             rough &= ~past
         if see_support and plane is not None:  # the support seen in the rough mask, where no point lands
-            table = on_support(i, cameras, blurred, plane, rough & ~seen)
+            asked = rough & ~seen
+            if dm is not None:  # where the view's own depth stands in front of the plane: not the support
+                asked &= ~in_front_of_support(cam, dm, plane, asked, _FREE_REACH * spacing, index=i, views=views)
+            table = on_support(i, cameras, blurred, plane, asked, object_px=seen)
+            table = cv2.morphologyEx(table.astype(np.uint8), cv2.MORPH_OPEN, _PLANE_OPEN).astype(bool)
             past = table if past is None else past | table
             rough &= ~table
         mask = refine_mask(
