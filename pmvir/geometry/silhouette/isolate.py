@@ -888,12 +888,8 @@ def on_support(
     scale = np.array([cam.width / w, cam.height / h])  # preview pixels to the camera's
     step = _PLANE_STEP_PX * np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], float)
     uv = ((np.stack([cols, rows], 1)[:, None, :] + 0.5 + step[None]) * scale).reshape(-1, 2)
-    rays = cam.ray_directions(uv)
-    normal, offset = np.asarray(plane[:3], np.float64), float(plane[3])
-    along = rays @ normal
-    t = -(normal @ cam.center + offset) / np.where(np.abs(along) < 1e-12, 1e-12, along)
-    points = cam.center + t[:, None] * rays
-    ahead = (t > 0).reshape(-1, 9).all(axis=1)
+    _, t, points = _rays_to_plane(cam, uv, plane)
+    ahead = np.asarray((t > 0).reshape(-1, 9).all(axis=1))
     own = _patch_colours(blurred[index], uv / scale)
     if object_px is not None:  # the colour of a plain object beside the pixel: no evidence either way
         local, plain = plain_object_colour(blurred[index], object_px)
@@ -922,6 +918,16 @@ def on_support(
     return out
 
 
+def _rays_to_plane(camera: Camera, uv: np.ndarray, plane: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The unit rays (N, 3) through the camera's pixels ``uv`` ((N, 2)), their length ``t`` (N,) to
+    ``plane`` (a, b, c, d; negative: behind the camera) and the (N, 3) points where they meet it."""
+    rays = camera.ray_directions(uv)
+    normal, offset = np.asarray(plane[:3], np.float64), float(plane[3])
+    along = rays @ normal
+    t = -(normal @ camera.center + offset) / np.where(np.abs(along) < 1e-12, 1e-12, along)
+    return rays, t, camera.center + t[:, None] * rays
+
+
 def in_front_of_support(
     camera: Camera, depth_map: DepthMap, plane: np.ndarray, where: np.ndarray, margin: float,
     *, index: int | None = None, views: SeenAlike | None = None,
@@ -937,11 +943,8 @@ def in_front_of_support(
     if not len(rows):
         return out
     scale = np.array([camera.width / where.shape[1], camera.height / where.shape[0]])
-    rays = camera.ray_directions((np.stack([cols, rows], 1) + 0.5) * scale)
-    normal, offset = np.asarray(plane[:3], np.float64), float(plane[3])
-    along = rays @ normal
-    t = -(normal @ camera.center + offset) / np.where(np.abs(along) < 1e-12, 1e-12, along)
-    z, _, _, d = depth_at(depth_map, camera.center + t[:, None] * rays)
+    rays, t, on_plane = _rays_to_plane(camera, (np.stack([cols, rows], 1) + 0.5) * scale, plane)
+    z, _, _, d = depth_at(depth_map, on_plane)
     front = np.flatnonzero((t > 0) & (d > 0) & (d < z - margin))
     if views is not None and index is not None and len(front):
         ray = rays[front]
