@@ -74,8 +74,8 @@ class IsolateOptions(_Options):
     )
     see_past: bool = Field(
         default=True,
-        description="Pixels where a view's own stereo depth lands past the object, on a point another view "
-        "sees there in the same colour, are background (the table through a knot's loops).",
+        description="A view's own stereo depths draw its mask: pixels whose depth lands past the object, on a "
+        "point another view sees alike, are background; those landing on its points, above the support, are object.",
         json_schema_extra=advanced(),
     )
     see_support: bool = Field(

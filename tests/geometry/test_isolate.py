@@ -803,3 +803,65 @@ def test_the_support_is_not_looked_for_by_its_colours_when_asked(monkeypatch):
         masks[see] = np.mean([m.sum() for m in iso.masks])
         assert np.mean([(t & ~m).sum() / t.sum() for m, t in zip(iso.masks, on_loop, strict=True)]) < 0.05
     assert masks[False] > 1.1 * masks[True], masks
+
+
+def test_a_part_in_the_table_s_colours_stays_where_the_depths_show_it():
+    """A disc whose lower half shows the table's own colours (a knot's lower tube in shadow, in the
+    turntable's hues): with that half given as probable foreground only, GrabCut gives it to the
+    table, whose colours it has; where the view's depths show the object (``sure``), those pixels stay,
+    and no more of the table joins them."""
+    image, truth = _red_disc_on_a_green_table(3, (160, 160), (80, 70), 40)
+    t = truth.astype(bool)
+    low = t.copy()
+    low[:70] = False
+    image[low] = image[np.roll(low, 60, axis=1)]  # the table's texture beside it, on the disc's lower half
+    rough = t.copy()
+    core = t.copy()
+    core[70:] = False  # the splats cover the upper half; its eroded core leaves the lower half undecided
+    sure = t.copy()
+    sure[:70] = False
+    sure = cv2.erode(sure.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    alone = refine_mask(image, rough, band_px=10, iterations=4, core=core)
+    shown = refine_mask(image, rough, band_px=10, iterations=4, core=core, sure=sure)
+    assert (t & ~alone)[70:].sum() > 0.2 * t[70:].sum()  # the colours alone lose the lower half
+    assert shown[sure].all() and (t & ~shown)[70:].sum() < 0.5 * (t & ~alone)[70:].sum()
+    assert (shown & ~t).sum() <= (alone & ~t).sum() + 0.02 * t.sum()
+
+
+def test_a_view_sees_the_object_where_its_depth_lands_on_its_points():
+    """The cylinder on the table with its true depths and points on its side and top: the pixels whose
+    depth lands within reach of a point, above the lift, show the object; the table beside its foot,
+    within reach of the foot's points but on the plane, does not, nor the foot's lowest band, and
+    where the depths are unknown nothing does."""
+    cams, feet, bodies, _, depths = _cylinder_scene()
+    rng = np.random.default_rng(4)
+    a, z = rng.uniform(0, 2 * np.pi, 40_000), rng.uniform(0.0, 0.5, 40_000)
+    r = 0.3 * np.sqrt(rng.random(8000))
+    b = rng.uniform(0, 2 * np.pi, 8000)
+    points = np.concatenate([
+        np.column_stack([0.3 * np.cos(a), 0.3 * np.sin(a), z]),
+        np.column_stack([r * np.cos(b), r * np.sin(b), np.full(8000, 0.5)]),
+    ])
+    tree, plane = cKDTree(points), np.array([0.0, 0.0, 1.0, 0.0])
+    for cam, foot, body, dm in zip(cams, feet, bodies, depths, strict=True):
+        shape = (cam.height, cam.width)
+        shown = isolate_module.sees_object(dm, tree, 0.02, shape, plane=plane, lift=0.05)
+        grow = np.ones((5, 5), np.uint8)
+        inner = body & ~cv2.dilate((~body).astype(np.uint8), grow).astype(bool)
+        table = ~cv2.dilate((foot | body).astype(np.uint8), grow).astype(bool)
+        assert shown[inner].mean() > 0.95 and not shown[table].any()
+        near = isolate_module.sees_object(dm, tree, 0.1, shape, plane=None, lift=0.05)  # the table by the foot
+        lifted = isolate_module.sees_object(dm, tree, 0.1, shape, plane=plane, lift=0.05)
+        assert near[table].sum() > 20 and not lifted[table].any()
+        unknown = DepthMap(camera=cam, depth=np.zeros_like(dm.depth), score=dm.score)
+        assert not isolate_module.sees_object(unknown, tree, 0.02, shape, plane=plane, lift=0.05).any()
+    # with the other views asked: the grey body is seen alike; in colours no other view shows, it is not
+    _, _, _, previews, _ = _cylinder_scene()
+    body, dm, shape = bodies[0], depths[0], (cams[0].height, cams[0].width)
+    inner = body & ~cv2.dilate((~body).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    alike = isolate_module.SeenAlike(cams, depths, previews)
+    black = np.where(body[..., None], 0, previews[0]).astype(np.uint8)  # the body 120 levels off the others
+    other = isolate_module.SeenAlike(cams, depths, [black, *previews[1:]])
+    confirmed = isolate_module.sees_object(dm, tree, 0.02, shape, plane=plane, lift=0.05, index=0, views=alike)
+    unlike = isolate_module.sees_object(dm, tree, 0.02, shape, plane=plane, lift=0.05, index=0, views=other)
+    assert confirmed[inner].mean() > 0.9 and not unlike[inner].any()

@@ -72,7 +72,17 @@ given masks:
    (:func:`seen_alike`, within :data:`_ALIKE_COLOUR` 8-bit levels): stereo
    on a textureless wall matches the table behind it, and the views that
    see that table point show the table's colours, not the wall's (without
-   the check, a path-traced mug on a turntable lost half its body). The points taken back
+   the check, a path-traced mug on a turntable lost half its body). Where a
+   view's own depths land on the object's solid points, more than the plane's
+   inlier distance and :data:`_FREE_REACH` spacings above it, and another view
+   sees that point alike (:func:`sees_object`), the view sees the object
+   itself: those pixels are certain foreground, which GrabCut keeps whatever
+   their colours (the lower tube of a knot in the table's hues, where the
+   band's erosion leaves no certain foreground), and no background. Under the object
+   (the columns at their full length), a pixel whose own depth stands in front
+   of the support (:func:`in_front_of_support`) joins the rough mask: a
+   rock's shadowed underside, seen from low views, which the few points
+   there leave out. The points taken back
    within the box (step 4) that most views' depths pass behind
    (:func:`seen_behind`) are left out first: strays in the air inside a
    loop, not a dark foot, which the views see where it is, nor the hidden
@@ -138,6 +148,10 @@ _SEEN_FOOT = 2.0
 #: columns down to the plane, 0.15 % with 0.05 (0.25 % with 0.1); a mug's completeness, whose dark
 #: foot stereo misses, 1.10e-2 with 0.05, 1.42e-2 without columns.
 _COLUMN_SHARE = 0.05
+#: :func:`sees_object` erodes the depth grid's pixels that show the object by this many: stereo's windows
+#: carry an object's depth past its outline, and those pixels, with the table's colours, as certain
+#: foreground drew a built-in knot's loops into its masks.
+_SHOWN_ERODE = 2
 #: A view's depth farther than this many point spacings from the object's points and columns sees past it ...
 _FREE_REACH = 3.0
 #: ... and a pixel sees past the object where at least this share of the known depths around it do
@@ -868,6 +882,40 @@ def sees_past(
     return np.asarray(cv2.resize(free.astype(np.uint8), (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST), bool)
 
 
+def sees_object(
+    depth: DepthMap, solid: cKDTree, reach: float, shape: tuple[int, int], *, plane: np.ndarray | None, lift: float,
+    index: int | None = None, views: SeenAlike | None = None, where: np.ndarray | None = None,
+) -> np.ndarray:
+    """(H, W) bool: the pixels where the view's own stereo depth lands within ``reach`` of a solid point of
+    the object (``solid``: their KD-tree) and more than ``lift`` above the support ``plane`` (any height
+    without one): the view sees the object itself there. With ``views`` (``index``: this view's place
+    in them) only where another view sees the depth's point alike (:func:`seen_alike`): stereo's windows
+    carry an object's depth past its outline onto the table or through a loop, and the views that see
+    that point show the object's colours, not the table's. ``where`` ((H, W) bool, the preview's grid)
+    limits the pixels looked at. The depth grid's pixels are eroded by :data:`_SHOWN_ERODE` and resized to ``shape``
+    (the preview's (H, W)); near the plane the table around a foot lies within reach of the foot's points."""
+    rows, cols = np.nonzero(depth.valid)
+    h, w = depth.depth.shape
+    if where is not None and len(rows):
+        grid = cv2.resize(where.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+        inside = grid[rows, cols]
+        rows, cols = rows[inside], cols[inside]
+    out = np.zeros((h, w), np.uint8)
+    if len(rows):
+        world = backproject(depth.camera, depth.depth[rows, cols], rows, cols)
+        gap, _ = solid.query(world, k=1, distance_upper_bound=reach)
+        on = np.isfinite(gap)
+        if plane is not None:
+            on &= world @ plane[:3] + plane[3] > lift
+        cam = None if views is None or index is None else views.cameras[index]
+        if cam is not None and views is not None and index is not None and on.any():
+            ask = np.flatnonzero(on)
+            on[ask] = seen_alike(world[ask], _colour_at(cam, views.previews[index], world[ask]), index, views)
+        out[rows[on], cols[on]] = 1
+    inner = cv2.erode(out, np.ones((2 * _SHOWN_ERODE + 1,) * 2, np.uint8))
+    return np.asarray(cv2.resize(inner, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST), bool)
+
+
 def on_support(
     index: int, cameras: Sequence[Camera | None], blurred: Sequence[np.ndarray], plane: np.ndarray,
     where: np.ndarray, *, object_px: np.ndarray | None = None,
@@ -1018,6 +1066,7 @@ def refine_mask(
     core: np.ndarray | None = None,
     background: np.ndarray | None = None,
     reach: np.ndarray | None = None,
+    sure: np.ndarray | None = None,
 ) -> np.ndarray:
     """GrabCut of one view inside a band around a rough mask (module docstring, step 4).
 
@@ -1031,6 +1080,8 @@ def refine_mask(
         reach: (H, W) bool where GrabCut may also decide, as probable background (the band is
             drawn around ``rough`` and ``reach``): the full length of columns a support found among
             the far points leaves short (:func:`isolate_object`).
+        sure: (H, W) bool certain foreground as it is, not eroded (where the view's own depths show the
+            object: :func:`sees_object`).
 
     Returns:
         (H, W) bool mask.
@@ -1046,6 +1097,8 @@ def refine_mask(
     labels[outer] = cv2.GC_PR_BGD
     labels[rough] = cv2.GC_PR_FGD
     labels[core] = cv2.GC_FGD
+    if sure is not None:
+        labels[sure & outer] = cv2.GC_FGD
     if background is not None:
         labels[background] = cv2.GC_BGD
     if not (labels == cv2.GC_FGD).any():
@@ -1158,10 +1211,10 @@ def isolate_object(
         below = columns_below(
             solid, plane, spacing, support=support, all_short=bool(counts["plane_from_far_points"]), seed=_SEED
         )
-        if counts["plane_from_far_points"]:  # the short columns' full length: where GrabCut may still decide
-            reach_below = columns_below(solid, plane, spacing, support=support, seed=_SEED)
+        reach_below = columns_below(solid, plane, spacing, seed=_SEED)  # every column at its full length
     body = np.vstack([pts[chosen], below])  # the columns: the underside the points miss
     tree = cKDTree(body) if depth_maps is not None and len(body) else None
+    solid_tree = cKDTree(solid) if depth_maps is not None and len(solid) else None
     views = None if depth_maps is None else SeenAlike(cameras, depth_maps, previews)
     see_support = plane is not None and settings.see_support
     blurred = [] if not see_support else [  # on_support's previews
@@ -1174,10 +1227,19 @@ def isolate_object(
             continue
         seen = _splat(solid, cam, spacing)
         rough = seen | _splat(below, cam, spacing)
-        reach = _splat(reach_below, cam, spacing) if len(reach_below) else None
+        under_all = _splat(reach_below, cam, spacing) if len(reach_below) else None
+        reach = under_all if counts.get("plane_from_far_points") else None
         band = settings.band_px or 0.02 * float(np.hypot(cam.width, cam.height))
-        past = None
+        past = shown = None
         dm = None if depth_maps is None else depth_maps[i]
+        if solid_tree is not None and dm is not None:  # where the view's own depth lands on the object
+            # looked at beyond the band's erosion of the splats, where GrabCut would decide
+            k = 2 * max(1, round(band)) + 1
+            undecided = ~cv2.erode(seen.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))).astype(bool)
+            shown = sees_object(
+                dm, solid_tree, _FREE_REACH * spacing, (cam.height, cam.width), plane=plane,
+                lift=clearance + _FREE_REACH * spacing, index=i, views=views, where=undecided,
+            )
         if tree is not None and dm is not None:
             # the band GrabCut decides in, and the window of sees_past's share around it
             r = round(band + _FREE_WINDOW * float(np.hypot(cam.width, cam.height))) + 1
@@ -1189,17 +1251,21 @@ def isolate_object(
             )
             past = sees & ~seen  # seen past the object, where no point of it lands
             rough &= ~past
+        if under_all is not None and dm is not None and plane is not None:
+            # under the object, what stands in front of the support is the object (a rock's shadowed underside)
+            under = under_all & ~rough & (True if past is None else ~past)
+            rough |= in_front_of_support(cam, dm, plane, under, _FREE_REACH * spacing, index=i, views=views)
+        if shown is not None:
+            rough |= shown
+            past = None if past is None else past & ~shown
         if see_support and plane is not None:  # the support seen in the rough mask, where no point lands
-            asked = rough & ~seen
-            if dm is not None:  # where the view's own depth stands in front of the plane: not the support
-                asked &= ~in_front_of_support(cam, dm, plane, asked, _FREE_REACH * spacing, index=i, views=views)
-            table = on_support(i, cameras, blurred, plane, asked, object_px=seen)
-            table = cv2.morphologyEx(table.astype(np.uint8), cv2.MORPH_OPEN, _PLANE_OPEN).astype(bool)
+            asked = rough & ~seen & (True if shown is None else ~shown)
+            table = _support_seen(i, cameras, blurred, plane, asked, seen, dm, _FREE_REACH * spacing, views)
             past = table if past is None else past | table
             rough &= ~table
         mask = refine_mask(
             image, rough, band_px=band, iterations=settings.grabcut_iterations, core=seen, background=past,
-            reach=reach,
+            reach=reach, sure=shown,
         )
         masks.append(cv2.dilate(mask.astype(np.uint8), _GROW).astype(bool))
     isolation = Isolation(
@@ -1209,6 +1275,20 @@ def isolate_object(
     )
     keep = on_object(pts, cameras, isolation)
     return replace(isolation, keep=keep, counts=counts | {"kept": int(keep.sum())})
+
+
+def _support_seen(
+    index: int, cameras: Sequence[Camera | None], blurred: Sequence[np.ndarray], plane: np.ndarray,
+    asked: np.ndarray, seen: np.ndarray, depth: DepthMap | None, margin: float, views: SeenAlike | None,
+) -> np.ndarray:
+    """(H, W) bool: the pixels ``asked`` of view ``index`` that show the support by its colours
+    (:func:`on_support`; ``seen``: the object's pixels), but not those whose own depth stands in front of
+    it (:func:`in_front_of_support`), opened by a 3x3 square."""
+    cam = cameras[index]
+    if depth is not None and cam is not None:
+        asked = asked & ~in_front_of_support(cam, depth, plane, asked, margin, index=index, views=views)
+    table = on_support(index, cameras, blurred, plane, asked, object_px=seen)
+    return np.asarray(cv2.morphologyEx(table.astype(np.uint8), cv2.MORPH_OPEN, _PLANE_OPEN), bool)
 
 
 def on_object(points: np.ndarray, cameras: Sequence[Camera | None], isolation: Isolation) -> np.ndarray:
