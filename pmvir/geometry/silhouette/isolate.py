@@ -1231,6 +1231,7 @@ def isolate_object(
         reach = under_all if counts.get("plane_from_far_points") else None
         band = settings.band_px or 0.02 * float(np.hypot(cam.width, cam.height))
         past = shown = None
+        seen_or_shown = seen
         dm = None if depth_maps is None else depth_maps[i]
         if solid_tree is not None and dm is not None:  # where the view's own depth lands on the object
             # looked at beyond the band's erosion of the splats, where GrabCut would decide
@@ -1254,12 +1255,15 @@ def isolate_object(
         if under_all is not None and dm is not None and plane is not None:
             # under the object, what stands in front of the support is the object (a rock's shadowed underside)
             under = under_all & ~rough & (True if past is None else ~past)
-            rough |= in_front_of_support(cam, dm, plane, under, _FREE_REACH * spacing, index=i, views=views)
+            front = in_front_of_support(cam, dm, plane, under, _FREE_REACH * spacing, index=i, views=views)
+            rough |= front
+            seen_or_shown = seen | front  # found in front already: not asked again by _support_seen
         if shown is not None:
             rough |= shown
             past = None if past is None else past & ~shown
+            seen_or_shown = seen_or_shown | shown
         if see_support and plane is not None:  # the support seen in the rough mask, where no point lands
-            asked = rough & ~seen & (True if shown is None else ~shown)
+            asked = rough & ~seen_or_shown
             table = _support_seen(i, cameras, blurred, plane, asked, seen, dm, _FREE_REACH * spacing, views)
             past = table if past is None else past | table
             rough &= ~table
