@@ -865,3 +865,42 @@ def test_a_view_sees_the_object_where_its_depth_lands_on_its_points():
     confirmed = isolate_module.sees_object(dm, tree, 0.02, shape, plane=plane, lift=0.05, index=0, views=alike)
     unlike = isolate_module.sees_object(dm, tree, 0.02, shape, plane=plane, lift=0.05, index=0, views=other)
     assert confirmed[inner].mean() > 0.9 and not unlike[inner].any()
+
+
+def test_a_thin_part_in_the_table_s_colours_keeps_its_middle_as_certain_foreground():
+    """A red disc with a thin bar below it in the table's own texture (a knot's lower tube in a
+    turntable's hues), both projected exactly: the bar's middle, 8 px from the background around it,
+    is certain foreground (0.6 of a band of 10 from the outside), so GrabCut keeps most of the bar;
+    an erosion by the whole band leaves none of it certain."""
+    image, truth = _red_disc_on_a_green_table(5, (160, 200), (100, 60), 35)
+    bar = np.zeros_like(truth)
+    bar[100:116, 40:160] = 1  # 16 px high, touching the disc
+    image[bar > 0] = image[np.roll(bar, 40, axis=0) > 0]  # the table's texture 40 rows below
+    t = (truth | bar).astype(bool)
+    certain = isolate_module._certain(t.astype(np.uint8), 10)
+    full = cv2.erode(t.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (21, 21))).astype(bool)
+    assert not full[bar > 0].any() and certain[108, 50:150].all()
+    out = refine_mask(image, t, band_px=10, iterations=4)
+    assert out[bar > 0].mean() > 0.8 and (out & ~t).sum() < 0.05 * t.sum()
+
+
+def test_the_certain_foreground_keeps_the_whole_band_from_the_holes_it_encloses():
+    """A ring whose projected points fill the outer 8 px of its hole (stereo's windows): the pixels
+    within the band (10 px) of what is left of the hole are not certain, the rest of the ring is, and
+    GrabCut opens the hole to the table seen through it."""
+    image, truth = _red_disc_on_a_green_table(6, (200, 200), (100, 100), 70)
+    hole = np.zeros_like(truth)
+    cv2.circle(hole, (100, 100), 30, 1, -1)
+    table, _ = _red_disc_on_a_green_table(7, (200, 200), (2, 2), 1)
+    image[hole > 0] = table[hole > 0]  # the table seen through the ring
+    t = (truth > 0) & (hole == 0)
+    splat = t.astype(np.uint8)
+    cv2.circle(splat, (100, 100), 30, 1, -1)
+    cv2.circle(splat, (100, 100), 22, 0, -1)  # the splats leave a smaller hole
+    certain = isolate_module._certain(splat, 10)
+    yy, xx = np.mgrid[:200, :200]
+    r = np.hypot(yy - 100, xx - 100)
+    assert not certain[r < 31].any() and certain[(r > 33) & (r < 60)].all()
+    out = refine_mask(image, splat.astype(bool), band_px=10, iterations=4, core=splat.astype(bool))
+    # 0.6 of the band from the hole too would leave its outer 2 px (13 % of it) certain
+    assert (out & (hole > 0)).sum() < 0.05 * hole.sum() and out[(r > 31) & (r < 69)].mean() > 0.95

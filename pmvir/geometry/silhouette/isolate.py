@@ -57,9 +57,10 @@ given masks:
    takes a shadowed underside the points miss by its colour, where columns
    as foreground stood as a skirt on the table) are splatted
    (discs of the points' projected spacing), closed, and refined by GrabCut
-   (OpenCV) on the view's 8-bit preview: certain foreground on the eroded projection of the points,
-   probable foreground on the rest of it, probable background in a band of
-   ``band_px`` around it, background beyond.
+   (OpenCV) on the view's 8-bit preview: certain foreground on the projection of the points
+   eroded by the band from the holes it encloses and by :data:`_CORE_OUTER` of it from the
+   background around it (:func:`_certain`), probable foreground on the rest of it, probable
+   background in a band of ``band_px`` around it, background beyond.
    The refined mask stays within that band.
    **Seen past** (``see_past``, on by default; with the stereo depth
    maps): where a view's own depths land farther than :data:`_FREE_REACH`
@@ -152,6 +153,12 @@ _COLUMN_SHARE = 0.05
 #: carry an object's depth past its outline, and those pixels, with the table's colours, as certain
 #: foreground drew a built-in knot's loops into its masks.
 _SHOWN_ERODE = 2
+#: GrabCut's certain foreground lies this share of the band from the background around the projected
+#: points (all of the band from the holes they enclose, :func:`_certain`): on 36 views of 612x512 the
+#: path-traced knot on a turntable's masks missed 2.1 % of the true masks against 3.1 % with all of the
+#: band (completeness 0.91e-2 against 0.98e-2), the path-traced mug's on a turntable 0.96e-2 against
+#: 1.12e-2; the built-in knot's masks' IoU is 0.913 either way, and 0.904 with 0.5 (its loops filled).
+_CORE_OUTER = 0.6
 #: A view's depth farther than this many point spacings from the object's points and columns sees past it ...
 _FREE_REACH = 3.0
 #: ... and a pixel sees past the object where at least this share of the known depths around it do
@@ -1075,7 +1082,8 @@ def refine_mask(
         rough: (H, W) bool the projected object points.
         band_px: half-width of the undecided band, pixels (>= 1).
         iterations: GrabCut iterations (0: ``rough`` unchanged).
-        core: (H, W) bool where the object surely is before erosion (default ``rough``).
+        core: (H, W) bool where the object surely is before erosion (default ``rough``; eroded by
+            :func:`_certain`).
         background: (H, W) bool where it surely is not (the view sees past it: :func:`sees_past`).
         reach: (H, W) bool where GrabCut may also decide, as probable background (the band is
             drawn around ``rough`` and ``reach``): the full length of columns a support found among
@@ -1091,7 +1099,7 @@ def refine_mask(
     k = max(1, round(band_px))
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
     r8 = rough.astype(np.uint8)
-    core = cv2.erode(r8 if core is None else core.astype(np.uint8), disc).astype(bool)
+    core = _certain(r8 if core is None else core.astype(np.uint8), k)
     outer = cv2.dilate(r8 if reach is None else (rough | reach).astype(np.uint8), disc).astype(bool)
     labels = np.full(rough.shape, cv2.GC_BGD, np.uint8)
     labels[outer] = cv2.GC_PR_BGD
@@ -1117,6 +1125,24 @@ def refine_mask(
     out = np.zeros_like(rough)
     out[r0:r1, c0:c1] = (crop == cv2.GC_FGD) | (crop == cv2.GC_PR_FGD)
     return out & outer
+
+
+def _certain(core: np.ndarray, k: int) -> np.ndarray:
+    """(H, W) bool: GrabCut's certain foreground in ``core`` ((H, W) uint8): the pixels at least ``k``
+    pixels from its holes (the background it encloses: a knot's loops, a handle's eye, which stereo's
+    windows half fill) and :data:`_CORE_OUTER` of ``k`` from the background around it (there a
+    thin part in the support's colours, a knot's lower tube, eroded by all of ``k``, was lost)."""
+    _, label = cv2.connectedComponents((core == 0).astype(np.uint8), connectivity=4)
+    border = np.unique(np.concatenate([label[0], label[-1], label[:, 0], label[:, -1]]))
+    holes = (core == 0) & ~np.isin(label, border)
+    outer = max(1, round(_CORE_OUTER * k))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * outer + 1, 2 * outer + 1))
+    kept = cv2.erode(((core > 0) | holes).astype(np.uint8), disc, borderType=cv2.BORDER_CONSTANT, borderValue=1)
+    if not holes.any():
+        return np.asarray(kept, bool)
+    wide = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
+    near_hole = cv2.dilate(holes.astype(np.uint8), wide)
+    return (kept > 0) & (near_hole == 0)
 
 
 def inside_masks(
