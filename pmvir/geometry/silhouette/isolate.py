@@ -1130,8 +1130,9 @@ def refine_mask(
 def _certain(core: np.ndarray, k: int) -> np.ndarray:
     """(H, W) bool: GrabCut's certain foreground in ``core`` ((H, W) uint8): the pixels at least ``k``
     pixels from its holes (the background it encloses: a knot's loops, a handle's eye, which stereo's
-    windows half fill) and :data:`_CORE_OUTER` of ``k`` from the background around it (there a
-    thin part in the support's colours, a knot's lower tube, eroded by all of ``k``, was lost)."""
+    windows half fill) and :data:`_CORE_OUTER` of ``k`` from the background around it (eroded by all
+    of ``k`` there, a thin part in the support's colours, a knot's lower tube, keeps no certain pixel
+    and GrabCut gives it to the support)."""
     _, label = cv2.connectedComponents((core == 0).astype(np.uint8), connectivity=4)
     border = np.unique(np.concatenate([label[0], label[-1], label[:, 0], label[:, -1]]))
     holes = (core == 0) & ~np.isin(label, border)
