@@ -79,7 +79,7 @@ given masks:
    sees that point alike (:func:`sees_object`), the view sees the object
    itself: those pixels are certain foreground, which GrabCut keeps whatever
    their colours (the lower tube of a knot in the table's hues, where the
-   band's erosion leaves no certain foreground), and no background. Under the object
+   splats' erosion leaves little certain foreground), and no background. Under the object
    (the columns at their full length), a pixel whose own depth stands in front
    of the support (:func:`in_front_of_support`) joins the rough mask: a
    rock's shadowed underside, seen from low views, which the few points
@@ -1261,7 +1261,7 @@ def isolate_object(
         seen_or_shown = seen
         dm = None if depth_maps is None else depth_maps[i]
         if solid_tree is not None and dm is not None:  # where the view's own depth lands on the object
-            # looked at beyond the band's erosion of the splats, where GrabCut would decide
+            # looked at beyond the splats eroded by the whole band (a superset of where GrabCut decides)
             k = 2 * max(1, round(band)) + 1
             undecided = ~cv2.erode(seen.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))).astype(bool)
             shown = sees_object(
