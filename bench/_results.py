@@ -79,6 +79,13 @@ def table(title: str, columns: list[str], rows: list[list[Any]], *, note: str | 
     return {"title": title, "columns": columns, "rows": rows, "note": note}
 
 
+def print_table(tab: dict[str, Any]) -> None:
+    """A :func:`table` on standard output, a line per row, cells parted by `` | ``."""
+    print(" | ".join(tab["columns"]))
+    for row in tab["rows"]:
+        print(" | ".join("" if v is None else str(v) for v in row))
+
+
 def write_results(
     name: str,
     *,

@@ -276,6 +276,11 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         "refine.stages.coarse=0 (every stage on the subdivided surface)",
     ),
     "demo_time": ("Time of make demo", f"{PY} bench/demo_time.py", "the 90 s target"),
+    "isolation": (
+        "Time of the isolation without masks",
+        f"{PY} bench/isolation.py --against a96713f 8b37c0a",
+        "the isolation at a96713f, 8b37c0a",
+    ),
     "fullsize": ("Full-size captures: memory and time per stage", f"{PY} bench/fullsize.py", None),
     "fullsize_service": (
         "A full-size capture through the service",

@@ -109,19 +109,26 @@ def look_at(
 
 
 def sample_bilinear(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Bilinear samples of an (H, W) image at pixel coordinates (COLMAP convention: pixel [r, c]
-    centred at (c + 0.5, r + 0.5)), clamped to the image (a point beyond the border reads the border).
+    """Bilinear samples of an (H, W) or (H, W, C) image at pixel coordinates (COLMAP convention: pixel
+    [r, c] centred at (c + 0.5, r + 0.5)), clamped to the image (a point beyond the border reads the
+    border): (N,) or (N, C), every channel from one gather of its four neighbours.
 
-    >>> sample_bilinear(np.array([[0.0, 1.0], [2.0, 3.0]]), np.array([1.0, 0.0]), np.array([1.0, 5.0]))
+    >>> image = np.array([[0.0, 1.0], [2.0, 3.0]])
+    >>> sample_bilinear(image, np.array([1.0, 0.0]), np.array([1.0, 5.0]))
     array([1.5, 2. ])
+    >>> sample_bilinear(np.dstack([image, 10 * image]), np.array([1.0, 0.0]), np.array([1.0, 5.0]))
+    array([[ 1.5, 15. ],
+           [ 2. , 20. ]])
     """
-    h, w = image.shape
+    h, w = image.shape[:2]
     x = np.clip(u - 0.5, 0.0, w - 1.0)
     y = np.clip(v - 0.5, 0.0, h - 1.0)
     x0 = np.minimum(np.floor(x).astype(np.int64), max(w - 2, 0))
     y0 = np.minimum(np.floor(y).astype(np.int64), max(h - 2, 0))
     x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
     fx, fy = x - x0, y - y0
+    if image.ndim == 3:
+        fx, fy = fx[:, None], fy[:, None]
     top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
     bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
     return top * (1 - fy) + bottom * fy

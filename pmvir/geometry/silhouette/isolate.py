@@ -61,7 +61,9 @@ given masks:
    eroded by the band from the holes it encloses and by :data:`_CORE_OUTER` of it from the
    background around it (:func:`_certain`), probable foreground on the rest of it, probable
    background in a band of ``band_px`` around it, background beyond.
-   The refined mask stays within that band.
+   The refined mask stays within that band. GrabCut's colour models start from OpenCV's random
+   numbers, which are seeded first (:data:`_GRABCUT_SEED`): the same inputs give the same masks
+   in any process.
    **Seen past** (``see_past``, on by default; with the stereo depth
    maps): where a view's own depths land farther than :data:`_FREE_REACH`
    spacings from every object point and column (most of the depths in a
@@ -105,7 +107,9 @@ given masks:
    The splats' rim (within the band of their outline) is looked at too: there
    stereo's windows carry the object's points onto the table (a mug's foot),
    and the rim within :data:`_RIM_GROW` of the band of what is found is not
-   certain foreground, only probable (``refine_mask(unsure=)``).
+   certain foreground, only probable (``refine_mask(unsure=)``). The rim is
+   asked only where what is found can reach the certain foreground
+   (:func:`_rim_asked`).
 6. **Points**: the dense points inside every view's mask (where they project
    into the image) and above the plane's inlier distance are the object's
    (``Isolation.keep``). The geometric stage then fuses the stereo depth maps
@@ -272,8 +276,13 @@ _STILL_SHARE = 0.8
 _MIN_STILL_AREA = 0.1
 #: Fewest views with images of one size for the still-backdrop test.
 _MIN_STILL_VIEWS = 6
+#: :func:`still_pixels` takes the median over the views this many image rows at a time.
+_STILL_ROWS = 64
 #: RANSAC's and the subsets' random seed (the same capture gives the same masks).
 _SEED = 0
+#: OpenCV's random numbers are set to this seed before the views' GrabCuts (0 is OpenCV's own start, that
+#: of a fresh process): a worker that has run other jobs draws the same masks of a capture.
+_GRABCUT_SEED = 0
 
 
 @dataclass(frozen=True)
@@ -708,10 +717,25 @@ def still_pixels(previews: Sequence[np.ndarray], *, tolerance: float) -> np.ndar
     than :data:`_MIN_STILL_VIEWS`, differ in size, or ``tolerance`` is 0."""
     if tolerance <= 0 or len(previews) < _MIN_STILL_VIEWS or len({p.shape for p in previews}) != 1:
         return None
-    stack = np.stack(previews).astype(np.int16)
-    median = np.median(stack, axis=0)
-    deviation = np.median(np.abs(stack - median).max(axis=-1), axis=0)
+    height = previews[0].shape[0]
+    deviation = np.empty(previews[0].shape[:2])
+    for r0 in range(0, height, _STILL_ROWS):  # a block of rows at a time: a full-size stack is GBs
+        stack = np.stack([image[r0:r0 + _STILL_ROWS] for image in previews], axis=-1)  # (rows, W, 3, V)
+        median = _median_last(stack)
+        deviation[r0:r0 + _STILL_ROWS] = _median_last(np.abs(stack - median[..., None]).max(axis=2))
     return np.asarray(deviation <= tolerance)
+
+
+def _median_last(values: np.ndarray) -> np.ndarray:
+    """float64 median over the last axis of ``values``, as ``np.median`` gives it (the mean of the two
+    middle values of an even count), by a partition of that axis (``np.median`` across the first axis
+    of a stack of views is ten times slower)."""
+    n = values.shape[-1]
+    half = n // 2
+    if n % 2:
+        return np.partition(values, half, axis=-1)[..., half].astype(np.float64)
+    parted = np.partition(values, [half - 1, half], axis=-1)
+    return (parted[..., half - 1].astype(np.float64) + parted[..., half]) / 2.0
 
 
 def still_points(
@@ -939,7 +963,8 @@ def on_support(
 ) -> np.ndarray:
     """(H, W) bool: the pixels ``where`` ((H, W) bool, view ``index``'s image grid) that show the support
     ``plane`` (a, b, c, d: a x + b y + c z + d = 0): the plane's points under a 3x3 patch around the
-    pixel look alike in the other views that see them (:data:`_PLANE_SHARE` and the constants above it).
+    pixel look alike in the other views that see them (:data:`_PLANE_SHARE` and the constants above it);
+    a patch is compared view after view until enough of them agree, or too few are left to.
     ``blurred``: per view the (H, W, 3) preview blurred by :data:`_PLANE_BLUR_PX`. ``object_px``: the
     view's pixels that the object's points cover; a pixel in the colour of a plain object beside it
     (:func:`plain_object_colour`) is not looked at: under a plain foot every view shows the object's
@@ -965,22 +990,39 @@ def on_support(
             rows, cols, own = rows[keep], cols[keep], own[keep]
             uv = uv.reshape(-1, 9, 2)[keep].reshape(-1, 2)
             points, ahead = points.reshape(-1, 9, 3)[keep].reshape(-1, 3), ahead[keep]
+    others = [(j, other) for j, other in enumerate(cameras) if j != index and other is not None]
+    patches = points.reshape(-1, 9, 3)
+    inside = np.zeros((len(others), len(rows)), bool)  # per other view: it sees the whole patch
+    for k, (j, other) in enumerate(others):
+        inside[k] = _patch_inside(other, blurred[j].shape, points) & ahead
+    seen = inside.sum(axis=0)
+    need = np.maximum(_PLANE_MIN_VIEWS, _PLANE_SHARE * seen)  # the agreeing views that make it alike
+    left = seen.copy()  # the views still to compare that see it
     agree = np.zeros(len(rows), np.int64)
-    seen = np.zeros(len(rows), np.int64)
-    for j, other in enumerate(cameras):
-        if j == index or other is None:
+    for k, (j, other) in enumerate(others):
+        # a pixel already alike, or one that cannot become so, is decided: the rest of the views are skipped
+        sees = np.flatnonzero(inside[k] & (agree < need) & (agree + left >= need))
+        left -= inside[k]
+        if not len(sees):
             continue
-        q, z = other.project(points)
+        q, _ = other.project(patches[sees].reshape(-1, 3))
         hj, wj = blurred[j].shape[:2]
         q = q * np.array([wj / other.width, hj / other.height])
-        inside = ((z > 0) & (q[:, 0] >= 1) & (q[:, 1] >= 1) & (q[:, 0] <= wj - 1) & (q[:, 1] <= hj - 1))
-        inside = inside.reshape(-1, 9).all(axis=1) & ahead
-        diff = np.abs(_patch_colours(blurred[j], q) - own).mean(axis=(1, 2))
-        seen += inside
-        agree += inside & (diff <= _PLANE_COLOUR)
+        diff = np.abs(_patch_colours(blurred[j], q) - own[sees])
+        agree[sees] += diff.mean(axis=(1, 2)) <= _PLANE_COLOUR
     alike = (agree >= _PLANE_MIN_VIEWS) & (agree >= _PLANE_SHARE * seen)
     out[rows[alike], cols[alike]] = True
     return out
+
+
+def _patch_inside(camera: Camera, shape: tuple[int, ...], points: np.ndarray) -> np.ndarray:
+    """(N,) bool: the patches of 9 ``points`` ((9 N, 3)) that ``camera`` sees whole, in front of it and
+    at least a pixel within its image of ``shape`` (H, W, ...)."""
+    q, z = camera.project(points)
+    h, w = shape[:2]
+    q = q * np.array([w / camera.width, h / camera.height])
+    inside = (z > 0) & (q[:, 0] >= 1) & (q[:, 1] >= 1) & (q[:, 0] <= w - 1) & (q[:, 1] <= h - 1)
+    return np.asarray(inside.reshape(-1, 9).all(axis=1))
 
 
 def _rays_to_plane(camera: Camera, uv: np.ndarray, plane: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -1042,8 +1084,7 @@ def plain_object_colour(image: np.ndarray, object_px: np.ndarray) -> tuple[np.nd
 
 def _patch_colours(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """(N, 9, 3) float32: ``image`` ((H, W, 3)) sampled bilinearly at ``uv`` ((9 N, 2), its own pixels)."""
-    channels = [sample_bilinear(image[..., c], uv[:, 0], uv[:, 1]) for c in range(image.shape[2])]
-    return np.stack(channels, axis=1).reshape(-1, 9, image.shape[2]).astype(np.float32)
+    return sample_bilinear(image, uv[:, 0], uv[:, 1]).reshape(-1, 9, image.shape[2]).astype(np.float32)
 
 
 def depth_past_share(
@@ -1263,6 +1304,7 @@ def isolate_object(
         cv2.GaussianBlur(im.astype(np.float32), (0, 0), _PLANE_BLUR_PX) for im in previews
     ]
     masks: list[np.ndarray | None] = []
+    cv2.setRNGSeed(_GRABCUT_SEED)  # GrabCut's colour models start from OpenCV's per-thread random numbers
     for i, (cam, image) in enumerate(zip(cameras, previews, strict=True)):
         if cam is None:
             masks.append(None)
@@ -1308,10 +1350,11 @@ def isolate_object(
         if see_support and plane is not None:  # the support seen in the rough mask, where no point lands
             # and in the splats' rim, where stereo's windows carry the object's points onto the support
             rim = seen & ~inner if shown is None else seen & ~inner & ~shown
-            asked = (rough & ~seen_or_shown) | rim
-            table = _support_seen(i, cameras, blurred, plane, asked, seen, dm, _FREE_REACH * spacing, views)
             g = max(1, round(_RIM_GROW * band))
             disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * g + 1, 2 * g + 1))
+            beside = rough & ~seen_or_shown
+            asked = beside | _rim_asked(rim, seen, beside, band, disc)
+            table = _support_seen(i, cameras, blurred, plane, asked, seen, dm, _FREE_REACH * spacing, views)
             unsure = cv2.dilate((table & rim).astype(np.uint8), disc).astype(bool) & rim
             table &= ~rim
             past = table if past is None else past | table
@@ -1328,6 +1371,19 @@ def isolate_object(
     )
     keep = on_object(pts, cameras, isolation)
     return replace(isolation, keep=keep, counts=counts | {"kept": int(keep.sum())})
+
+
+def _rim_asked(rim: np.ndarray, seen: np.ndarray, beside: np.ndarray, band: float, disc: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels of the splats' ``rim`` whose support test can change the masks.
+    ``refine_mask(unsure=)`` reads the rim's found pixels grown by ``disc`` only where GrabCut's
+    certain foreground lies (:func:`_certain` of the splats ``seen`` with the ``band``), and
+    :func:`_support_seen`'s 3x3 opening reads 2 pixels around those and around the pixels ``beside``
+    the splats asked as well: the rest of the rim is left out, and the masks are the same as with all
+    of it asked (``tests/test_isolate.py``)."""
+    certain = _certain(seen.astype(np.uint8), max(1, round(band)))
+    read = cv2.dilate((rim & certain).astype(np.uint8), disc).astype(bool) & rim
+    reach = cv2.dilate((read | beside).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    return rim & reach
 
 
 def _support_seen(
