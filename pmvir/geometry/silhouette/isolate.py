@@ -719,7 +719,7 @@ def still_pixels(previews: Sequence[np.ndarray], *, tolerance: float) -> np.ndar
         return None
     height = previews[0].shape[0]
     deviation = np.empty(previews[0].shape[:2])
-    for r0 in range(0, height, _STILL_ROWS):  # a block of rows at a time: a full-size stack is GBs
+    for r0 in range(0, height, _STILL_ROWS):  # a block of rows at a time, not a float64 copy of every view
         stack = np.stack([image[r0:r0 + _STILL_ROWS] for image in previews], axis=-1)  # (rows, W, 3, V)
         median = _median_last(stack)
         deviation[r0:r0 + _STILL_ROWS] = _median_last(np.abs(stack - median[..., None]).max(axis=2))
@@ -1379,7 +1379,7 @@ def _rim_asked(rim: np.ndarray, seen: np.ndarray, beside: np.ndarray, band: floa
     certain foreground lies (:func:`_certain` of the splats ``seen`` with the ``band``), and
     :func:`_support_seen`'s 3x3 opening reads 2 pixels around those and around the pixels ``beside``
     the splats asked as well: the rest of the rim is left out, and the masks are the same as with all
-    of it asked (``tests/test_isolate.py``)."""
+    of it asked (``tests/geometry/test_isolate.py``)."""
     certain = _certain(seen.astype(np.uint8), max(1, round(band)))
     read = cv2.dilate((rim & certain).astype(np.uint8), disc).astype(bool) & rim
     reach = cv2.dilate((read | beside).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
