@@ -1126,6 +1126,7 @@ def refine_mask(
     reach: np.ndarray | None = None,
     sure: np.ndarray | None = None,
     unsure: np.ndarray | None = None,
+    certain: np.ndarray | None = None,
 ) -> np.ndarray:
     """GrabCut of one view inside a band around a rough mask (module docstring, step 4).
 
@@ -1144,6 +1145,8 @@ def refine_mask(
             object: :func:`sees_object`).
         unsure: (H, W) bool never certain foreground, at most probable (the splats' rim where the
             support shows: :func:`isolate_object`).
+        certain: (H, W) bool the certain foreground when the caller has found it already
+            (:func:`_certain` of ``core`` with ``band_px``); ``core`` is then not read.
 
     Returns:
         (H, W) bool mask.
@@ -1153,14 +1156,15 @@ def refine_mask(
     k = max(1, round(band_px))
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
     r8 = rough.astype(np.uint8)
-    core = _certain(r8 if core is None else core.astype(np.uint8), k)
+    if certain is None:
+        certain = _certain(r8 if core is None else core.astype(np.uint8), k)
     outer = cv2.dilate(r8 if reach is None else (rough | reach).astype(np.uint8), disc).astype(bool)
     labels = np.full(rough.shape, cv2.GC_BGD, np.uint8)
     labels[outer] = cv2.GC_PR_BGD
     labels[rough] = cv2.GC_PR_FGD
-    labels[core] = cv2.GC_FGD
+    labels[certain] = cv2.GC_FGD
     if unsure is not None:
-        labels[unsure & core] = cv2.GC_PR_FGD
+        labels[unsure & certain] = cv2.GC_PR_FGD
     if sure is not None:
         labels[sure & outer] = cv2.GC_FGD
     if background is not None:
@@ -1347,21 +1351,22 @@ def isolate_object(
             past = None if past is None else past & ~shown
             seen_or_shown = seen_or_shown | shown
         unsure = None
+        certain = _certain(seen.astype(np.uint8), max(1, round(band)))  # GrabCut's certain foreground
         if see_support and plane is not None:  # the support seen in the rough mask, where no point lands
             # and in the splats' rim, where stereo's windows carry the object's points onto the support
             rim = seen & ~inner if shown is None else seen & ~inner & ~shown
             g = max(1, round(_RIM_GROW * band))
             disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * g + 1, 2 * g + 1))
             beside = rough & ~seen_or_shown
-            asked = beside | _rim_asked(rim, seen, beside, band, disc)
+            asked = beside | _rim_asked(rim, certain, beside, disc)
             table = _support_seen(i, cameras, blurred, plane, asked, seen, dm, _FREE_REACH * spacing, views)
             unsure = cv2.dilate((table & rim).astype(np.uint8), disc).astype(bool) & rim
             table &= ~rim
             past = table if past is None else past | table
             rough &= ~table
         mask = refine_mask(
-            image, rough, band_px=band, iterations=settings.grabcut_iterations, core=seen, background=past,
-            reach=reach, sure=shown, unsure=unsure,
+            image, rough, band_px=band, iterations=settings.grabcut_iterations, background=past,
+            reach=reach, sure=shown, unsure=unsure, certain=certain,
         )
         masks.append(cv2.dilate(mask.astype(np.uint8), _GROW).astype(bool))
     isolation = Isolation(
@@ -1373,14 +1378,13 @@ def isolate_object(
     return replace(isolation, keep=keep, counts=counts | {"kept": int(keep.sum())})
 
 
-def _rim_asked(rim: np.ndarray, seen: np.ndarray, beside: np.ndarray, band: float, disc: np.ndarray) -> np.ndarray:
+def _rim_asked(rim: np.ndarray, certain: np.ndarray, beside: np.ndarray, disc: np.ndarray) -> np.ndarray:
     """(H, W) bool: the pixels of the splats' ``rim`` whose support test can change the masks.
     ``refine_mask(unsure=)`` reads the rim's found pixels grown by ``disc`` only where GrabCut's
-    certain foreground lies (:func:`_certain` of the splats ``seen`` with the ``band``), and
+    ``certain`` foreground lies (:func:`_certain` of the splats with the band), and
     :func:`_support_seen`'s 3x3 opening reads 2 pixels around those and around the pixels ``beside``
     the splats asked as well: the rest of the rim is left out, and the masks are the same as with all
     of it asked (``tests/geometry/test_isolate.py``)."""
-    certain = _certain(seen.astype(np.uint8), max(1, round(band)))
     read = cv2.dilate((rim & certain).astype(np.uint8), disc).astype(bool) & rim
     reach = cv2.dilate((read | beside).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     return rim & reach
