@@ -20,6 +20,8 @@ TORCH_VERSION ?= 2.13.0
 TORCH_INDEX ?=
 TORCH_PIP := $(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX))
 FLOORS_VENV := .venv-floors
+# Processes of `make test` (2 for the 2-core CI machine; more where cores and memory allow).
+TEST_PROCESSES ?= 2
 
 .PHONY: setup system-packages demo lint docs test test-floors lock bench clean
 
@@ -64,8 +66,11 @@ lint: setup
 docs: setup
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet -d $(DOCS_SITE)
 
+# The suite on TEST_PROCESSES processes (pytest-xdist; conftest.py keeps a test file, and a folder
+# whose conftest makes session fixtures, in one process), each with one OpenMP thread (BLAS, torch,
+# open3d, COLMAP), so that the processes do not contend for the cores.
 test: setup lint docs
-	$(PY) -m pytest -q
+	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n $(TEST_PROCESSES) --dist loadgroup
 
 # The declared lower bounds are true: a fresh venv with every dependency at its floor release
 # series (tools/requirements.py floors), then the fast tests. .ci/run runs it after `make test`
