@@ -7,8 +7,8 @@ together; so they are left out of collection (pytest still loads them as conftes
 
 ``make test`` runs the suite on two processes (pytest-xdist, ``--dist loadgroup``). Each test
 file goes whole to one process, so a module's fixtures (a service stack, a synthesized capture)
-are made once; the folders whose conftest makes session fixtures (:data:`_SHARED_FOLDERS`) go
-whole to one process, so those are made once too.
+are made once; the folders whose session fixtures synthesize captures (:data:`_SHARED_FOLDERS`)
+go whole to one process, so those are made once too.
 """
 
 from __future__ import annotations
@@ -19,7 +19,8 @@ import pytest
 
 collect_ignore_glob = ["tests/*conftest.py"]
 
-#: Test folders whose conftest.py holds session-scoped fixtures, each run by one process.
+#: Test folders whose conftest.py synthesizes captures in session fixtures (seconds to minutes each), each
+#: run whole by one process.
 _SHARED_FOLDERS = ("tests/geometry", "tests/export")
 
 _ROOT = Path(__file__).resolve().parent
