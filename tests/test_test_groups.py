@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -11,11 +10,14 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _root_conftest():
-    spec = importlib.util.spec_from_file_location("root_conftest", ROOT / "conftest.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+@pytest.fixture()
+def root_conftest(pytestconfig: pytest.Config):
+    """The root conftest.py as pytest loaded it (one of its plugins)."""
+    path = ROOT / "conftest.py"
+    (module,) = [
+        p for p in pytestconfig.pluginmanager.get_plugins()
+        if getattr(p, "__file__", None) and Path(p.__file__).resolve() == path
+    ]
     return module
 
 
@@ -30,8 +32,8 @@ def _group(item: SimpleNamespace) -> str:
     return mark.args[0]
 
 
-def test_a_file_is_one_group_and_a_shared_folder_one_group_whatever_its_files() -> None:
-    conftest = _root_conftest()
+def test_a_file_is_one_group_and_a_shared_folder_one_group_whatever_its_files(root_conftest) -> None:
+    conftest = root_conftest
     items = [
         _item("tests/service/test_service_api.py"),
         _item("tests/service/test_service_api.py"),
@@ -50,21 +52,21 @@ def test_a_file_is_one_group_and_a_shared_folder_one_group_whatever_its_files() 
     assert groups[6] == "pmvir/camera.py"  # a module's doctests: its own group
 
 
-def test_every_shared_folder_holds_a_conftest_with_session_fixtures() -> None:
-    for folder in _root_conftest()._SHARED_FOLDERS:
+def test_every_shared_folder_holds_a_conftest_with_session_fixtures(root_conftest) -> None:
+    for folder in root_conftest._SHARED_FOLDERS:
         text = (ROOT / folder / "conftest.py").read_text()
         assert '@pytest.fixture(scope="session")' in text, folder
 
 
-def test_a_test_outside_the_repository_gets_no_group(tmp_path: Path) -> None:
+def test_a_test_outside_the_repository_gets_no_group(root_conftest, tmp_path: Path) -> None:
     item = _item("x")
     item.path = tmp_path / "test_x.py"
-    _root_conftest().pytest_collection_modifyitems(None, [item])
+    root_conftest.pytest_collection_modifyitems(None, [item])
     assert item.marks == []
 
 
 @pytest.mark.parametrize("rel", ["tests/geometryx/test_a.py", "tests/export_more/test_b.py"])
-def test_a_folder_whose_name_starts_like_a_shared_one_is_not_shared(rel: str) -> None:
+def test_a_folder_whose_name_starts_like_a_shared_one_is_not_shared(root_conftest, rel: str) -> None:
     item = _item(rel)
-    _root_conftest().pytest_collection_modifyitems(None, [item])
+    root_conftest.pytest_collection_modifyitems(None, [item])
     assert _group(item) == rel
