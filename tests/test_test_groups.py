@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import pytest
 
@@ -21,35 +24,20 @@ def root_conftest(pytestconfig: pytest.Config):
     return module
 
 
-def _item(rel: str) -> SimpleNamespace:
-    item = SimpleNamespace(path=ROOT / rel, marks=[])
-    item.add_marker = item.marks.append
-    return item
-
-
-def _group(item: SimpleNamespace) -> str:
-    (mark,) = [m for m in item.marks if m.name == "xdist_group"]
-    return mark.args[0]
-
-
 def test_a_file_is_one_group_and_a_shared_folder_one_group_whatever_its_files(root_conftest) -> None:
-    conftest = root_conftest
-    items = [
-        _item("tests/service/test_service_api.py"),
-        _item("tests/service/test_service_api.py"),
-        _item("tests/service/test_service_faults.py"),
-        _item("tests/geometry/test_mvs.py"),
-        _item("tests/geometry/test_isolate_table.py"),
-        _item("tests/export/test_exports.py"),
-        _item("pmvir/camera.py"),
-    ]
-    conftest.pytest_collection_modifyitems(None, items)
-    groups = [_group(i) for i in items]
-    assert groups[0] == groups[1] == "tests/service/test_service_api.py"
-    assert groups[2] == "tests/service/test_service_faults.py"
-    assert groups[3] == groups[4] == "tests/geometry"
-    assert groups[5] == "tests/export"
-    assert groups[6] == "pmvir/camera.py"  # a module's doctests: its own group
+    group_of = root_conftest.group_of
+    assert group_of("tests/service/test_service_api.py::test_a") == "tests/service/test_service_api.py"
+    assert group_of("tests/service/test_service_api.py::test_b[x::y]") == "tests/service/test_service_api.py"
+    assert group_of("tests/service/test_service_faults.py::test_a") == "tests/service/test_service_faults.py"
+    assert group_of("tests/geometry/test_mvs.py::test_a") == "tests/geometry"
+    assert group_of("tests/geometry/test_isolate_table.py::test_b[table]") == "tests/geometry"
+    assert group_of("tests/export/test_exports.py::test_a") == "tests/export"
+    assert group_of("pmvir/camera.py::pmvir.camera.Camera") == "pmvir/camera.py"  # a module's doctests
+
+
+@pytest.mark.parametrize("path", ["tests/geometryx/test_a.py", "tests/export_more/test_b.py"])
+def test_a_folder_whose_name_starts_like_a_shared_one_is_not_shared(root_conftest, path: str) -> None:
+    assert root_conftest.group_of(f"{path}::test_a") == path
 
 
 def test_every_shared_folder_holds_a_conftest_with_session_fixtures(root_conftest) -> None:
@@ -58,15 +46,46 @@ def test_every_shared_folder_holds_a_conftest_with_session_fixtures(root_conftes
         assert '@pytest.fixture(scope="session")' in text, folder
 
 
-def test_a_test_outside_the_repository_gets_no_group(root_conftest, tmp_path: Path) -> None:
-    item = _item("x")
-    item.path = tmp_path / "test_x.py"
-    root_conftest.pytest_collection_modifyitems(None, [item])
-    assert item.marks == []
+def test_other_dist_modes_keep_pytest_xdists_scheduler(root_conftest, pytestconfig: pytest.Config, monkeypatch) -> None:
+    """The conftest's scheduler is made for ``--dist loadgroup`` only (which it is: the next test)."""
+    for mode in ("load", "loadfile", "loadscope", "no"):
+        monkeypatch.setattr(pytestconfig.option, "dist", mode, raising=False)
+        assert root_conftest.pytest_xdist_make_scheduler(pytestconfig, None) is None
 
 
-@pytest.mark.parametrize("rel", ["tests/geometryx/test_a.py", "tests/export_more/test_b.py"])
-def test_a_folder_whose_name_starts_like_a_shared_one_is_not_shared(root_conftest, rel: str) -> None:
-    item = _item(rel)
-    root_conftest.pytest_collection_modifyitems(None, [item])
-    assert _group(item) == rel
+TEST_FILE = """
+import os, time
+def _note(n):
+    time.sleep(0.2)
+    with open(os.environ["GROUPS_LOG"], "a") as f:
+        f.write(f"{__file__} {n} {os.environ['PYTEST_XDIST_WORKER']}\\n")
+def test_1(): _note(1)
+def test_2(): _note(2)
+def test_3(): _note(3)
+"""
+
+
+def test_two_processes_run_each_group_whole(tmp_path: Path) -> None:
+    """pytest -n 2 --dist loadgroup with the root conftest.py on two files and a shared folder of two:
+    each file's tests, and the shared folder's, run in one process."""
+    pytest.importorskip("xdist")
+    shutil.copy(ROOT / "conftest.py", tmp_path / "conftest.py")
+    files = {"a": "tests/test_a.py", "b": "tests/test_b.py", "c": "tests/geometry/test_c.py",
+             "d": "tests/geometry/test_d.py"}
+    for rel in files.values():
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text(TEST_FILE)
+    log = tmp_path / "groups.log"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_XDIST")} | {"GROUPS_LOG": str(log)}
+    run = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "2", "--dist", "loadgroup", "tests"],
+        check=False, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
+    )
+    assert run.returncode == 0, run.stdout + run.stderr
+    workers: dict[str, set[str]] = {}
+    for line in log.read_text().splitlines():
+        path, _, worker = line.split()
+        workers.setdefault(Path(path).stem, set()).add(worker)
+    assert sorted(workers) == ["test_a", "test_b", "test_c", "test_d"]
+    assert all(len(w) == 1 for w in workers.values()), workers
+    assert workers["test_c"] == workers["test_d"], workers  # tests/geometry: one group
