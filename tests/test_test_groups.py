@@ -70,9 +70,7 @@ def test_two_processes_run_each_group_whole(tmp_path: Path) -> None:
     each file's tests, and the shared folder's, run in one process."""
     pytest.importorskip("xdist")
     shutil.copy(ROOT / "conftest.py", tmp_path / "conftest.py")
-    files = {"a": "tests/test_a.py", "b": "tests/test_b.py", "c": "tests/geometry/test_c.py",
-             "d": "tests/geometry/test_d.py"}
-    for rel in files.values():
+    for rel in ("tests/test_a.py", "tests/test_b.py", "tests/geometry/test_c.py", "tests/geometry/test_d.py"):
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / rel).write_text(TEST_FILE)
     log = tmp_path / "groups.log"
