@@ -199,13 +199,21 @@ def mask_margin_warning(fit: RimFit | None) -> str | None:
 
 def refinement_options(options: RefineOptions, median_dop: float | None, *, drawn_masks: bool = False) -> RefineOptions:
     """The refinement's options for a capture of this median DoP inside the masks: a specular-dominated
-    one is refined without the offset scan unless ``refine.offset_scan.specular`` is 'same'. On masks
-    the isolation drew (``drawn_masks``) the hull and rim fits do not run: they move the surface to a
-    mask's outline to the pixel, and a drawn mask misses or adds a pixel or two of it here and there
-    (the columns down to the support, too)."""
+    one is refined without the offset scan unless ``refine.offset_scan.specular`` is 'same'.
+
+    On masks the isolation drew (``drawn_masks``) the hull and rim fits do not run: they move the
+    surface to a mask's outline to the pixel, and a drawn mask misses or adds a pixel or two of it
+    here and there (the columns down to the support, too). The observations leave
+    ``views.drawn_mask_margin_px`` more pixels inside the outline unsampled, as a drawn mask reaches
+    about a pixel past the object's and the samples there mix the background into its colour.
+    """
     if drawn_masks:
         fits = {"hull_tolerance_px": None, "rim_fit_gain": 0.0}
-        options = options.model_copy(update={"surface": options.surface.model_copy(update=fits)})
+        margin = {"silhouette_margin_px": options.views.silhouette_margin_px + options.views.drawn_mask_margin_px}
+        options = options.model_copy(update={
+            "surface": options.surface.model_copy(update=fits),
+            "views": options.views.model_copy(update=margin),
+        })
     if is_specular(median_dop) and options.offset_scan.specular == "off" and options.offset_scan.mode != "off":
         return options.model_copy(update={"offset_scan": options.offset_scan.model_copy(update={"mode": "off"})})
     return options
@@ -377,6 +385,7 @@ def run(
                 sections["refine"] = {
                     **refine_report(refined),
                     "offset_scan": refine_options.offset_scan.mode,
+                    "silhouette_margin_px": refine_options.views.silhouette_margin_px,
                     "masks": "drawn" if drawn else "given" if any(m is not None for m in geometry.masks) else "none",
                 }
                 if (warning := mask_margin_warning(refined.rim_fit)) is not None:

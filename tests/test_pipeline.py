@@ -129,16 +129,23 @@ def test_views_sfm_left_out_are_named_in_a_warning() -> None:
     assert "019" not in many and "020" in many and "031" in many and "032" not in many and "8 more" in many
 
 
-def test_masks_the_isolation_drew_get_no_silhouette_fits() -> None:
-    """refinement_options with drawn_masks: the hull and rim fits are off (the rest as set, the
-    specular rule too); given masks keep them."""
+def test_masks_the_isolation_drew_get_no_silhouette_fits_and_a_wider_margin() -> None:
+    """refinement_options with drawn_masks: the hull and rim fits are off and the silhouette margin
+    grows by drawn_mask_margin_px (the rest as set, the specular rule too); given masks keep them."""
     default = RefineOptions()
-    assert default.surface.hull_tolerance_px is not None and default.surface.rim_fit_gain > 0
+    reach = default.views.drawn_mask_margin_px
+    assert default.surface.hull_tolerance_px is not None and default.surface.rim_fit_gain > 0 and reach > 0
     drawn = refinement_options(default, 0.05, drawn_masks=True)
     assert drawn.surface.hull_tolerance_px is None and drawn.surface.rim_fit_gain == 0.0
+    assert drawn.views.silhouette_margin_px == default.views.silhouette_margin_px + reach
     assert drawn.surface.fair_iterations == default.surface.fair_iterations and drawn.pol == default.pol
+    assert drawn.views.min_cos == default.views.min_cos
     assert refinement_options(default, SPECULAR_MEDIAN_DOP + 0.05, drawn_masks=True).offset_scan.mode == "off"
     assert refinement_options(default, 0.05, drawn_masks=False) is default
+    wide = RefineOptions.model_validate({"views": {"silhouette_margin_px": 5, "drawn_mask_margin_px": 3}})
+    assert refinement_options(wide, 0.05, drawn_masks=True).views.silhouette_margin_px == 8
+    none = RefineOptions.model_validate({"views": {"drawn_mask_margin_px": 0}})
+    assert refinement_options(none, 0.05, drawn_masks=True).views.silhouette_margin_px == default.views.silhouette_margin_px
 
 
 def test_a_drawn_mask_limits_the_observations_as_a_given_one(tmp_path: Path) -> None:

@@ -279,6 +279,12 @@ class ViewOptions(_Options):
         "saturated) are not sampled, 0..64.",
         json_schema_extra=advanced("px"),
     )
+    drawn_mask_margin_px: int = Field(
+        default=1, ge=0, le=16,
+        description="On masks the isolation drew, which reach past the object's outline: this many px more "
+        "than silhouette_margin_px inside them are not sampled, 0..16.",
+        json_schema_extra=advanced("px"),
+    )
     refresh_visibility: bool = Field(
         default=True,
         description="Recompute visibility from the refined surface between stages.",
