@@ -7,8 +7,8 @@ together; so they are left out of collection (pytest still loads them as conftes
 
 ``make test`` runs the suite on two processes (pytest-xdist, ``--dist loadgroup``). Each test
 file goes whole to one process, so a module's fixtures (a service stack, a synthesized capture)
-are made once; the folders whose session fixtures synthesize captures (:data:`_SHARED_FOLDERS`)
-go whole to one process, so those are made once too. The groups come from the test's node ID
+are made once; the files that share session fixtures synthesizing captures (:data:`_SHARED`)
+go together to one process, so those are made once too. The groups come from the test's node ID
 (:func:`group_of`) in a scheduler of this file's own: pytest-xdist's ``loadgroup`` reads
 ``xdist_group`` marks into the node IDs through an attribute pytest 9.2 no longer has, and then
 sends the tests one by one, a module's to either process.
@@ -22,16 +22,23 @@ import pytest
 
 collect_ignore_glob = ["tests/*conftest.py"]
 
-#: Test folders whose conftest.py synthesizes captures in session fixtures (seconds to minutes each), each
-#: run whole by one process.
-_SHARED_FOLDERS = ("tests/geometry", "tests/export")
+#: Groups of test files that share their folder's session fixtures synthesizing captures (seconds to
+#: minutes each), each group run whole by one process: its name and its files. The other files of
+#: those folders run apart, each whole.
+_SHARED: dict[str, tuple[str, ...]] = {
+    "tests/geometry (blob captures)": (
+        "tests/geometry/test_geometry_stage.py",
+        "tests/geometry/test_mvs.py",
+        "tests/geometry/test_sfm_poses.py",
+    ),
+}
 
 
 def group_of(nodeid: str) -> str:
-    """The group a test runs in, from its node ID (relative to the repository): its shared folder
-    (:data:`_SHARED_FOLDERS`), else its file."""
+    """The group a test runs in, from its node ID (relative to the repository): its shared group
+    (:data:`_SHARED`), else its file."""
     path = nodeid.split("::", 1)[0]
-    return next((f for f in _SHARED_FOLDERS if path.startswith(f + "/")), path)
+    return next((group for group, files in _SHARED.items() if path in files), path)
 
 
 @pytest.hookimpl(optionalhook=True)
