@@ -84,6 +84,12 @@ class IsolateOptions(_Options):
         "other views, and no depth stands in front of the plane, are background (a knot's loops).",
         json_schema_extra=advanced(),
     )
+    see_unlike_support: bool = Field(
+        default=True,
+        description="Pixels around the rough mask whose support-plane point 6 or more other views see, none "
+        "in the pixel's colours, are probable object (an underside in the table's hues that stereo misses).",
+        json_schema_extra=advanced(),
+    )
     cut_seen_through: bool = Field(
         default=True,
         description="Vertices of the initial surface that no view's stereo depth lies on and some views' "

@@ -668,10 +668,11 @@ def test_the_support_is_seen_through_a_loop_by_its_colours():
     assert not isolate_module.on_support(0, [None, *cams[1:]], blurred, plane, hole).any()
 
 
-def _cylinder_scene():
+def _cylinder_scene(textured: bool = False):
     """A plain grey cylinder (radius 0.3, height 0.5) standing on the textured table (z = 0), eight
     views from 30 deg above: per view which pixels show its lowest 20 cm (the foot) and the rest of
-    it, an 8-bit preview (the cylinder grey, the table :func:`_texture`) and the true depth map."""
+    it, an 8-bit preview (the cylinder grey, or with ``textured`` in the table's :func:`_texture` of
+    its points, the table :func:`_texture`) and the true depth map."""
     import open3d as o3d
 
     cylinder = o3d.geometry.TriangleMesh.create_cylinder(radius=0.3, height=0.5, resolution=60)
@@ -689,7 +690,7 @@ def _cylinder_scene():
         on_cylinder = hit["geometry_ids"].numpy() == ids
         feet.append(on_cylinder & (seen[..., 2] < 0.2))
         bodies.append(on_cylinder & (seen[..., 2] >= 0.2))
-        previews.append(np.where(on_cylinder[..., None], 120, _texture(seen)).astype(np.uint8))
+        previews.append(np.where(on_cylinder[..., None] & (not textured), 120, _texture(seen)).astype(np.uint8))
         z = np.where(np.isfinite(t), (np.where(np.isfinite(t), t, 0.0)[..., None] * dirs) @ cam.R[2], 0.0)
         z = z.astype(np.float32)
         depths.append(DepthMap(camera=cam, depth=z, score=np.ones(z.shape, np.float32)))
@@ -724,6 +725,44 @@ def test_a_plain_foot_is_not_taken_for_the_support_by_its_colours():
         hole = filled.astype(bool) & ~cv2.dilate(shown.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
         found = isolate_module.on_support(i, cams, blurred, plane, hole, object_px=shown)
         assert found[hole].mean() > 0.95, found[hole].mean()
+
+
+def test_an_object_standing_in_front_of_the_support_shows_unlike_it():
+    """A cylinder in the table's own palette, its foot bare (no point of the object there): the plane
+    point behind a foot pixel lies under the cylinder, and the other views show other parts of its
+    side there, none alike: most of the foot is found (a neighbouring view that shows the same patch of
+    the side there agrees, and the pixel is left to GrabCut). Beside the cylinder the other views see the table
+    pixel's plane point alike: none of the table is. The views that the object's known points hide a
+    plane point from do not count: with points on all its side above the foot, which hide the plane
+    under it from every view, nothing is found, nor with every view hidden. A plain foot does not show
+    unlike: every view shows its grey."""
+    cams, feet, bodies, previews, _ = _cylinder_scene(textured=True)
+    blurred = [cv2.GaussianBlur(p.astype(np.float32), (0, 0), isolate_module._PLANE_BLUR_PX) for p in previews]
+    plane = np.array([0.0, 0.0, 1.0, 0.0])
+    rng = np.random.default_rng(4)
+    side = rng.uniform(0, 2 * np.pi, 20_000)
+    upper = np.column_stack([0.3 * np.cos(side), 0.3 * np.sin(side), rng.uniform(0.2, 0.5, len(side))])
+    nearest = [isolate_module.body_depth(upper, cam, 0.01, p.shape) for cam, p in zip(cams, previews, strict=True)]
+    unhidden = [None] * len(cams)
+    found_foot, found_table, found_hidden = [], [], []
+    for i, (foot, body) in enumerate(zip(feet, bodies, strict=True)):
+        near = cv2.dilate((foot | body).astype(np.uint8), np.ones((21, 21), np.uint8)).astype(bool)
+        ring = near & ~cv2.dilate((foot | body).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+        inner = foot & ~cv2.dilate((~(foot | body)).astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+        where = foot | ring
+        unlike = isolate_module.unlike_support(i, cams, blurred, plane, where, unhidden, 0.02)
+        assert not (unlike & ~where).any()
+        found_foot.append(unlike[inner].mean())
+        found_table.append(unlike[ring].mean())
+        found_hidden.append(isolate_module.unlike_support(i, cams, blurred, plane, where, nearest, 0.02).mean())
+        hidden = [np.zeros(p.shape[:2], np.float32) for p in previews]
+        assert not isolate_module.unlike_support(i, cams, blurred, plane, where, hidden, 0.02).any()
+    assert np.mean(found_foot) > 0.5 and np.mean(found_table) < 0.02, (found_foot, found_table)
+    assert max(found_hidden) < 0.01, found_hidden
+    cams, feet, bodies, previews, _ = _cylinder_scene()
+    blurred = [cv2.GaussianBlur(p.astype(np.float32), (0, 0), isolate_module._PLANE_BLUR_PX) for p in previews]
+    plain = isolate_module.unlike_support(0, cams, blurred, plane, feet[0], unhidden, 0.02)
+    assert plain[feet[0]].mean() < 0.05
 
 
 def test_a_foot_whose_depth_stands_in_front_of_the_support_is_not_the_support():
@@ -803,6 +842,47 @@ def test_the_support_is_not_looked_for_by_its_colours_when_asked(monkeypatch):
         masks[see] = np.mean([m.sum() for m in iso.masks])
         assert np.mean([(t & ~m).sum() / t.sum() for m, t in zip(iso.masks, on_loop, strict=True)]) < 0.05
     assert masks[False] > 1.1 * masks[True], masks
+
+
+def test_the_pixels_unlike_the_support_join_the_rough_mask_when_asked(monkeypatch):
+    """``geometry.isolate.see_unlike_support``: each registered view asks :func:`unlike_support` about the
+    pixels of GrabCut's band outside the rough mask and its certain foreground, and what it finds
+    reaches GrabCut as probable foreground; switched off, it is not asked and the masks are those of
+    a test that finds nothing."""
+    loop, cams, _, _, previews = _loop_scene()
+    rng = np.random.default_rng(2)
+    table = np.column_stack([rng.uniform(-1, 1, (30_000, 2)), rng.normal(0, 0.002, 30_000)])
+    points = np.concatenate([table, loop])
+    asked, roughs = [], []
+    real_refine = isolate_module.refine_mask
+
+    def refine(image, rough, **kwargs):
+        roughs.append(rough.copy())
+        return real_refine(image, rough, **kwargs)
+
+    def some_of_the_band(i, c, b, p, where, nearest, margin):
+        asked.append(where.copy())
+        found = np.zeros_like(where)
+        rows, cols = np.nonzero(where)
+        found[rows[::7], cols[::7]] = True  # every seventh pixel asked
+        return found
+
+    monkeypatch.setattr(isolate_module, "refine_mask", refine)
+    monkeypatch.setattr(isolate_module, "unlike_support", some_of_the_band)
+    iso = isolate_object(points, cams, previews)
+    assert len(asked) == len(cams) and all(w.sum() > 100 for w in asked)
+    for where, rough in zip(asked, roughs, strict=True):
+        rows, cols = np.nonzero(where)
+        assert rough[rows[::7], cols[::7]].all()
+    with_cue = [m.copy() for m in iso.masks]
+    asked.clear()
+    roughs.clear()
+    off = isolate_object(points, cams, previews, settings=IsolateOptions(see_unlike_support=False))
+    assert not asked
+    monkeypatch.setattr(isolate_module, "unlike_support", lambda i, c, b, p, where, n, m: np.zeros_like(where))
+    none = isolate_object(points, cams, previews)
+    assert all((a == b).all() for a, b in zip(off.masks, none.masks, strict=True))
+    assert sum(int(m.sum()) for m in with_cue) > sum(int(m.sum()) for m in none.masks)
 
 
 def test_a_part_in_the_table_s_colours_stays_where_the_depths_show_it():
