@@ -1038,9 +1038,7 @@ def unlike_support(
     patches = points.reshape(-1, 9, 3)
     seen = np.zeros(len(rows), np.int64)  # the views that see the patch whole and unhidden
     alike = np.zeros(len(rows), bool)
-    for j, other in enumerate(cameras):
-        if j == index or other is None:
-            continue
+    for j, other in _nearest_first(cameras, index):  # the table's pixels find a view alike soonest
         todo = np.flatnonzero(ahead & ~alike)
         if not len(todo):
             break
@@ -1056,6 +1054,15 @@ def unlike_support(
     hit = (seen >= _UNLIKE_MIN_VIEWS) & ~alike
     out[rows[hit], cols[hit]] = True
     return out
+
+
+def _nearest_first(cameras: Sequence[Camera | None], index: int) -> list[tuple[int, Camera]]:
+    """The registered views other than ``index``, with their positions, nearest to its centre first."""
+    cam = cameras[index]
+    others = [(j, other) for j, other in enumerate(cameras) if j != index and other is not None]
+    if cam is None:
+        return others
+    return sorted(others, key=lambda item: float(np.linalg.norm(item[1].center - cam.center)))
 
 
 def _plane_patches(
