@@ -1261,11 +1261,9 @@ def refine_mask(
     if iterations <= 0 or not rough.any() or rough.all():
         return rough
     k = max(1, round(band_px))
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
-    r8 = rough.astype(np.uint8)
     if certain is None:
-        certain = _certain(r8 if core is None else core.astype(np.uint8), k)
-    outer = cv2.dilate(r8 if reach is None else (rough | reach).astype(np.uint8), disc).astype(bool)
+        certain = _certain(rough.astype(np.uint8) if core is None else core.astype(np.uint8), k)
+    outer = grabcut_band(rough, reach, band_px)
     labels = np.full(rough.shape, cv2.GC_BGD, np.uint8)
     labels[outer] = cv2.GC_PR_BGD
     labels[rough] = cv2.GC_PR_FGD
@@ -1292,6 +1290,15 @@ def refine_mask(
     out = np.zeros_like(rough)
     out[r0:r1, c0:c1] = (crop == cv2.GC_FGD) | (crop == cv2.GC_PR_FGD)
     return out & outer
+
+
+def grabcut_band(rough: np.ndarray, reach: np.ndarray | None, band_px: float) -> np.ndarray:
+    """(H, W) bool: where :func:`refine_mask`'s GrabCut decides: ``rough`` and ``reach`` ((H, W) bool
+    or None) grown by a disc of ``band_px`` (at least 1 px)."""
+    k = max(1, round(band_px))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
+    grown = cv2.dilate((rough if reach is None else rough | reach).astype(np.uint8), disc)
+    return np.asarray(grown, bool)
 
 
 def _certain(core: np.ndarray, k: int) -> np.ndarray:
@@ -1506,16 +1513,13 @@ def _unlike_in_band(
     nearest: Sequence[np.ndarray | None], margin: float, *, rough: np.ndarray, reach: np.ndarray | None,
     band: float, certain: np.ndarray, past: np.ndarray | None,
 ) -> np.ndarray:
-    """(H, W) bool: :func:`unlike_support` asked about GrabCut's band outside ``rough`` (``band``
-    pixels around ``rough`` and ``reach``, as :func:`refine_mask` draws it), but not its ``certain``
+    """(H, W) bool: :func:`unlike_support` asked about GrabCut's band outside ``rough``
+    (:func:`grabcut_band` of ``rough``, ``reach`` and ``band`` px), but not its ``certain``
     foreground nor the background seen ``past`` the object; nothing without a ``plane`` or with no
     ``nearest`` depths (``see_unlike_support`` off)."""
     if plane is None or not nearest:
         return np.zeros(rough.shape, bool)
-    k = max(1, round(band))
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
-    outer = cv2.dilate((rough if reach is None else rough | reach).astype(np.uint8), disc).astype(bool)
-    ask = outer & ~rough & ~certain & (True if past is None else ~past)
+    ask = grabcut_band(rough, reach, band) & ~rough & ~certain & (True if past is None else ~past)
     return unlike_support(index, cameras, blurred, plane, ask, nearest, margin)
 
 
