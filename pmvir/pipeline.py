@@ -201,14 +201,18 @@ def refinement_options(options: RefineOptions, median_dop: float | None, *, draw
     """The refinement's options for a capture of this median DoP inside the masks: a specular-dominated
     one is refined without the offset scan unless ``refine.offset_scan.specular`` is 'same'.
 
-    On masks the isolation drew (``drawn_masks``) the hull and rim fits do not run: they move the
-    surface to a mask's outline to the pixel, and a drawn mask misses or adds a pixel or two of it
-    here and there (the columns down to the support, too). The observations leave
+    On masks the isolation drew (``drawn_masks``) the rim fit does not run and the hull fit takes
+    ``surface.drawn_hull_tolerance_px`` and at least two views (``surface.hull_views``): the fits
+    move the surface to a mask's outline to the pixel, and a drawn mask misses or adds a pixel or two
+    of it here and there (the columns down to the support, too), or cuts into the object where its
+    colours match the support's; what two views' drawn masks rule out by more than a pixel is not
+    the object's. The observations leave
     ``views.drawn_mask_margin_px`` more pixels inside the outline unsampled, as a drawn mask reaches
     about a pixel past the object's and the samples there mix the background into its colour.
     """
     if drawn_masks:
-        fits = {"hull_tolerance_px": None, "rim_fit_gain": 0.0}
+        fits = {"hull_tolerance_px": options.surface.drawn_hull_tolerance_px, "rim_fit_gain": 0.0,
+                "hull_views": max(2, options.surface.hull_views)}
         margin = {"silhouette_margin_px": options.views.silhouette_margin_px + options.views.drawn_mask_margin_px}
         options = options.model_copy(update={
             "surface": options.surface.model_copy(update=fits),

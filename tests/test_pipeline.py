@@ -129,14 +129,20 @@ def test_views_sfm_left_out_are_named_in_a_warning() -> None:
     assert "019" not in many and "020" in many and "031" in many and "032" not in many and "8 more" in many
 
 
-def test_masks_the_isolation_drew_get_no_silhouette_fits_and_a_wider_margin() -> None:
-    """refinement_options with drawn_masks: the hull and rim fits are off and the silhouette margin
-    grows by drawn_mask_margin_px (the rest as set, the specular rule too); given masks keep them."""
+def test_masks_the_isolation_drew_get_a_looser_hull_fit_no_rim_fit_and_a_wider_margin() -> None:
+    """refinement_options with drawn_masks: the hull fit takes drawn_hull_tolerance_px and two views at
+    least, the rim fit is off and the silhouette margin grows by drawn_mask_margin_px (the rest as set,
+    the specular rule too); given masks keep them."""
     default = RefineOptions()
     reach = default.views.drawn_mask_margin_px
     assert default.surface.hull_tolerance_px is not None and default.surface.rim_fit_gain > 0 and reach > 0
+    assert default.surface.hull_views == 1
     drawn = refinement_options(default, 0.05, drawn_masks=True)
-    assert drawn.surface.hull_tolerance_px is None and drawn.surface.rim_fit_gain == 0.0
+    assert drawn.surface.hull_tolerance_px == default.surface.drawn_hull_tolerance_px is not None
+    assert drawn.surface.hull_views == 2 and drawn.surface.rim_fit_gain == 0.0
+    three = RefineOptions.model_validate({"surface": {"hull_views": 3, "drawn_hull_tolerance_px": None}})
+    off = refinement_options(three, 0.05, drawn_masks=True).surface
+    assert off.hull_tolerance_px is None and off.hull_views == 3
     assert drawn.views.silhouette_margin_px == default.views.silhouette_margin_px + reach
     assert drawn.surface.fair_iterations == default.surface.fair_iterations and drawn.pol == default.pol
     assert drawn.views.min_cos == default.views.min_cos

@@ -378,6 +378,18 @@ class SurfaceMoveOptions(_Options):
         "outside a view's mask move inward (at most 3 px; needs masks). None: off.",
         json_schema_extra=advanced("px"),
     )
+    hull_views: int = Field(
+        default=1, ge=1, le=8,
+        description="The hull fit moves a vertex inward where at least this many views see it outside their "
+        "masks by more than hull_tolerance_px, 1..8 (masks the isolation drew: at least 2).",
+        json_schema_extra=advanced(),
+    )
+    drawn_hull_tolerance_px: float | None = Field(
+        default=1.0, ge=0.0,
+        description="hull_tolerance_px on masks the isolation drew (px), which reach about a pixel past the "
+        "outline. None: no hull fit on drawn masks.",
+        json_schema_extra=advanced("px"),
+    )
     rim_fit_gain: float = Field(
         default=0.5, ge=0.0, le=1.0,
         description="After the last stage, vertices near a rim lying inside the mask move outward by this "

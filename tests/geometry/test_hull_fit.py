@@ -82,11 +82,47 @@ def test_views_without_masks_do_not_count(sphere_views: tuple) -> None:
     assert on_truth.moved == 0 and np.array_equal(on_truth.vertices, v)
 
 
+def test_the_kth_least_distance_is_the_kth_of_the_views_sorted(sphere_views: tuple) -> None:
+    cameras, masks = sphere_views
+    v, _ = _sphere(2)
+    x = 1.04 * v
+    dists = [mask_distance(m) for m in masks]
+    every = np.sort([hull_depth(x, [c], [d])[0] for c, d in zip(cameras, dists, strict=True)], axis=0)
+    for rank in (1, 2, 3):
+        least, gsd = hull_depth(x, cameras, dists, rank=rank)
+        assert np.array_equal(least, every[rank - 1]) and np.all(gsd > 0)
+    with pytest.raises(ConfigError, match="rank"):
+        hull_depth(x, cameras, dists, rank=0)
+
+
+def test_one_mask_cutting_into_the_object_moves_nothing_when_two_views_must_agree(sphere_views: tuple) -> None:
+    """View 0's mask loses a 6 px strip of the sphere (a segmentation's cut): with one view the true
+    sphere's vertices there move inward, with two none does; a bulge past every silhouette moves in
+    either way."""
+    cameras, masks = sphere_views
+    v, f = _sphere()
+    cut = [m.copy() for m in masks]
+    cols = np.flatnonzero(cut[0].any(axis=0))
+    cut[0][:, cols.min():cols.min() + 6] = False
+    one = fit_inside_hull(v, f, cameras, cut, tolerance_px=0.5)
+    two = fit_inside_hull(v, f, cameras, cut, tolerance_px=0.5, views=2)
+    assert one.moved > 20, one
+    assert two.moved == 0 and np.array_equal(two.vertices, v), two
+    cap = v[:, 2] > 0.3
+    bulged = v * np.where(cap, 1.05, 1.0)[:, None]
+    fit = fit_inside_hull(bulged, f, cameras, cut, tolerance_px=0.5, views=2)
+    r0, r1 = np.linalg.norm(bulged, axis=1), np.linalg.norm(fit.vertices, axis=1)
+    assert np.abs(r1[cap] - 1.0).mean() < 0.5 * np.abs(r0[cap] - 1.0).mean(), np.abs(r1[cap] - 1.0).mean()
+    assert np.all(r1 <= r0 + 1e-12)
+
+
 def test_bad_arguments_are_config_errors(sphere_views: tuple) -> None:
     cameras, masks = sphere_views
     v, f = _sphere(2)
     with pytest.raises(ConfigError, match="must be >= 0"):
         fit_inside_hull(v, f, cameras, masks, tolerance_px=-1.0)
+    with pytest.raises(ConfigError, match="views must be >= 1"):
+        fit_inside_hull(v, f, cameras, masks, views=0)
     with pytest.raises(ConfigError, match="masks"):
         fit_inside_hull(v, f, cameras, masks[:3])
 

@@ -196,6 +196,27 @@ def test_ablations_run_and_lower_the_cost(plastic) -> None:
         assert len(res.stages) == 1 and e[-1]["total"] < 0.5 * e[0]["total"]
 
 
+def test_the_hull_fit_moves_only_what_hull_views_views_rule_out(plastic) -> None:
+    """One view's mask cut 6 px into the object (a segmentation's strip): with ``surface.hull_views`` 1
+    the hull fit moves the vertices the cut rules out (466 by 1.1 px when measured), with 2 (as on
+    drawn masks) only those the surface's own bumps put past two views' outlines (48 by 0.17 px)."""
+    scene, obs, _, vis = plastic
+    masks = [np.asarray(fr["mask"], bool).copy() for fr in scene.frames]
+    cols = np.flatnonzero(masks[0].any(axis=0))
+    masks[0][:, cols.min():cols.min() + 6] = False
+    fits = {}
+    for views in (1, 2):
+        opts = RefineOptions.model_validate(merge_options(NO_MOSAIC, {
+            "stages": {"tau_pol": [60.0], "tau_gsm": [0.1], "tau_psm": [2.0], "gsm_exponent": [2.2]},
+            "solver": {"max_iterations": 2}, "lighting": {"prefit_iterations": 0},
+            "offset_scan": {"mode": "off"}, "surface": {"hull_views": views, "rim_fit_gain": 0.0},
+        }))
+        res = refine_surface(scene.vertices, scene.faces, scene.cameras, obs, vis, options=opts, masks=masks)
+        fits[views] = res.hull_fits
+    one, two = fits[1][-1], fits[2][-1]
+    assert one.moved > 5 * two.moved and one.mean_move_px > 4 * two.mean_move_px, (one.to_dict(), two.to_dict())
+
+
 def test_cancel_raises_at_an_iteration_boundary(plastic) -> None:
     scene, obs, _, vis = plastic
     polls = []

@@ -42,6 +42,7 @@ class HullFit:
         moved: vertices that moved.
         mean_move_px: their mean move in pixels of the ground sampling distance (0 when none moved).
         tolerance_px: the tolerance used.
+        views: how many views had to see a vertex outside their masks for it to move.
         seconds: wall time of the fit (set by the caller that times it; 0 otherwise).
     """
 
@@ -51,6 +52,7 @@ class HullFit:
     moved: int
     mean_move_px: float
     tolerance_px: float
+    views: int = 1
     seconds: float = 0.0
 
     def to_dict(self) -> dict[str, float | int]:
@@ -60,6 +62,7 @@ class HullFit:
             "moved": self.moved,
             "mean_move_px": round(self.mean_move_px, 4),
             "tolerance_px": self.tolerance_px,
+            "views": self.views,
             "seconds": round(self.seconds, 3),
         }
 
@@ -85,23 +88,32 @@ def mask_distance(mask: np.ndarray) -> np.ndarray:
 
 
 def hull_depth(
-    vertices: np.ndarray, cameras: Sequence[Camera], distances: Sequence[np.ndarray]
+    vertices: np.ndarray, cameras: Sequence[Camera], distances: Sequence[np.ndarray], *, rank: int = 1
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per vertex the least mask distance over the views (pixels; negative: outside that mask) and
-    the ground sampling distance (world units per pixel) in the view that gives it.
+    """Per vertex the least mask distance over the views (pixels; negative: outside that mask), or with
+    ``rank`` k the k-th least, and the ground sampling distance (world units per pixel) in the view
+    that gives it.
 
-    Views the vertex lies behind do not count; a vertex behind every view gets +inf.
+    Views the vertex lies behind do not count; a vertex behind every view (or all but fewer than
+    ``rank``) gets +inf.
+
+    Raises:
+        ConfigError: ``rank`` below 1.
     """
+    if rank < 1:
+        raise ConfigError(f"rank must be >= 1, got {rank}")
     x = np.asarray(vertices, dtype=np.float64)
-    least = np.full(len(x), np.inf)
-    gsd = np.zeros(len(x))
+    least = np.full((rank, len(x)), np.inf)  # the ``rank`` least distances so far, ascending
+    gsd = np.zeros((rank, len(x)))
     for cam, dist in zip(cameras, distances, strict=True):
         uv, z = cam.project(x)
         d = np.where(z > 0, sample_bilinear(dist, uv[:, 0], uv[:, 1]), np.inf)
-        lower = d < least
-        least = np.where(lower, d, least)
-        gsd = np.where(lower, np.maximum(z, 0.0) / cam.K[0, 0], gsd)
-    return least, gsd
+        g = np.maximum(z, 0.0) / cam.K[0, 0]
+        for k in range(rank):  # inserted in order: the larger of the two goes on down
+            lower = d < least[k]
+            least[k], d = np.where(lower, d, least[k]), np.where(lower, least[k], d)
+            gsd[k], g = np.where(lower, g, gsd[k]), np.where(lower, gsd[k], g)
+    return least[rank - 1], gsd[rank - 1]
 
 
 def fit_inside_hull(
@@ -113,6 +125,7 @@ def fit_inside_hull(
     tolerance_px: float = 0.5,
     max_move_px: float = 3.0,
     iterations: int = 20,
+    views: int = 1,
 ) -> HullFit:
     """Move the vertices that project more than ``tolerance_px`` outside some mask inward along their
     normals (module docstring).
@@ -126,15 +139,19 @@ def fit_inside_hull(
         max_move_px: the most a vertex moves, in pixels of its ground sampling distance.
         iterations: steps; each moves a vertex by half its remaining violation (at most 1 px), along
             the current normals.
+        views: how many views must see a vertex outside their masks for it to move: its violation is
+            the ``views``-th largest, so above 1 a mask that cuts into the object moves nothing.
 
     Returns:
         :class:`HullFit`.
 
     Raises:
-        ConfigError: negative tolerance or move, or mismatched inputs.
+        ConfigError: negative tolerance or move, views below 1, or mismatched inputs.
     """
     if tolerance_px < 0.0 or max_move_px < 0.0:
         raise ConfigError(f"tolerance_px and max_move_px must be >= 0, got {tolerance_px} and {max_move_px}")
+    if views < 1:
+        raise ConfigError(f"views must be >= 1, got {views}")
     if len(cameras) != len(masks):
         raise ConfigError(f"{len(cameras)} cameras but {len(masks)} masks")
     v0 = np.asarray(vertices, dtype=np.float64)
@@ -147,10 +164,10 @@ def fit_inside_hull(
         if m is not None and np.any(m) and not np.all(m)
     ]
     if not pairs or len(v0) == 0:
-        return HullFit(v0.copy(), 0, 0, 0, 0.0, tolerance_px)
+        return HullFit(v0.copy(), 0, 0, 0, 0.0, tolerance_px, views)
     cams = [c for c, _ in pairs]
     dists = [d for _, d in pairs]
-    least, _ = hull_depth(v0, cams, dists)
+    least, _ = hull_depth(v0, cams, dists, rank=views)
     # only these can move (a vertex's violation depends on its own position alone)
     idx = np.flatnonzero(least < -tolerance_px)
     # their normals need only the faces around them (the same sums, in the same order)
@@ -160,7 +177,7 @@ def fit_inside_hull(
     x = v0.copy()
     moved_px = np.zeros(len(idx))
     for _ in range(iterations):
-        least_i, gsd = hull_depth(x[idx], cams, dists)
+        least_i, gsd = hull_depth(x[idx], cams, dists, rank=views)
         out = (least_i < -tolerance_px) & (moved_px < max_move_px) & (gsd > 0)
         if not out.any():
             break
@@ -171,7 +188,7 @@ def fit_inside_hull(
         normals = vertex_normals(x, around).astype(np.float64)[idx[out]]
         x[idx[out]] -= (step_px * gsd[out])[:, None] * normals
         moved_px[out] += step_px
-    least_i, _ = hull_depth(x[idx], cams, dists)
+    least_i, _ = hull_depth(x[idx], cams, dists, rank=views)
     moved = moved_px > 0
     return HullFit(
         vertices=x,
@@ -180,6 +197,7 @@ def fit_inside_hull(
         moved=int(moved.sum()),
         mean_move_px=float(moved_px[moved].mean()) if moved.any() else 0.0,
         tolerance_px=tolerance_px,
+        views=views,
     )
 
 
