@@ -14,7 +14,10 @@ small steps, until it projects at most ``tolerance_px`` outside every mask or
 has moved ``max_move_px`` (in pixels of the ground sampling distance at the
 vertex). A vertex inside every mask does not move, so the fit never pushes a
 surface outward. The masks' boundaries are taken halfway between the last
-object pixel and the first background pixel (:func:`mask_distance`).
+object pixel and the first background pixel (:func:`mask_distance`). Masks that
+cut into the object here and there (drawn by a segmentation) ask ``views`` of
+at least 2: a vertex then moves only as far as the second view ruling it out
+says, so one mask's cut moves nothing.
 """
 
 from __future__ import annotations
