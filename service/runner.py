@@ -129,6 +129,8 @@ class _Run:
                 self._stop_cached = True
             if message:
                 self.store.log(self.job.id, f"{stage}: {message}", max_lines=self.settings.max_log_lines)
+        except SoftTimeLimitExceeded:  # the time limit's signal landed in the Redis call: the job ends
+            raise
         except Exception as exc:  # noqa: BLE001 - progress is best effort; the job goes on
             log.warning("job %s: progress not recorded: %s", self.job.id, exc)
 
@@ -141,6 +143,8 @@ class _Run:
             self._last_check = now
             try:
                 self._stop_cached = self.store.should_stop(self.job.id, self.run_id)
+            except SoftTimeLimitExceeded:  # as in progress(): not a Redis failure to ride out
+                raise
             except Exception as exc:  # noqa: BLE001 - keep the last known flag
                 log.warning("job %s: cancel flag not readable: %s", self.job.id, exc)
         return self._stop_cached

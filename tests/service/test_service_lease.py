@@ -11,6 +11,7 @@ import uuid
 from pathlib import Path
 
 import pytest
+from celery.exceptions import SoftTimeLimitExceeded
 
 from service.runner import _Run
 from service.settings import Settings
@@ -96,3 +97,28 @@ def test_the_keeper_stops_with_its_run(store: JobStore, tmp_path: Path) -> None:
     assert keeper.wait(timeout=30) == 0
     assert not st.r.exists(st.key(job_id, "lease"))
     lease_keeper.stop(keeper)
+
+
+class _LimitLandsInRedis(JobStore):
+    """A job store whose progress and cancel reads end as Celery's soft time limit does when its signal
+    lands during the Redis call (the calls the pipeline makes most often)."""
+
+    def progress(self, *args: object, **kwargs: object) -> bool:
+        raise SoftTimeLimitExceeded()
+
+    def should_stop(self, *args: object, **kwargs: object) -> bool:
+        raise SoftTimeLimitExceeded()
+
+
+def test_the_soft_time_limit_is_not_taken_for_a_redis_failure(store: JobStore, tmp_path: Path) -> None:
+    """The progress callback and the cancel check ride out Redis errors, but not the time limit: a
+    job whose limit fell in one of them went on and succeeded (test_service_faults, now and then)."""
+    st = _LimitLandsInRedis(store.r, prefix=f"limit-{uuid.uuid4().hex[:8]}")
+    job_id = uuid.uuid4().hex
+    st.create(job_id, "o", options={}, label=None, max_open=10)
+    run = _Run(st, st.get(job_id), "run", Settings(storage=tmp_path))
+    with pytest.raises(SoftTimeLimitExceeded):
+        run.progress("decode", 0.5)
+    with pytest.raises(SoftTimeLimitExceeded):
+        run.should_cancel()
+
