@@ -375,7 +375,7 @@ class SurfaceMoveOptions(_Options):
     hull_tolerance_px: float | None = Field(
         default=0.5, ge=0.0,
         description="After every offset scan and the last stage, vertices projecting more than this (px) "
-        "outside a view's mask move inward (at most 3 px; needs masks). None: off.",
+        "outside hull_views views' masks move inward (at most 3 px; needs masks). None: off.",
         json_schema_extra=advanced("px"),
     )
     hull_views: int = Field(
@@ -386,8 +386,8 @@ class SurfaceMoveOptions(_Options):
     )
     drawn_hull_tolerance_px: float | None = Field(
         default=1.0, ge=0.0,
-        description="hull_tolerance_px on masks the isolation drew (px), which reach about a pixel past the "
-        "outline. None: no hull fit on drawn masks.",
+        description="hull_tolerance_px (px, >= 0) on masks the isolation drew, which reach about a pixel "
+        "past the outline. None: no hull fit on drawn masks.",
         json_schema_extra=advanced("px"),
     )
     rim_fit_gain: float = Field(

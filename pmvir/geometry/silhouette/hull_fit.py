@@ -97,8 +97,8 @@ def hull_depth(
     ``rank`` k the k-th least, and the ground sampling distance (world units per pixel) in the view
     that gives it.
 
-    Views the vertex lies behind do not count; a vertex behind every view (or all but fewer than
-    ``rank``) gets +inf.
+    Views the vertex lies behind do not count; a vertex in front of fewer than ``rank`` views gets
+    +inf.
 
     Raises:
         ConfigError: ``rank`` below 1.
@@ -130,8 +130,8 @@ def fit_inside_hull(
     iterations: int = 20,
     views: int = 1,
 ) -> HullFit:
-    """Move the vertices that project more than ``tolerance_px`` outside some mask inward along their
-    normals (module docstring).
+    """Move the vertices that project more than ``tolerance_px`` outside some mask (``views`` masks)
+    inward along their normals (module docstring).
 
     Args:
         vertices, faces: the mesh (faces counter-clockwise seen from outside).
