@@ -17,6 +17,7 @@ from pmvir.errors import CanceledError, ConfigError, ShapeError
 from pmvir.geometry.silhouette.hull_fit import RimFit
 from pmvir.io.frames import write_frame
 from pmvir.pipeline import (
+    DRAWN_HULL_MIN_GAIN,
     SPECULAR_MEDIAN_DOP,
     decode_views,
     mask_margin_warning,
@@ -131,7 +132,8 @@ def test_views_sfm_left_out_are_named_in_a_warning() -> None:
 
 def test_masks_the_isolation_drew_get_a_looser_hull_fit_no_rim_fit_and_a_wider_margin() -> None:
     """refinement_options with drawn_masks: the hull fit takes drawn_hull_tolerance_px and two views at
-    least, the rim fit is off and the silhouette margin grows by drawn_mask_margin_px (the rest as set,
+    least and stops where a step gains less than DRAWN_HULL_MIN_GAIN (unless hull_min_gain is set),
+    the rim fit is off and the silhouette margin grows by drawn_mask_margin_px (the rest as set,
     the specular rule too); given masks keep them."""
     default = RefineOptions()
     reach = default.views.drawn_mask_margin_px
@@ -140,6 +142,9 @@ def test_masks_the_isolation_drew_get_a_looser_hull_fit_no_rim_fit_and_a_wider_m
     drawn = refinement_options(default, 0.05, drawn_masks=True)
     assert drawn.surface.hull_tolerance_px == default.surface.drawn_hull_tolerance_px is not None
     assert drawn.surface.hull_views == 2 and drawn.surface.rim_fit_gain == 0.0
+    assert default.surface.hull_min_gain is None and drawn.surface.hull_min_gain == DRAWN_HULL_MIN_GAIN > 0
+    kept = RefineOptions.model_validate({"surface": {"hull_min_gain": 0.0}})
+    assert refinement_options(kept, 0.05, drawn_masks=True).surface.hull_min_gain == 0.0
     three = RefineOptions.model_validate({"surface": {"hull_views": 3, "drawn_hull_tolerance_px": None}})
     off = refinement_options(three, 0.05, drawn_masks=True).surface
     assert off.hull_tolerance_px is None and off.hull_views == 3

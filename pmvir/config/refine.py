@@ -384,6 +384,12 @@ class SurfaceMoveOptions(_Options):
         "masks by more than hull_tolerance_px, 1..8 (masks the isolation drew: at least 2).",
         json_schema_extra=advanced(),
     )
+    hull_min_gain: float | None = Field(
+        default=None, ge=0.0, le=1.0,
+        description="A hull-fit step stays only where it brings the vertex this share of its length (px) "
+        "closer to the masks, 0..1 (0: every step). None: 0.2 on drawn masks, 0 on given ones.",
+        json_schema_extra=advanced(),
+    )
     drawn_hull_tolerance_px: float | None = Field(
         default=1.0, ge=0.0,
         description="hull_tolerance_px (px, >= 0) on masks the isolation drew, which reach about a pixel "

@@ -60,7 +60,7 @@ def hold_inside_hull(
     t0 = time.perf_counter()
     v = state.vertices.detach().cpu().numpy().astype(np.float64)
     fit = fit_inside_hull(v, setup.faces_np, setup.cameras, masks, tolerance_px=tolerance,
-                          views=setup.opts.surface.hull_views)
+                          views=setup.opts.surface.hull_views, min_gain=setup.opts.surface.hull_min_gain or 0.0)
     fit = replace(fit, seconds=time.perf_counter() - t0)
     fits.append(fit)
     if fit.moved == 0:

@@ -116,6 +116,40 @@ def test_one_mask_cutting_into_the_object_moves_nothing_when_two_views_must_agre
     assert np.all(r1 <= r0 + 1e-12)
 
 
+def _flap(v: np.ndarray, f: np.ndarray, x: float, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh (``v``, ``f``) with a square flap of 5 x 5 vertices added in the x-z plane, centred at
+    (``x``, 0, 0) and ``size`` wide (its normal along y), and the (V,) bool of the flap's vertices."""
+    s, t = np.meshgrid(np.linspace(-0.5, 0.5, 5) * size, np.linspace(-0.5, 0.5, 5) * size)
+    flap = np.stack([x + s.ravel(), np.zeros(25), t.ravel()], axis=1)
+    grid = np.arange(25).reshape(5, 5)
+    quads = np.stack([grid[:-1, :-1], grid[:-1, 1:], grid[1:, 1:], grid[1:, :-1]], -1).reshape(-1, 4)
+    faces = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]) + len(v)
+    on = np.r_[np.zeros(len(v), bool), np.ones(25, bool)]
+    return np.vstack([v, flap]), np.vstack([f, faces]), on
+
+
+def test_a_step_that_gains_nothing_in_the_image_is_taken_back(sphere_views: tuple) -> None:
+    """A flap beside the sphere whose normal runs along the rays of the views that rule it out (those
+    looking along y): a step along the normal brings it no closer to their masks. With every step
+    kept it is carried 3 px away along y; with ``min_gain`` it stays where it is and counts as
+    stopped, while the bulged cap still moves in as far as without."""
+    cameras, masks = sphere_views
+    v, f = _sphere()
+    cap = v[:, 2] > 0.3
+    bulged, faces, on = _flap(v * np.where(cap, 1.05, 1.0)[:, None], f, 1.12, 0.08)
+    least, _ = hull_depth(bulged[on], cameras, [mask_distance(m) for m in masks], rank=2)
+    assert np.all(least < -2.0), least  # the flap lies outside two views' masks by pixels
+    kept = fit_inside_hull(bulged, faces, cameras, masks, tolerance_px=0.5, views=2)
+    gated = fit_inside_hull(bulged, faces, cameras, masks, tolerance_px=0.5, views=2, min_gain=0.2)
+    carried = np.abs(kept.vertices[on, 1] - bulged[on, 1])
+    assert carried.min() > 2.0 * _gsd(cameras), carried  # along y, not toward the sphere
+    assert np.abs(gated.vertices[on] - bulged[on]).max() < 1e-12
+    assert gated.stopped >= on.sum() and kept.stopped == 0, (gated, kept)
+    r_kept, r_gated = (np.linalg.norm(fit.vertices[~on], axis=1) for fit in (kept, gated))
+    assert np.abs(r_gated[cap] - 1.0).mean() < 1.1 * np.abs(r_kept[cap] - 1.0).mean() + 1e-4
+    assert np.abs(r_gated[cap] - 1.0).mean() < 0.5 * 0.05
+
+
 def test_bad_arguments_are_config_errors(sphere_views: tuple) -> None:
     cameras, masks = sphere_views
     v, f = _sphere(2)
@@ -123,6 +157,8 @@ def test_bad_arguments_are_config_errors(sphere_views: tuple) -> None:
         fit_inside_hull(v, f, cameras, masks, tolerance_px=-1.0)
     with pytest.raises(ConfigError, match="views must be >= 1"):
         fit_inside_hull(v, f, cameras, masks, views=0)
+    with pytest.raises(ConfigError, match="min_gain"):
+        fit_inside_hull(v, f, cameras, masks, min_gain=1.5)
     with pytest.raises(ConfigError, match="masks"):
         fit_inside_hull(v, f, cameras, masks[:3])
 
