@@ -88,6 +88,13 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
         f"{PY} bench/refine.py",
         "MVIR (the same refinement without the polarimetric term)",
     ),
+    "hull_min_gain_stanford": (
+        "The hull fit's stop on given masks: Stanford models",
+        f"{PY} bench/refine.py --models bunny dragon armadillo --tables main --views 12 --size 304x256 "
+        "--iterations 10 --samples 200000 --subdivision-area 8 --out bench/results/hull_min_gain_stanford.json "
+        "[--fresh --refine-option surface.hull_min_gain=0.2]",
+        "the same refinement keeping every hull-fit step (refine.surface.hull_min_gain 0, the default on given masks)",
+    ),
     "refine_from_truth_pathtraced": (
         "Refinement started from the true surface of a path-traced capture",
         f"{PY} bench/refine_from_truth.py CAPTURE --out bench/results/refine_from_truth_pathtraced.json "
