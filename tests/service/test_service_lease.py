@@ -112,7 +112,7 @@ class _LimitLandsInRedis(JobStore):
 
 def test_the_soft_time_limit_is_not_taken_for_a_redis_failure(store: JobStore, tmp_path: Path) -> None:
     """The progress callback and the cancel check ride out Redis errors, but not the time limit: a
-    job whose limit fell in one of them went on and succeeded (test_service_faults, now and then)."""
+    job whose limit falls in one of them must end, not go on and succeed."""
     st = _LimitLandsInRedis(store.r, prefix=f"limit-{uuid.uuid4().hex[:8]}")
     job_id = uuid.uuid4().hex
     st.create(job_id, "o", options={}, label=None, max_open=10)
@@ -121,4 +121,3 @@ def test_the_soft_time_limit_is_not_taken_for_a_redis_failure(store: JobStore, t
         run.progress("decode", 0.5)
     with pytest.raises(SoftTimeLimitExceeded):
         run.should_cancel()
-

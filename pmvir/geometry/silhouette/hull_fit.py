@@ -17,11 +17,14 @@ surface outward. The masks' boundaries are taken halfway between the last
 object pixel and the first background pixel (:func:`mask_distance`). Masks that
 cut into the object here and there (drawn by a segmentation) ask ``views`` of
 at least 2: a vertex then moves only as far as the second view ruling it out
-says, so one mask's cut moves nothing. Where a vertex's normal runs along the rays of the
-views that rule it out (a web across a knot's loop, a flap by the table), a step along it
-gains little in the image and would carry the vertex far from any surface: with ``min_gain``
-such a step is taken back and the vertex stops (on the built-in knot on a table without masks
-the farthest vertex went from 5.1 % of the diagonal to 3.2 % with it).
+says, so one mask's cut moves nothing.
+
+Where a vertex's normal runs along the rays of the views that rule it out (a
+web across a knot's loop, a flap by the table), a step along it gains little in
+the image and would carry the vertex far from any surface: with ``min_gain``
+such a step is taken back and the vertex stops (on the built-in knot on a table
+without masks the farthest vertex is 3.2 % of the diagonal with it, 5.1 %
+without).
 """
 
 from __future__ import annotations
