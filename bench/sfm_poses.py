@@ -1,7 +1,7 @@
 """Benchmark of the poses step (pmvir.geometry.sfm.poses): known-pose triangulation and SfM.
 
 Usage: .venv/bin/python bench/sfm_poses.py [--models bunny dragon armadillo] [--views 36]
-       [--size 612x512] [--focal-factor 1.2] [--keep DIR]
+       [--size 612x512] [--focal-factor 1.2] [--keep DIR] [--capture NAME=DIR ...]
 
 For each model of ../shared/data/models (normalized, plastic, pmvir synth's built-in renderer)
 it synthesizes a capture, decodes I_int and I_min and runs ``estimate_poses`` on the images
@@ -20,6 +20,10 @@ bench/results/sfm_poses.json. Beside every SfM run, right after it, pycolmap's p
 (default SIFT extraction, exhaustive matching, incremental mapping) runs on the same SIFT images
 (``--no-plain``: not), with the same measures and the ratio of the two times. Target: ours within
 2x of the plain pipeline.
+
+``--capture NAME=DIR`` adds a capture made elsewhere (its frames, manifest with the true cameras, and masks
+where it has them), e.g. a path-traced object on a table from ``pmvir synth --scene table --renderer mitsuba
+--no-masks``, as a row named NAME; ``--models`` with no name runs the captures alone.
 """
 
 from __future__ import annotations
@@ -195,8 +199,11 @@ def sfm_table(results: list[dict], args: argparse.Namespace) -> dict:
                          plain.get("points"), round(plain.get("reprojection_px", float("nan")), 2),
                          round(plain["timings"]["total"], 1), round(plain["cpu_s"], 1),
                          f"{r['ratio_wall']:.2f} (CPU {r['ratio_cpu']:.2f})", quality])
+    title = f"{args.views} views of {args.size}, plastic, built-in renderer" if args.models else "Captures given"
+    if args.models and args.capture:
+        title += " (the models; the captures given as named)"
     return table(
-        f"{args.views} views of {args.size}, plastic, built-in renderer",
+        title,
         ["model", "mode", "registered", "points", "reprojection px", "seconds", "CPU s", "ours / plain", "quality"],
         rows,
         note="known: the capture's poses; sfm-K: intrinsics given; sfm: neither. pycolmap plain: default SIFT "
@@ -207,7 +214,11 @@ def sfm_table(results: list[dict], args: argparse.Namespace) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--models", nargs="+", default=list(MODELS))
+    ap.add_argument("--models", nargs="*", default=list(MODELS))
+    ap.add_argument(
+        "--capture", action="append", default=[], metavar="NAME=DIR",
+        help="one more capture (a folder with capture.json and the true cameras), its rows named NAME",
+    )
     ap.add_argument("--views", type=int, default=36)
     ap.add_argument("--size", default="612x512")
     ap.add_argument("--focal-factor", type=float, default=1.2)
@@ -233,14 +244,19 @@ def main() -> int:
         rematch_min_track=args.rematch_min_track, **extra,
     )
     models_dir = _shared() / "data" / "models"
-    if not models_dir.is_dir():
+    if args.models and not models_dir.is_dir():
         print(f"no models at {models_dir}", file=sys.stderr)
         return 1
+    given = dict(item.partition("=")[::2] for item in args.capture)
+    for name, folder in given.items():
+        if not (Path(folder) / "capture.json").is_file():
+            print(f"--capture {name}={folder}: no capture.json there", file=sys.stderr)
+            return 1
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         root = args.keep or Path(tmp)
-        for name in args.models:
-            capture = root / f"{name}-capture"
+        for name in [*args.models, *given]:
+            capture = Path(given[name]) if name in given else root / f"{name}-capture"
             t0 = time.perf_counter()
             if not (capture / "capture.json").exists():
                 synthesize(
@@ -251,8 +267,9 @@ def main() -> int:
             for mode in args.modes:
                 known = mode == "known"
                 try:
-                    row = {"model": name, "synth_s": synth_s,
-                           **_run(capture, mode, root / f"{name}-work", options, plain=not args.no_plain)}
+                    work = root / f"{name.replace(' ', '_').replace(',', '')}-work"
+                    row = {"model": name, "synth_s": synth_s, **({"capture": str(capture)} if name in given else {}),
+                           **_run(capture, mode, work, options, plain=not args.no_plain)}
                 except ReconstructionError as exc:
                     results.append({"model": name, "mode": mode, "error": str(exc)})
                     print(f"{name:10s} {mode:5s} ReconstructionError: {exc}", flush=True)

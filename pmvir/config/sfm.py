@@ -119,7 +119,7 @@ class SfmOptions(_Options):
     guided_matching: bool = Field(
         default=False,
         description="After RANSAC, match again along the verified epipolar geometry (COLMAP guided "
-        "matching).",
+        "matching) in the runs on images not denoised; the runs on denoised images always do.",
         json_schema_extra=advanced(),
     )
     match_max_ratio: float = Field(

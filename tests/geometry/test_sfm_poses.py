@@ -301,17 +301,14 @@ def test_sift_image_denoising_flattens_noise_and_keeps_edges() -> None:
 
 
 def test_denoised_images_that_place_most_views_skip_the_usual_runs(sfm_views: dict, tmp_path: Path) -> None:
-    """Two views blanked, and the share of views that lets the denoised images lead widened to (0.5, 1):
-    SfM on denoised, not equalized images without upsampling places the other 34, so the same images
-    upsampled come next (workdir/denoised, each image denoised once), and as they place at least three
+    """Two views blanked: SfM on denoised, not equalized images without upsampling places the other 34
+    (at least _DENOISED_LEAD of them), so the same images upsampled come next (workdir/denoised, each image denoised once), and as they place at least three
     quarters of the views, the usual runs are not made."""
     blank = (14, 20)
     images = [np.full_like(im, 0.3) if i in blank else im for i, im in enumerate(sfm_views["images"])]
     steps: list[tuple[float, str]] = []
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(poses, "_DENOISED_LEAD", (0.5, 1.0))
-        model = estimate_poses(images, sfm_views["names"], options=SfmOptions(), workdir=tmp_path,
-                               progress=lambda f, s: steps.append((f, s)))
+    model = estimate_poses(images, sfm_views["names"], options=SfmOptions(), workdir=tmp_path,
+                           progress=lambda f, s: steps.append((f, s)))
     assert model.num_registered == 34 and not model.registered[14] and not model.registered[20]
     first, kept, skipped = model.extras[0], model.extras[-2], model.extras[-1]
     assert first["step"] == "denoised_first" and not first["kept"] and 18 <= first["registered"] < 36
@@ -329,7 +326,6 @@ def test_denoised_images_that_place_most_views_skip_the_usual_runs(sfm_views: di
     # the upsampled run placing too few to be kept alone: the usual runs follow, and the two are compared
     # (a tie keeps the usual model), the denoised run counted once, not made again
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(poses, "_DENOISED_LEAD", (0.5, 1.0))
         mp.setattr(poses, "_DENOISED_KEEP", 1.01)
         both = estimate_poses(images, sfm_views["names"], options=SfmOptions(), workdir=tmp_path / "b")
     assert both.num_registered == 34
@@ -341,8 +337,9 @@ def test_denoised_images_that_place_most_views_skip_the_usual_runs(sfm_views: di
 
 
 def test_denoised_runs_where_views_are_left_out(sfm_views: dict, tmp_path: Path) -> None:
-    """Two views blanked: SfM on denoised, not equalized images without upsampling leaves them out (34 of
-    36 placed: too many for the denoised images to lead), so the usual runs follow, and where they leave them out too, SfM on denoised upsampled images
+    """Two views blanked, and the denoised images let lead only where they place every view
+    (_DENOISED_LEAD 1): SfM on denoised, not equalized images without upsampling leaves them out (34 of
+    36 placed), so the usual runs follow, and where they leave them out too, SfM on denoised upsampled images
     (workdir/denoised, each image denoised once for both runs) once more: the usual model is kept (a
     tie), and the extras and timings say what the denoised runs cost and gave. With denoised_runs 0
     there are no such runs."""
@@ -361,6 +358,7 @@ def test_denoised_runs_where_views_are_left_out(sfm_views: dict, tmp_path: Path)
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(inputs, "sift_image", counting)
+        mp.setattr(poses, "_DENOISED_LEAD", 1.0)
         model = estimate_poses(images, names, options=options, workdir=tmp_path / "a",
                                progress=lambda f, s: steps.append((f, s)))
     assert model.num_registered == 34
@@ -382,6 +380,8 @@ def test_denoised_runs_where_views_are_left_out(sfm_views: dict, tmp_path: Path)
 
     off = estimate_poses(images, names, options=options.model_copy(update={"denoised_runs": 0.0}),
                          workdir=tmp_path / "b")
+    # (the usual runs match without guidance by default; the denoised runs always with it)
+    assert not options.guided_matching and poses._denoised_options(options).guided_matching
     assert off.num_registered == 34 and not list((tmp_path / "b").glob("denoised*"))
     assert all(not e["step"].startswith("denoised") for e in off.extras)
 

@@ -43,9 +43,11 @@ first on images denoised and not equalized (``sfm.denoised_runs``) and keeps tha
 view registers: on noisy frames the equalization lifts the noise into features that match nowhere
 and the noise moves the rest; smooth, weakly textured objects need the equalization, and the runs
 described above follow. Where they leave views out, SfM runs last on the denoised images upsampled.
-Where the first run placed 40 % to three quarters of the views, the denoised images evidently carry
-the matches: their upsampled run comes right after it, and the usual runs follow only where it places
-fewer than three quarters of the views.
+Where the first run placed at least 40 % of the views, the denoised images evidently carry the
+matches: their upsampled run comes right after it, and the usual runs follow only where it places
+fewer than three quarters of the views. The runs on denoised images match with guidance (each pair
+matched again along its verified epipolar geometry), whatever ``sfm.guided_matching`` says: noisy
+frames give tens of matches a pair, and guidance holds their views in one model.
 
 Masks, eroded by ``sfm.mask_erosion_px`` (default 4) so that no feature sits on the silhouette
 (a silhouette is no fixed surface point), restrict
@@ -94,15 +96,12 @@ _HULL_TOLERANCE_PX = 3
 #: Failure messages call views with fewer SIFT features than this (median) textureless.
 _FEW_FEATURES = 100
 
-#: SfM on denoised images: where the first run (not upsampled) places a share of the views in this
-#: range, the upsampled run on the same images comes next, before the usual (equalized) runs. The
-#: path-traced knot on a table: 19 of 36 views, then 33 upsampled, while the usual runs placed none
-#: in 197 s; the built-in mug on a turntable without masks: 17, then 36 (centres 2.4 % of the
-#: diagonal off), while the usual runs made a wrong model (39 % off) in 153 s. Below it the equalized
-#: images are needed (the Stanford dragon and armadillo, smooth: 8-12 of 36); above it they complete
-#: the model more cheaply (the built-in knot on a table: 34 of 36, then 36 on the equalized images
-#: upsampled, where the denoised ones placed 34).
-_DENOISED_LEAD = (0.4, 0.75)
+#: SfM on denoised images: where the first run (not upsampled) places at least this share of the views
+#: (not all), the upsampled run on the same images comes next, before the usual (equalized) runs. The
+#: path-traced knot on a table: 33 of 36 views, then 34 upsampled, while the usual runs placed 19-21
+#: of them at ten times the cost; the Stanford armadillo: 27, then 36. Below it the equalized images
+#: are needed (the Stanford dragon, smooth: 14 of 36).
+_DENOISED_LEAD = 0.4
 
 #: ... and where that upsampled run places at least this share, it is kept without the usual runs.
 _DENOISED_KEEP = 0.75
@@ -306,7 +305,7 @@ def estimate_poses(
     that model is kept when every view registers. Otherwise the runs above follow, and where they still
     leave views out (or fail) and ``sift_upsample`` is 'auto', SfM runs once more on the denoised images
     upsampled (in ``workdir/denoised``, reusing the first run's images); the model with more registered
-    views is kept (ties: the first). Where the first run placed a share of the views within ``_DENOISED_LEAD``,
+    views is kept (ties: the first). Where the first run placed at least ``_DENOISED_LEAD`` of the views,
     that upsampled run is made right after it, and kept without the runs above where it places at least
     ``_DENOISED_KEEP`` of them (extras: a skipped ``usual_runs`` step).
 
@@ -363,7 +362,7 @@ def estimate_poses(
     early: SparseModel | None = None
     early_error: ReconstructionError | None = None
     early_s = 0.0
-    if auto and quick is not None and _DENOISED_LEAD[0] * n <= quick.num_registered < _DENOISED_LEAD[1] * n:
+    if auto and quick is not None and quick.num_registered >= _DENOISED_LEAD * n:
         t_early = time.perf_counter()
         try:
             early = denoised_upsampled(0.15, 0.15)
@@ -418,10 +417,13 @@ def _denoised_entry(run: _SfmRun | None, error: ReconstructionError | None, seco
 
 
 def _denoised_options(options: SfmOptions) -> SfmOptions:
-    """The options of SfM's run on denoised images (``sfm.denoised_runs``): denoised, not equalized,
-    upsampled."""
+    """The options of SfM's runs on denoised images (``sfm.denoised_runs``): denoised, not equalized,
+    upsampled, matched again along each pair's verified geometry (guided matching: on noisy frames the
+    ratio test leaves tens of matches a pair, and the first run on the path-traced knot on a table placed
+    33 of 36 views in one model with it, 18 of 36 in the largest of three without)."""
     return options.model_copy(update={"sift_denoise": options.denoised_runs, "sift_equalize": False,
-                                      "sift_upsample": options.sift_upsample is not False})
+                                      "sift_upsample": options.sift_upsample is not False,
+                                      "guided_matching": True})
 
 
 def _made(model: SparseModel | None, error: ReconstructionError | None) -> SparseModel:
