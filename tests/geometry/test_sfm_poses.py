@@ -302,8 +302,9 @@ def test_sift_image_denoising_flattens_noise_and_keeps_edges() -> None:
 
 def test_denoised_images_that_place_most_views_skip_the_usual_runs(sfm_views: dict, tmp_path: Path) -> None:
     """Two views blanked: SfM on denoised, not equalized images without upsampling places the other 34
-    (at least _DENOISED_LEAD of them), so the same images upsampled come next (workdir/denoised, each image denoised once), and as they place at least three
-    quarters of the views, the usual runs are not made."""
+    (at least _DENOISED_LEAD of them), so the same images upsampled come next (workdir/denoised, each
+    image denoised once), and as they place at least three quarters of the views, the usual runs are
+    not made."""
     blank = (14, 20)
     images = [np.full_like(im, 0.3) if i in blank else im for i, im in enumerate(sfm_views["images"])]
     steps: list[tuple[float, str]] = []

@@ -34,18 +34,21 @@ while not store.r.exists(sys.argv[4]):
 
 
 def hold_the_gil(seconds: float) -> float:
-    """One regular-expression match (CPython's re never releases the GIL) of at least ``seconds``;
-    returns how long it took."""
+    """Regular-expression matches (CPython's re never releases the GIL) of growing length until one
+    lasts at least ``seconds``; returns how long that one took."""
     n, took = 16, 0.0
     while took < 0.05:  # calibrate: each extra character doubles the backtracking
         n += 2
         t0 = time.perf_counter()
         re.match(r"(a|a)*b", "a" * n)
         took = time.perf_counter() - t0
-    n += math.ceil(math.log2(seconds / took))
-    t0 = time.perf_counter()
-    re.match(r"(a|a)*b", "a" * n)
-    return time.perf_counter() - t0
+    n += max(0, math.ceil(math.log2(seconds / took)) - 1)
+    while took < seconds:  # a loaded machine runs slower than calibrated: one more character each
+        n += 1
+        t0 = time.perf_counter()
+        re.match(r"(a|a)*b", "a" * n)
+        took = time.perf_counter() - t0
+    return took
 
 
 @pytest.mark.slow

@@ -97,10 +97,10 @@ _HULL_TOLERANCE_PX = 3
 _FEW_FEATURES = 100
 
 #: SfM on denoised images: where the first run (not upsampled) places at least this share of the views
-#: (not all), the upsampled run on the same images comes next, before the usual (equalized) runs. The
-#: path-traced knot on a table: 33 of 36 views, then 34 upsampled, while the usual runs placed 19-21
-#: of them at ten times the cost; the Stanford armadillo: 27, then 36. Below it the equalized images
-#: are needed (the Stanford dragon, smooth: 14 of 36).
+#: (all of them only where its model failed the checks), the upsampled run on the same images comes
+#: next, before the usual (equalized) runs. The path-traced knot on a table: 33 of 36 views, then 34
+#: upsampled, while the usual runs placed 19-21 of them at ten times the cost; the Stanford armadillo:
+#: 27, then 36. Below it the equalized images are needed (the Stanford dragon, smooth: 14 of 36).
 _DENOISED_LEAD = 0.4
 
 #: ... and where that upsampled run places at least this share, it is kept without the usual runs.
