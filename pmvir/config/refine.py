@@ -317,8 +317,8 @@ class SolverOptions(_Options):
     )
     albedo_solve: Literal["projected", "joint"] = Field(
         default="projected",
-        description="'projected': the albedo is set to its exact minimizer at every evaluation (variable "
-        "projection); 'joint': the albedo is one more block of L-BFGS unknowns.",
+        description="'projected': the albedo is set to its exact minimizer over albedos >= 0 at every "
+        "evaluation; 'joint': it is one more block of L-BFGS unknowns, clamped at 0 after each stage.",
         json_schema_extra=advanced(),
     )
     precondition_lambda: float = Field(

@@ -16,9 +16,9 @@ per-view SH coefficients L_basis (9) and RGB scales L_scale (3).
   normal-only motion in the same number of iterations: a vertex on a slope of a
   missing bump must also move sideways to reach the true surface point it samples.
 * Albedo (``solver.albedo_solve``): ``"projected"`` (default) sets K at every evaluation to
-  its exact minimizer given X and L (:mod:`pmvir.refine.albedo`) and L-BFGS runs on
-  X and L only; ``"joint"`` makes K L-BFGS unknowns too. Same cost, same minimizers;
-  the projected form converged several times faster in our tests.
+  its exact minimizer over K >= 0 given X and L (:mod:`pmvir.refine.albedo`) and L-BFGS
+  runs on X and L only; ``"joint"`` makes K L-BFGS unknowns too, clamped at 0 after each
+  stage. The projected form converged several times faster in our tests.
 * Preconditioning: L-BFGS's initial inverse Hessian is a graph smoother on the
   vertex-motion block (:class:`pmvir.refine.mesh_ops.GraphSmoother`); SH and scale
   unknowns of view c are scaled by 1/sqrt(sum of the pair weights 1/|V(i)| of the view).

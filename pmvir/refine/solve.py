@@ -189,12 +189,15 @@ def _minimize(
 def _accepted(
     param: _Parametrization, problem: StageProblem, solver: AlbedoSolver | None, z: torch.Tensor
 ) -> Unknowns:
-    """The unknowns at the accepted point z (with the projected albedo solved there)."""
+    """The unknowns at the accepted point z (with the projected albedo solved there, or the joint one
+    clamped at 0)."""
     with torch.no_grad():
         u = param.unpack(z)
         if solver is not None:
             energy_terms(u.vertices, solver, u.sh, u.rgb_scale, problem)
             u.albedo = solver.current
+        else:  # joint: L-BFGS's albedo is unbounded; a reflectance is not negative
+            u.albedo = u.albedo.clamp_min(0.0)
     return Unknowns(u.vertices.detach(), u.albedo.detach(), u.sh.detach(), u.rgb_scale.detach())
 
 

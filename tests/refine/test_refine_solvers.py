@@ -150,6 +150,22 @@ def test_face_adjacency_of_a_closed_mesh() -> None:
     assert set(shared) == {2}
 
 
+def _sorted_pairs(vert: np.ndarray, view: np.ndarray, n: int, n_views: int) -> tuple[PairSet, np.ndarray, np.ndarray]:
+    """The pairs (vertex, view) sorted by view, weighted 1/|V(i)|; also their vertices and |V(i)|."""
+    order = np.argsort(view, kind="stable")
+    vert, view = vert[order], view[order]
+    count = np.bincount(vert, minlength=n)
+    pairs = PairSet(
+        torch.from_numpy(vert),
+        torch.from_numpy(view),
+        np.concatenate([[0], np.cumsum(np.bincount(view, minlength=n_views))]).tolist(),
+        torch.from_numpy(1.0 / count[vert]),
+        count,
+        torch.from_numpy(vert * n_views + view),
+    )
+    return pairs, vert, count
+
+
 def test_projected_albedo_solves_the_normal_equations() -> None:
     """K* from CG equals the dense solution and zeroes the gradient of E_pho + tau3 E_psm in K."""
     rng = np.random.default_rng(2)
@@ -159,17 +175,7 @@ def test_projected_albedo_solves_the_normal_equations() -> None:
     vert = np.repeat(np.arange(n), 3)[rng.random(3 * n) < 0.7]
     vert = vert[vert != 5]  # vertex 5 has no observation: only E_psm determines it
     view = rng.integers(0, 4, len(vert))
-    order = np.argsort(view, kind="stable")
-    vert, view = vert[order], view[order]
-    count = np.bincount(vert, minlength=n)
-    pairs = PairSet(
-        torch.from_numpy(vert),
-        torch.from_numpy(view),
-        np.concatenate([[0], np.cumsum(np.bincount(view, minlength=4))]).tolist(),
-        torch.from_numpy(1.0 / count[vert]),
-        count,
-        torch.from_numpy(vert * 4 + view),
-    )
+    pairs, vert, count = _sorted_pairs(vert, view, n, 4)
     observed = torch.from_numpy(rng.uniform(0.1, 0.9, (len(vert), 3)))
     light = torch.from_numpy(rng.uniform(0.5, 1.5, (len(vert), 3)))
     w = rng.uniform(0.1, 1.0, len(e))
@@ -202,3 +208,45 @@ def test_projected_albedo_solves_the_normal_equations() -> None:
     k32 = single(observed.float(), light.float())
     assert k32.dtype == torch.float32 and single.iterations < 500
     np.testing.assert_allclose(k32.numpy(), k.numpy(), atol=2e-5)
+
+
+def test_projected_albedo_is_the_minimizer_over_nonnegative_albedos() -> None:
+    """Where the shading is negative (an SH expansion facing away from its light) the unbounded K* goes
+    below zero; the solver's K* >= 0 meets the bounded problem's optimality conditions: zero gradient
+    on the free entries, a gradient pointing into K > 0 on those held at zero."""
+    rng = np.random.default_rng(3)
+    v, f = geodesic_sphere(3)
+    n = len(v)
+    e = unique_edges(f)
+    vert = np.repeat(np.arange(n), 3)
+    view = np.tile(np.arange(3), n)
+    pairs, vert, count = _sorted_pairs(vert, view, n, 3)
+    observed = torch.from_numpy(rng.uniform(0.1, 0.9, (len(vert), 3)))
+    # the shading is negative on the vertices with z < -0.5 (every view), and a few others
+    shade = np.where(v[vert, 2] < -0.5, -0.3, 1.0)[:, None] * rng.uniform(0.5, 1.5, (len(vert), 3))
+    light = torch.from_numpy(shade)
+    w = rng.uniform(0.1, 1.0, len(e))
+    tau = 0.05
+    lap = np.zeros((n, n))
+    np.add.at(lap, (e[:, 0], e[:, 1]), -w)
+    np.add.at(lap, (e[:, 1], e[:, 0]), -w)
+    lap[np.arange(n), np.arange(n)] = -lap.sum(1)
+    wp = 1.0 / count[vert]
+    solver = AlbedoSolver(pairs, e, w, tau, torch.full((n, 3), 0.5, dtype=F64), tol=1e-12, ridge=0.0)
+    k = solver(observed, light).numpy()
+    assert solver.held > 0 and solver.held_rounds >= 1
+    assert (k >= 0).all()
+    for ch in range(3):
+        a = light[:, ch].numpy()
+        mat = np.diag(np.bincount(vert, wp * a * a, n)) + 2 * tau * lap
+        b = np.bincount(vert, wp * a * observed[:, ch].numpy(), n)
+        assert (np.linalg.solve(mat, b) < -0.1).any()  # the unbounded minimizer is far below zero
+        grad = mat @ k[:, ch] - b
+        free = k[:, ch] > 0
+        scale = np.abs(b).max()
+        assert np.abs(grad[free]).max() < 1e-8 * scale
+        assert (~free).any() and grad[~free].min() > -1e-8 * scale
+    # warm-started again from that solution with other data, the held set changes and is still optimal
+    solver2 = AlbedoSolver(pairs, e, w, tau, torch.from_numpy(k), tol=1e-12, ridge=0.0)
+    k2 = solver2(observed, torch.from_numpy(np.abs(shade))).numpy()
+    assert solver2.held == 0 and (k2 > 0).all()
