@@ -521,6 +521,26 @@ def test_mask_erosion_option_shrinks_the_feature_masks(sfm_views: dict, tmp_path
     assert areas[4] < areas[0] - 100  # a 4 px band along the silhouette is gone
 
 
+def test_sift_images_written_in_parallel_are_each_views_own(sfm_views: dict, tmp_path: Path) -> None:
+    """write_inputs makes the views' SIFT images on several threads: each file is its own view's
+    sift_image (denoised, with its mask), and a reused folder's files are copied, not made again."""
+    import cv2
+
+    from pmvir.geometry.sfm.inputs import sift_image, write_inputs
+
+    images, masks = sfm_views["images"][:6], sfm_views["masks"][:6]
+    opts = SfmOptions(sift_denoise=6.0)
+    image_dir, _, files = write_inputs(tmp_path / "a", images, masks, opts)
+    written = [cv2.imread(str(image_dir / name), cv2.IMREAD_GRAYSCALE) for name in files]
+    for i, im in enumerate(written):
+        assert np.array_equal(im, sift_image(images[i], masks[i], equalize=opts.sift_equalize, denoise=6.0))
+    assert not np.array_equal(written[0], written[1])
+    blank = [np.zeros_like(im) for im in images]  # reused: the blank images are never looked at
+    again, _, _ = write_inputs(tmp_path / "b", blank, masks, opts, reuse=image_dir)
+    for name, im in zip(files, written, strict=True):
+        assert np.array_equal(cv2.imread(str(again / name), cv2.IMREAD_GRAYSCALE), im)
+
+
 def test_features_of_masked_views_come_from_crops_at_the_full_views_positions(
     blob_data: dict, tmp_path: Path
 ) -> None:
