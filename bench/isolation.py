@@ -6,7 +6,7 @@ Usage: .venv/bin/python bench/isolation.py --against REV [REV ...] [--captures m
 Per built-in capture (``pmvir synth --shape SHAPE --scene SCENE --no-masks``, rendered into --work
 unless one with the same options is there) the geometric stage runs up to the isolation once and
 its inputs are kept: the dense points, cameras, previews and depth maps. Then this tree's
-``isolate_object`` and that of ``pmvir/geometry/silhouette/isolate.py`` at each REV (run with this
+``isolate_object`` and that of the package ``pmvir/geometry/silhouette/`` at each REV (run with this
 tree's other modules) each run ``--repeat`` times, alternating, on those inputs (OpenCV's random
 numbers seeded alike). Prints a table and writes bench/results/isolation.json: the fastest run of
 each, this tree's time over each revision's, and the mask pixels on which each revision's masks
@@ -16,7 +16,7 @@ differ from this tree's.
 from __future__ import annotations
 
 import argparse
-import importlib.util
+import importlib
 import json
 import subprocess
 import sys
@@ -37,23 +37,27 @@ from pmvir.cli import main as pmvir_main
 from pmvir.geometry.silhouette import isolate
 
 PMVIR = str(Path(sys.executable).with_name("pmvir"))
-MODULE = "pmvir/geometry/silhouette/isolate.py"
+PACKAGE = "pmvir/geometry/silhouette"
 
 
 def _peer(revision: str, folder: Path, name: str) -> ModuleType:
-    """``isolate.py`` as it is at ``revision``, imported under its own name."""
-    source = subprocess.run(["git", "show", f"{revision}:{MODULE}"], cwd=ROOT, capture_output=True, text=True,
-                            check=False)
-    if source.returncode != 0:
-        raise SystemExit(f"git show {revision}:{MODULE}: {source.stderr.strip()}")
-    path = folder / f"{name}.py"
-    path.write_text(source.stdout)
-    spec = importlib.util.spec_from_file_location(name, path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+    """The isolation as it is at ``revision``: the silhouette package's modules of that revision, imported
+    as the package ``name`` (their imports of each other renamed to it); its ``isolate`` module."""
+    listing = subprocess.run(["git", "ls-tree", "--name-only", f"{revision}:{PACKAGE}"], cwd=ROOT,
+                             capture_output=True, text=True, check=False)
+    if listing.returncode != 0:
+        raise SystemExit(f"git ls-tree {revision}:{PACKAGE}: {listing.stderr.strip()}")
+    package = folder / name
+    package.mkdir()
+    for file in listing.stdout.split():
+        if not file.endswith(".py"):
+            continue
+        source = subprocess.run(["git", "show", f"{revision}:{PACKAGE}/{file}"], cwd=ROOT, capture_output=True,
+                                text=True, check=True).stdout
+        (package / file).write_text(source.replace("pmvir.geometry.silhouette.", f"{name}."))
+    if str(folder) not in sys.path:
+        sys.path.insert(0, str(folder))
+    return importlib.import_module(f"{name}.isolate")
 
 
 def _capture(work: Path, shape: str, scene: str, views: int, size: str) -> Path:
@@ -136,7 +140,7 @@ def main() -> int:
     for rev in args.against:
         columns += [f"at {rev} s", f"ratio to {rev}", f"mask pixels differing from {rev}"]
     note = (f"The fastest of {args.repeat} runs of each, alternating, in one process on the same inputs "
-            f"(built-in renderer, no masks); the peers are {MODULE} at {', '.join(args.against)}.")
+            f"(built-in renderer, no masks); the peers are the isolation ({PACKAGE}/) at {', '.join(args.against)}.")
     tab = table("Isolation without masks: time against earlier revisions", columns, rows, note=note)
     print_table(tab)
     write_results("isolation", title="Time of the isolation without masks", tables=[tab],

@@ -57,13 +57,13 @@ from pmvir.geometry.mesh_ops import edge_topology, vertex_normals
 from pmvir.geometry.mvs.dense import DenseResult, dense_stereo, fuse_within_masks
 from pmvir.geometry.mvs.fusion import DensePoints
 from pmvir.geometry.sfm.poses import SparseModel, estimate_poses
+from pmvir.geometry.silhouette.cluster import point_spacing
 from pmvir.geometry.silhouette.hull_fit import HullFit, fit_inside_hull
 from pmvir.geometry.silhouette.isolate import (
     Isolation,
     isolate_object,
     kept_points,
     on_object,
-    point_spacing,
     wants_isolation,
     write_masks,
 )

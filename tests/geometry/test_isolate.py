@@ -19,21 +19,12 @@ from pmvir.geometry.mvs.dense import DenseResult, fuse_within_masks
 from pmvir.geometry.mvs.fusion import DensePoints
 from pmvir.geometry.mvs.sweep import DepthMap
 from pmvir.geometry.projection import project_points
-from pmvir.geometry.silhouette.isolate import (
-    Isolation,
-    columns_below,
-    depth_past_share,
-    far_support_plane,
-    inside_masks,
-    isolate_object,
-    object_points,
-    on_object,
-    refine_mask,
-    seen_behind,
-    sees_past,
-    still_points,
-    support_plane,
-)
+from pmvir.geometry.silhouette import cluster, depth_cues, support, support_colour
+from pmvir.geometry.silhouette.cluster import columns_below, object_points, still_points
+from pmvir.geometry.silhouette.depth_cues import depth_past_share, seen_behind, sees_past
+from pmvir.geometry.silhouette.grabcut import certain_foreground, refine_mask
+from pmvir.geometry.silhouette.isolate import Isolation, inside_masks, isolate_object, on_object
+from pmvir.geometry.silhouette.support import far_support_plane, support_plane
 
 CENTRE = np.array([0.0, 0.0, 0.3])
 
@@ -115,7 +106,7 @@ def test_a_plane_through_the_rim_of_a_cut_off_underside_is_no_support(monkeypatc
     wall = np.column_stack([np.full(620, -2.5), rng.uniform(-1.0, 1.0, (620, 2))])
     points = np.concatenate([ball, wall])
     assert far_support_plane(points, ring(30.0), distance=0.005, look_at=CENTRE)[0] is None
-    monkeypatch.setattr(isolate_module, "_reaches_out", lambda *args: True)
+    monkeypatch.setattr(support, "_reaches_out", lambda *args: True)
     plane, _ = far_support_plane(points, ring(30.0), distance=0.005, look_at=CENTRE)
     assert plane is not None and 0.1 < -plane[3] / plane[2] < 0.2  # without the test: through the ball
 
@@ -569,7 +560,7 @@ def test_a_depth_past_the_object_counts_where_another_view_sees_it_alike():
     grey = [p.copy() for p in previews]
     grey[0][shown] = 100  # the tube without texture, in the view whose stereo is wrong
     wrong = DepthMap(cam, behind, dm.score)
-    views = isolate_module.SeenAlike(cams, [wrong, *depths[1:]], grey)
+    views = depth_cues.SeenAlike(cams, [wrong, *depths[1:]], grey)
     uv, _ = project_points(cam, CENTRE[None, :] - [0.0, 0.0, 0.3])
     hole = np.zeros(shown.shape, bool)
     cv2.circle(hole.view(np.uint8), tuple(int(v) for v in uv[0]), 3, 1, -1)
@@ -653,7 +644,7 @@ def test_the_support_is_seen_through_a_loop_by_its_colours():
     the tube covers), the plane's points under them look alike in the other views that see them: all of
     it is found, and nothing outside the pixels asked about."""
     _, cams, _, on_loop, previews = _loop_scene()
-    blurred = [cv2.GaussianBlur(p.astype(np.float32), (0, 0), isolate_module._PLANE_BLUR_PX) for p in previews]
+    blurred = [cv2.GaussianBlur(p.astype(np.float32), (0, 0), support_colour.PLANE_BLUR_PX) for p in previews]
     plane = np.array([0.0, 0.0, 1.0, 0.0])
     for i, shown in enumerate(on_loop):
         filled = np.zeros(shown.shape, np.uint8)  # the loop's silhouette with its hole filled
@@ -661,11 +652,11 @@ def test_the_support_is_seen_through_a_loop_by_its_colours():
         cv2.drawContours(filled, contours, -1, 1, -1)
         hole = filled.astype(bool) & ~cv2.dilate(shown.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
         assert hole.sum() > 200  # the table seen through the loop, away from the tube's edges
-        table = isolate_module.on_support(i, cams, blurred, plane, hole)
+        table = support_colour.on_support(i, cams, blurred, plane, hole)
         assert not (table & ~hole).any()
         assert table[hole].mean() > 0.95, table[hole].mean()
     # a view that is not registered: nothing
-    assert not isolate_module.on_support(0, [None, *cams[1:]], blurred, plane, hole).any()
+    assert not support_colour.on_support(0, [None, *cams[1:]], blurred, plane, hole).any()
 
 
 def _cylinder_scene(textured: bool = False):
@@ -706,24 +697,24 @@ def test_a_plain_foot_is_not_taken_for_the_support_by_its_colours():
     pixels the blurred previews mix with the table's colours). The table seen through a textured loop is
     still all found with the loop's pixels given (they are not plain)."""
     cams, feet, bodies, previews, _ = _cylinder_scene()
-    blurred = [cv2.GaussianBlur(p.astype(np.float32), (0, 0), isolate_module._PLANE_BLUR_PX) for p in previews]
+    blurred = [cv2.GaussianBlur(p.astype(np.float32), (0, 0), support_colour.PLANE_BLUR_PX) for p in previews]
     plane = np.array([0.0, 0.0, 1.0, 0.0])
     asked, given = [], []
     for i, (foot, body) in enumerate(zip(feet, bodies, strict=True)):
         inner = foot & ~cv2.dilate((~(foot | body)).astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
         assert inner.sum() > 100
-        asked.append(isolate_module.on_support(i, cams, blurred, plane, foot)[inner].mean())
-        given.append(isolate_module.on_support(i, cams, blurred, plane, foot, object_px=body)[inner].mean())
+        asked.append(support_colour.on_support(i, cams, blurred, plane, foot)[inner].mean())
+        given.append(support_colour.on_support(i, cams, blurred, plane, foot, object_px=body)[inner].mean())
     assert np.mean(asked) > 0.5 and np.mean(given) < 0.05, (asked, given)
 
     _, cams, _, on_loop, previews = _loop_scene()
-    blurred = [cv2.GaussianBlur(p.astype(np.float32), (0, 0), isolate_module._PLANE_BLUR_PX) for p in previews]
+    blurred = [cv2.GaussianBlur(p.astype(np.float32), (0, 0), support_colour.PLANE_BLUR_PX) for p in previews]
     for i, shown in enumerate(on_loop):
         filled = np.zeros(shown.shape, np.uint8)
         contours, _ = cv2.findContours(shown.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         cv2.drawContours(filled, contours, -1, 1, -1)
         hole = filled.astype(bool) & ~cv2.dilate(shown.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-        found = isolate_module.on_support(i, cams, blurred, plane, hole, object_px=shown)
+        found = support_colour.on_support(i, cams, blurred, plane, hole, object_px=shown)
         assert found[hole].mean() > 0.95, found[hole].mean()
 
 
@@ -737,12 +728,12 @@ def test_an_object_standing_in_front_of_the_support_shows_unlike_it():
     under it from every view, nothing is found, nor with every view hidden. A plain foot does not show
     unlike: every view shows its grey."""
     cams, feet, bodies, previews, _ = _cylinder_scene(textured=True)
-    blurred = [cv2.GaussianBlur(p.astype(np.float32), (0, 0), isolate_module._PLANE_BLUR_PX) for p in previews]
+    blurred = [cv2.GaussianBlur(p.astype(np.float32), (0, 0), support_colour.PLANE_BLUR_PX) for p in previews]
     plane = np.array([0.0, 0.0, 1.0, 0.0])
     rng = np.random.default_rng(4)
     side = rng.uniform(0, 2 * np.pi, 20_000)
     upper = np.column_stack([0.3 * np.cos(side), 0.3 * np.sin(side), rng.uniform(0.2, 0.5, len(side))])
-    nearest = [isolate_module.body_depth(upper, cam, 0.01, p.shape) for cam, p in zip(cams, previews, strict=True)]
+    nearest = [support_colour.body_depth(upper, cam, 0.01, p.shape) for cam, p in zip(cams, previews, strict=True)]
     unhidden = [None] * len(cams)
     found_foot, found_table, found_hidden = [], [], []
     for i, (foot, body) in enumerate(zip(feet, bodies, strict=True)):
@@ -750,18 +741,18 @@ def test_an_object_standing_in_front_of_the_support_shows_unlike_it():
         ring = near & ~cv2.dilate((foot | body).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
         inner = foot & ~cv2.dilate((~(foot | body)).astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
         where = foot | ring
-        unlike = isolate_module.unlike_support(i, cams, blurred, plane, where, unhidden, 0.02)
+        unlike = support_colour.unlike_support(i, cams, blurred, plane, where, unhidden, 0.02)
         assert not (unlike & ~where).any()
         found_foot.append(unlike[inner].mean())
         found_table.append(unlike[ring].mean())
-        found_hidden.append(isolate_module.unlike_support(i, cams, blurred, plane, where, nearest, 0.02).mean())
+        found_hidden.append(support_colour.unlike_support(i, cams, blurred, plane, where, nearest, 0.02).mean())
         hidden = [np.zeros(p.shape[:2], np.float32) for p in previews]
-        assert not isolate_module.unlike_support(i, cams, blurred, plane, where, hidden, 0.02).any()
+        assert not support_colour.unlike_support(i, cams, blurred, plane, where, hidden, 0.02).any()
     assert np.mean(found_foot) > 0.5 and np.mean(found_table) < 0.02, (found_foot, found_table)
     assert max(found_hidden) < 0.01, found_hidden
     cams, feet, bodies, previews, _ = _cylinder_scene()
-    blurred = [cv2.GaussianBlur(p.astype(np.float32), (0, 0), isolate_module._PLANE_BLUR_PX) for p in previews]
-    plain = isolate_module.unlike_support(0, cams, blurred, plane, feet[0], unhidden, 0.02)
+    blurred = [cv2.GaussianBlur(p.astype(np.float32), (0, 0), support_colour.PLANE_BLUR_PX) for p in previews]
+    plain = support_colour.unlike_support(0, cams, blurred, plane, feet[0], unhidden, 0.02)
     assert plain[feet[0]].mean() < 0.05
 
 
@@ -774,27 +765,27 @@ def test_a_foot_whose_depth_stands_in_front_of_the_support_is_not_the_support():
     plane = np.array([0.0, 0.0, 1.0, 0.0])
     for cam, foot, body, dm in zip(cams, feet, bodies, depths, strict=True):
         everywhere = np.ones(foot.shape, bool)
-        front = isolate_module.in_front_of_support(cam, dm, plane, everywhere, 0.02)
+        front = depth_cues.in_front_of_support(cam, dm, plane, everywhere, 0.02)
         table = ~cv2.dilate((foot | body).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
         high = foot & (dm.depth > 0)
         assert front[body].all() and front[foot].mean() > 0.7 and not front[table].any()
-        assert not isolate_module.in_front_of_support(cam, dm, plane, ~high, 0.02)[high].any()  # only where asked
+        assert not depth_cues.in_front_of_support(cam, dm, plane, ~high, 0.02)[high].any()  # only where asked
         unknown = DepthMap(camera=cam, depth=np.zeros_like(dm.depth), score=dm.score)
-        assert not isolate_module.in_front_of_support(cam, unknown, plane, everywhere, 0.02).any()
+        assert not depth_cues.in_front_of_support(cam, unknown, plane, everywhere, 0.02).any()
     # a view's depths on the table moved a fifth nearer (stereo's mismatches): in front of it, but no
     # other view sees those points, and with the views asked they do not count; the cylinder's do
     cams, feet, bodies, previews, depths = _cylinder_scene()
     dm, table = depths[0], ~cv2.dilate((feet[0] | bodies[0]).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     wrong = DepthMap(camera=dm.camera, depth=np.where(table, 0.8 * dm.depth, dm.depth), score=dm.score)
-    views = isolate_module.SeenAlike(cams, [wrong, *depths[1:]], previews)
+    views = depth_cues.SeenAlike(cams, [wrong, *depths[1:]], previews)
     everywhere = np.ones(table.shape, bool)
-    alone = isolate_module.in_front_of_support(cams[0], wrong, plane, everywhere, 0.02)
-    confirmed = isolate_module.in_front_of_support(cams[0], wrong, plane, everywhere, 0.02, index=0, views=views)
+    alone = depth_cues.in_front_of_support(cams[0], wrong, plane, everywhere, 0.02)
+    confirmed = depth_cues.in_front_of_support(cams[0], wrong, plane, everywhere, 0.02, index=0, views=views)
     assert alone[table].mean() > 0.8 and confirmed[table].mean() < 0.02, (alone[table].mean(), confirmed[table].mean())
     assert confirmed[bodies[0]].mean() > 0.8 and not (confirmed & ~alone).any()
     _, cams, depths, on_loop, _ = _loop_scene()
     for cam, shown, dm in zip(cams, on_loop, depths, strict=True):
-        front = isolate_module.in_front_of_support(cam, dm, plane, np.ones(shown.shape, bool), 0.02)
+        front = depth_cues.in_front_of_support(cam, dm, plane, np.ones(shown.shape, bool), 0.02)
         assert front[shown].all() and not front[~cv2.dilate(shown.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)].any()
 
 
@@ -925,25 +916,25 @@ def test_a_view_sees_the_object_where_its_depth_lands_on_its_points():
     tree, plane = cKDTree(points), np.array([0.0, 0.0, 1.0, 0.0])
     for cam, foot, body, dm in zip(cams, feet, bodies, depths, strict=True):
         shape = (cam.height, cam.width)
-        shown = isolate_module.sees_object(dm, tree, 0.02, shape, plane=plane, lift=0.05)
+        shown = depth_cues.sees_object(dm, tree, 0.02, shape, plane=plane, lift=0.05)
         grow = np.ones((5, 5), np.uint8)
         inner = body & ~cv2.dilate((~body).astype(np.uint8), grow).astype(bool)
         table = ~cv2.dilate((foot | body).astype(np.uint8), grow).astype(bool)
         assert shown[inner].mean() > 0.95 and not shown[table].any()
-        near = isolate_module.sees_object(dm, tree, 0.1, shape, plane=None, lift=0.05)  # the table by the foot
-        lifted = isolate_module.sees_object(dm, tree, 0.1, shape, plane=plane, lift=0.05)
+        near = depth_cues.sees_object(dm, tree, 0.1, shape, plane=None, lift=0.05)  # the table by the foot
+        lifted = depth_cues.sees_object(dm, tree, 0.1, shape, plane=plane, lift=0.05)
         assert near[table].sum() > 20 and not lifted[table].any()
         unknown = DepthMap(camera=cam, depth=np.zeros_like(dm.depth), score=dm.score)
-        assert not isolate_module.sees_object(unknown, tree, 0.02, shape, plane=plane, lift=0.05).any()
+        assert not depth_cues.sees_object(unknown, tree, 0.02, shape, plane=plane, lift=0.05).any()
     # with the other views asked: the grey body is seen alike; in colours no other view shows, it is not
     _, _, _, previews, _ = _cylinder_scene()
     body, dm, shape = bodies[0], depths[0], (cams[0].height, cams[0].width)
     inner = body & ~cv2.dilate((~body).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    alike = isolate_module.SeenAlike(cams, depths, previews)
+    alike = depth_cues.SeenAlike(cams, depths, previews)
     black = np.where(body[..., None], 0, previews[0]).astype(np.uint8)  # the body 120 levels off the others
-    other = isolate_module.SeenAlike(cams, depths, [black, *previews[1:]])
-    confirmed = isolate_module.sees_object(dm, tree, 0.02, shape, plane=plane, lift=0.05, index=0, views=alike)
-    unlike = isolate_module.sees_object(dm, tree, 0.02, shape, plane=plane, lift=0.05, index=0, views=other)
+    other = depth_cues.SeenAlike(cams, depths, [black, *previews[1:]])
+    confirmed = depth_cues.sees_object(dm, tree, 0.02, shape, plane=plane, lift=0.05, index=0, views=alike)
+    unlike = depth_cues.sees_object(dm, tree, 0.02, shape, plane=plane, lift=0.05, index=0, views=other)
     assert confirmed[inner].mean() > 0.9 and not unlike[inner].any()
 
 
@@ -957,7 +948,7 @@ def test_a_thin_part_in_the_table_s_colours_keeps_its_middle_as_certain_foregrou
     bar[100:116, 40:160] = 1  # 16 px high, touching the disc
     image[bar > 0] = image[np.roll(bar, 40, axis=0) > 0]  # the table's texture 40 rows below
     t = (truth | bar).astype(bool)
-    certain = isolate_module._certain(t.astype(np.uint8), 10)
+    certain = certain_foreground(t.astype(np.uint8), 10)
     full = cv2.erode(t.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (21, 21))).astype(bool)
     assert not full[bar > 0].any() and certain[108, 50:150].all()
     out = refine_mask(image, t, band_px=10, iterations=4)
@@ -977,7 +968,7 @@ def test_the_certain_foreground_keeps_the_whole_band_from_the_holes_it_encloses(
     splat = t.astype(np.uint8)
     cv2.circle(splat, (100, 100), 30, 1, -1)
     cv2.circle(splat, (100, 100), 22, 0, -1)  # the splats leave a smaller hole
-    certain = isolate_module._certain(splat, 10)
+    certain = certain_foreground(splat, 10)
     yy, xx = np.mgrid[:200, :200]
     r = np.hypot(yy - 100, xx - 100)
     assert not certain[r < 31].any() and certain[(r > 33) & (r < 60)].all()
@@ -1072,18 +1063,18 @@ def test_the_support_test_decides_each_pixel_as_comparing_every_view_would():
     """on_support stops comparing a pixel's patch once enough views agree, or once the views left cannot
     make it alike: it finds what comparing every view that sees the patch finds."""
     cams, _, _, previews, _ = _cylinder_scene()
-    blurred = [cv2.GaussianBlur(p.astype(np.float32), (0, 0), isolate_module._PLANE_BLUR_PX) for p in previews]
+    blurred = [cv2.GaussianBlur(p.astype(np.float32), (0, 0), support_colour.PLANE_BLUR_PX) for p in previews]
     plane = np.array([0.0, 0.0, 1.0, 0.0])
     rng = np.random.default_rng(4)
-    step = isolate_module._PLANE_STEP_PX * np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], float)
+    step = support_colour._PLANE_STEP_PX * np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], float)
     counts = []
     for i, cam in enumerate(cams):
         where = rng.random(previews[i].shape[:2]) < 0.2
-        found = isolate_module.on_support(i, cams, blurred, plane, where)
+        found = support_colour.on_support(i, cams, blurred, plane, where)
         rows, cols = np.nonzero(where)
         uv = (np.stack([cols, rows], 1)[:, None, :] + 0.5 + step[None]).reshape(-1, 2)
-        _, t, on_plane = isolate_module._rays_to_plane(cam, uv, plane)
-        own = isolate_module._patch_colours(blurred[i], uv)
+        _, t, on_plane = depth_cues.rays_to_plane(cam, uv, plane)
+        own = support_colour._patch_colours(blurred[i], uv)
         agree, seen = np.zeros(len(rows), int), np.zeros(len(rows), int)
         for j, other in enumerate(cams):
             if j == i:
@@ -1091,10 +1082,10 @@ def test_the_support_test_decides_each_pixel_as_comparing_every_view_would():
             q, z = other.project(on_plane)
             inside = ((z > 0) & (q >= 1).all(axis=1) & (q[:, 0] <= other.width - 1) & (q[:, 1] <= other.height - 1))
             inside = inside.reshape(-1, 9).all(axis=1) & (t > 0).reshape(-1, 9).all(axis=1)
-            diff = np.abs(isolate_module._patch_colours(blurred[j], q) - own).mean(axis=(1, 2))
+            diff = np.abs(support_colour._patch_colours(blurred[j], q) - own).mean(axis=(1, 2))
             seen += inside
-            agree += inside & (diff <= isolate_module._PLANE_COLOUR)
-        alike = (agree >= isolate_module._PLANE_MIN_VIEWS) & (agree >= isolate_module._PLANE_SHARE * seen)
+            agree += inside & (diff <= support_colour._PLANE_COLOUR)
+        alike = (agree >= support_colour._PLANE_MIN_VIEWS) & (agree >= support_colour._PLANE_SHARE * seen)
         assert np.array_equal(found[rows, cols], alike)
         counts.append((alike.sum(), (~alike).sum()))
     assert min(c[0] for c in counts) > 100 and min(c[1] for c in counts) > 100, counts  # both answers met
@@ -1124,6 +1115,6 @@ def test_still_pixels_take_the_median_over_the_views():
         stack = np.stack(previews).astype(np.int16)
         deviation = np.median(np.abs(stack - np.median(stack, axis=0)).max(axis=-1), axis=0)
         for tolerance in (3.0, 20.0, 60.0):
-            got = isolate_module.still_pixels(previews, tolerance=tolerance)
+            got = cluster.still_pixels(previews, tolerance=tolerance)
             assert np.array_equal(got, deviation <= tolerance)
-        assert isolate_module.still_pixels(previews, tolerance=6.0)[still].all()  # 3 levels either side
+        assert cluster.still_pixels(previews, tolerance=6.0)[still].all()  # 3 levels either side

@@ -180,7 +180,7 @@ def test_energy_gradient_matches_finite_differences(scene: dict) -> None:
 def test_a_view_sfm_left_out_is_registered_from_its_silhouette(scene: dict) -> None:
     """View 6 is missing from the model (as the dragon's end-on views are from SfM's): the search
     over camera directions, distances and rolls, polished, finds its pose from its mask alone."""
-    from pmvir.geometry.sfm.frontier import register_from_silhouettes
+    from pmvir.geometry.sfm.silhouette_registration import register_from_silhouettes
 
     rng = np.random.default_rng(5)
     rec = _reconstruction(scene["cams"], _surface_points(150, rng), scene["cams"])
@@ -205,7 +205,7 @@ def test_a_symmetric_silhouette_is_not_registered(scene: dict) -> None:
     """The ellipsoid alone is symmetric under half turns about its axes: a camera turned with it
     sees the same silhouette, so the mask cannot tell the two poses apart and the view is left out
     (the built-in torus knot: 19 of 20 views registered at wrong poses before this check)."""
-    from pmvir.geometry.sfm.frontier import register_from_silhouettes
+    from pmvir.geometry.sfm.silhouette_registration import register_from_silhouettes
 
     masks = {f"{i:05d}.png": _mask(R, c, ball=False) for i, (R, c) in enumerate(scene["cams"])}
     rec = _reconstruction(scene["cams"], _surface_points(150, np.random.default_rng(6)), scene["cams"])
@@ -221,7 +221,7 @@ def test_silhouettes_complete_a_model_they_do_not_build(scene: dict) -> None:
     are not searched for by their masks (the built-in knot: 16 of 36, and wrong poses that fit);
     each gets the reason, which a failure message carries."""
     from pmvir.config import SfmOptions
-    from pmvir.geometry.sfm.poses import _register_missing_by_silhouette, _silhouette_note
+    from pmvir.geometry.sfm.model import _register_missing_by_silhouette, _silhouette_note
 
     rec = _reconstruction(scene["cams"], _surface_points(150, np.random.default_rng(8)), scene["cams"])
     for image_id in (3, 5, 7, 9, 11):  # 11 of 16 left: 0.69
@@ -245,13 +245,8 @@ def test_the_batched_polish_reaches_scipys_huber_minimum(scene: dict) -> None:
     import scipy.optimize
     from scipy.spatial.transform import Rotation
 
-    from pmvir.geometry.sfm.frontier import (
-        FRONTIER_SCALE_PX,
-        _contour_rays,
-        _frontier_residuals,
-        _padded,
-        _polish,
-    )
+    from pmvir.geometry.sfm.frontier import FRONTIER_SCALE_PX, _contour_rays
+    from pmvir.geometry.sfm.silhouette_registration import _frontier_residuals, _padded, _polish
 
     others = [k for k in range(16) if k != 6]
     Cr = np.stack([scene["cams"][k][1] for k in others])

@@ -6,7 +6,9 @@ Read in this order: :mod:`~pmvir.geometry.sfm.poses` (the entry point,
 :mod:`~pmvir.geometry.sfm.matching` (features and matches in COLMAP's database),
 :mod:`~pmvir.geometry.sfm.colmap` (mapping, triangulation, refinement),
 :mod:`~pmvir.geometry.sfm.join` (joining disconnected models),
+:mod:`~pmvir.geometry.sfm.model` (the result, and a run finished: checks, masks' adjustments),
 :mod:`~pmvir.geometry.sfm.frontier` (poses held to the masks' epipolar tangencies),
+:mod:`~pmvir.geometry.sfm.silhouette_registration` (views SfM left out, placed by their silhouettes),
 :mod:`~pmvir.geometry.sfm.align` (a reconstruction's similarity to ground truth through its cameras).
 """
 

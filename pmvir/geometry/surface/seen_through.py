@@ -118,7 +118,7 @@ def seen_through(
         margin: world units; a depth within it of a vertex's lies on the vertex, beyond it past it (> 0).
         rounds: rounds of 1-ring averaging of the counts (>= 0).
         points: (P, 3) the fused points, or None: no vertex is unsupported.
-        spacing: their spacing, world units (:func:`~pmvir.geometry.silhouette.isolate.point_spacing`;
+        spacing: their spacing, world units (:func:`~pmvir.geometry.silhouette.cluster.point_spacing`;
             0: no vertex is unsupported).
 
     Returns:
