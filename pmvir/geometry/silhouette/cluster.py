@@ -114,7 +114,7 @@ def object_points(
     bbox: Sequence[float] | None = None,
     backdrop: np.ndarray | None = None,
 ) -> ObjectPoints:
-    """The dense points of the object (module docstring, steps 1-4).
+    """The dense points of the object (:mod:`.isolate`, steps 1-4).
 
     ``backdrop`` (P,) bool marks still-backdrop points (:func:`still_points`); they are left out
     unless they hold most of the points off the plane.
@@ -287,7 +287,7 @@ def _median_last(values: np.ndarray) -> np.ndarray:
 def still_points(
     points: np.ndarray, cameras: Sequence[Camera | None], previews: Sequence[np.ndarray], *, tolerance: float
 ) -> np.ndarray:
-    """(P,) bool: points on a still camera's backdrop (module docstring, step 3); all False where the
+    """(P,) bool: points on a still camera's backdrop (:mod:`.isolate`, step 3); all False where the
     images show no still camera (still pixels under :data:`_MIN_STILL_AREA` of them)."""
     pts = np.asarray(points, np.float64)
     views = [(cam, image) for cam, image in zip(cameras, previews, strict=True) if cam is not None]

@@ -57,7 +57,7 @@ _PAST_SHARE_ALL = 0.25
 
 class SeenAlike(NamedTuple):
     """What :func:`sees_past` checks a view's depths past the object against: per view its camera,
-    stereo depth map (None where it has none) and (H, W, 3) uint8 preview (module docstring, step 5)."""
+    stereo depth map (None where it has none) and (H, W, 3) uint8 preview (:mod:`.isolate`, step 5)."""
 
     cameras: Sequence[Camera | None]
     depth_maps: Sequence[DepthMap | None]

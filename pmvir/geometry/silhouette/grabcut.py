@@ -57,7 +57,7 @@ def refine_mask(
     unsure: np.ndarray | None = None,
     certain: np.ndarray | None = None,
 ) -> np.ndarray:
-    """GrabCut of one view inside a band around a rough mask (module docstring, step 4).
+    """GrabCut of one view inside a band around a rough mask (:mod:`.isolate`, step 5).
 
     Args:
         image: (H, W, 3) uint8 RGB preview of the view.

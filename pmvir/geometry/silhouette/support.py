@@ -48,7 +48,7 @@ def support_plane(
     look_at: np.ndarray | None = None,
     seed: int = 0,
 ) -> tuple[np.ndarray | None, int]:
-    """The largest plane of the points that is a support seen from above (module docstring, step 2).
+    """The largest plane of the points that is a support seen from above (:mod:`.isolate`, step 2).
 
     RANSAC scores only the candidate planes with every camera (and ``look_at``, the object) more
     than ``distance`` on one side: the object's own near-flat patches and a backdrop, with cameras
@@ -105,7 +105,7 @@ def far_support_plane(
     seed: int = 0,
 ) -> tuple[np.ndarray | None, int]:
     """A support that holds too few of the points for :func:`support_plane`, found among the points
-    farthest from the object (module docstring, step 2).
+    farthest from the object (:mod:`.isolate`, step 2).
 
     Where the views see the table at grazing angles (path-traced, 16 views of 320x256: 3 % of a rock's
     dense points) RANSAC seldom draws three of its points, and the object's own faces hold as many.
