@@ -1,8 +1,9 @@
 """A capture as people take it: a folder of full-size frames, an object on a table, no manifest, masks or poses.
 
 Per size (default 2448x2048) a capture of an object standing on a textured table is rendered
-(``pmvir synth --scene table --no-masks``: ``--shape`` (blob), plastic, environment light, ``--views``
-views from above the table, seed 0, by ``--renderer``: builtin, or mitsuba at ``--spp``) and its
+(``pmvir synth --scene table --no-masks``: ``--shape`` (blob) or a mesh file (``--mesh``, its up axis
+``--mesh-up``, e.g. a Stanford model), plastic, environment light, ``--views`` views from above the
+table, seed 0, by ``--renderer``: builtin, or mitsuba at ``--spp``) and its
 frames alone are copied into a bare folder. That
 folder is reconstructed with ``pmvir reconstruct FOLDER`` and the default options, under
 ``/usr/bin/time -v`` (the run's peak resident memory): pmvir infers the manifest, estimates the
@@ -16,11 +17,12 @@ and of the refined mesh, completeness, the median normal error, the largest vert
 the share of vertices farther than 2 % of the diagonal, the largest distance of the vertices
 within 2 % of the diagonal above the table (the table left in the mesh), and the masks' IoU
 against the true ones. Prints a table and writes bench/results/as_taken.json (``--results NAME``:
-NAME.json; ``--append`` keeps its runs, a new one replacing the run of the same input, size and views;
+NAME.json; ``--append`` keeps its runs, a new one replacing the run of the same object, input, size and views;
 a run with ``--set`` options names them beside its input); ``--reuse`` measures again only the runs
 without a finished result in ``--work``.
 
-    .venv/bin/python bench/as_taken.py [--sizes 2448x2048] [--views 36] [--shape blob] [--renderer builtin]
+    .venv/bin/python bench/as_taken.py [--sizes 2448x2048] [--views 36] [--shape blob | --mesh FILE [--mesh-up y]]
+        [--renderer builtin]
         [--spp 32] [--reference] [--work DIR] [--reuse] [--set KEY=VALUE ...] [--results NAME] [--append]
 """
 
@@ -56,12 +58,18 @@ SEED = 0
 
 def _capture(size: str, views: int, work: Path, args: argparse.Namespace) -> Path:
     """The rendered capture (cached in ``work``): frames, its manifest, gt/ with the true masks."""
-    cap = work / f"cap_{args.shape}_{args.renderer}_{size}_{views}v"
+    cap = work / f"cap_{_object(args)}_{args.renderer}_{size}_{views}v"
+    source = ["--mesh", str(args.mesh), "--mesh-up", args.mesh_up] if args.mesh else ["--shape", args.shape]
     if not (cap / "capture.json").is_file():
-        subprocess.run([PMVIR, "synth", "--shape", args.shape, "--scene", "table", "--no-masks", "--views", str(views),
+        subprocess.run([PMVIR, "synth", *source, "--scene", "table", "--no-masks", "--views", str(views),
                         "--size", size, "--lighting", "envmap", "--renderer", args.renderer, "--spp", str(args.spp),
                         "--seed", str(SEED), "--out", str(cap), "--force", "--quiet"], check=True)
     return cap
+
+
+def _object(args: argparse.Namespace) -> str:
+    """The captured object's name: the mesh file's stem, or the built-in shape."""
+    return args.mesh.stem if args.mesh else args.shape
 
 
 def _bare_frames(capture: Path, out: Path) -> Path:
@@ -141,8 +149,14 @@ COLUMNS = ["input", "frames", "views", "registered", "working size", "vertices",
            "normal error median deg", "max dist (diag)", "> 2 % diag", "max dist near table", "mask IoU"]
 
 
-def _row(r: dict) -> list:
-    head = [r["run"], r["size"], r["views"]]
+def _key(run: dict) -> tuple:
+    """What a new run replaces in the result file: the run of the same object, input, size and views."""
+    return run.get("object"), run["run"], run["size"], run["views"]
+
+
+def _row(r: dict, *, named: bool) -> list:
+    """A run's row; ``named``: its input prefixed with the object (a table of several objects)."""
+    head = [f"{r['object']}, {r['run']}" if named else r["run"], r["size"], r["views"]]
     if "error" in r:
         return head + [f"failed: {r['error']}"] + [None] * (len(COLUMNS) - 4)
     g, s = r["geometry_seconds"], r["seconds"]
@@ -163,11 +177,14 @@ def main() -> int:
     p.add_argument("--sizes", nargs="+", default=["2448x2048"], help="frame sizes WxH (default 2448x2048)")
     p.add_argument("--views", type=int, default=36, help="views per capture (default 36)")
     p.add_argument("--shape", default="blob", help="built-in shape (pmvir synth --shape; default blob)")
+    p.add_argument("--mesh", type=Path, help="a mesh file (PLY/OBJ) instead of a built-in shape")
+    p.add_argument("--mesh-up", default="z", choices=["x", "y", "z"], help="the mesh's up axis (default z)")
     p.add_argument("--renderer", default="builtin", choices=["builtin", "mitsuba"], help="renderer (default builtin)")
     p.add_argument("--spp", type=int, default=32, help="mitsuba's samples per pixel (default 32)")
     p.add_argument("--results", default="as_taken", help="write bench/results/NAME.json (default as_taken)")
     p.add_argument("--append", action="store_true",
-                   help="keep the runs already in the result file (a new run replaces one of the same input, size and views)")
+                   help="keep the runs already in the result file (a new run replaces one of the same object, input, size and "
+                   "views)")
     p.add_argument("--reference", action="store_true",
                    help="also reconstruct each capture with its manifest (true poses) and the true masks")
     p.add_argument("--work", type=Path, default=Path("/tmp/pmvir-as-taken"), help="captures and results")
@@ -180,7 +197,7 @@ def main() -> int:
     runs = json.loads(earlier.read_text())["runs"] if args.append and earlier.exists() else []
     for size in args.sizes:
         capture = _capture(size, args.views, args.work, args)
-        tag = f"{args.shape}_{args.renderer}_{size}_{args.views}v"
+        tag = f"{_object(args)}_{args.renderer}_{size}_{args.views}v"
         sources = [("bare frames", _bare_frames(capture, args.work / f"frames_{tag}"))]
         if args.reference:
             sources.append(("manifest and true masks", _with_true_masks(capture, args.work / f"masked_{tag}")))
@@ -188,17 +205,19 @@ def main() -> int:
             # runs with other options in folders of their own, so that --reuse never takes one for another
             options = "_" + hashlib.sha1(" ".join(args.set).encode()).hexdigest()[:8] if args.set else ""
             out = args.work / f"out_{'bare' if kind == 'bare frames' else 'reference'}_{tag}{options}"
-            row = _measure(kind, size, args.views, capture, source, out, args.reuse, args.set)
-            runs = [r for r in runs if (r["run"], r["size"], r["views"]) != (row["run"], size, args.views)] + [row]
+            row = {"object": _object(args)} | _measure(kind, size, args.views, capture, source, out, args.reuse,
+                                                       args.set)
+            runs = [r for r in runs if _key(r) != _key(row)] + [row]
             print(json.dumps(runs[-1], default=str), flush=True)
     columns = COLUMNS
-    rows = [_row(r) for r in runs]
+    objects = sorted({str(r.get("object")) for r in runs})
+    rows = [_row(r, named=len(objects) > 1) for r in runs]
     print(" | ".join(columns))
     for row in rows:
         print(" | ".join("-" if v is None else str(v) for v in row))
     tab = table(
         "A folder of frames of an object on a table: no manifest, masks or poses", columns, rows,
-        note=f"Capture: {args.shape} standing on a textured table, {args.renderer} renderer"
+        note=f"Capture: {' / '.join(objects) if len(objects) > 1 else _object(args)} standing on a textured table, {args.renderer} renderer"
         f"{f' ({args.spp} spp)' if args.renderer == 'mitsuba' else ''}, plastic, envmap lighting, seed 0, "
         "views from above the table. 'bare frames': the frames alone (manifest inferred, intrinsics and "
         "poses by SfM, the object found without masks); 'manifest and true masks': the same frames with "
@@ -211,7 +230,8 @@ def main() -> int:
     referenced = any(r["run"].startswith("manifest and true masks") for r in runs)
     peer = "the same frames with their manifest (true poses) and true masks" if referenced else None
     out = write_results(args.results, title="Captures as people take them", tables=[tab], peer=peer,
-                        data={"options": vars(args) | {"work": str(args.work)}, "runs": runs})
+                        data={"options": vars(args) | {"work": str(args.work), "mesh": args.mesh and str(args.mesh)},
+                                           "runs": runs})
     print(f"wrote {out}")
     return 0
 

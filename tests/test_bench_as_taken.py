@@ -1,0 +1,47 @@
+"""bench/as_taken.py's bookkeeping: which stored run a new one replaces, and how the table names objects."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from pathlib import Path
+from types import ModuleType
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+def _as_taken() -> ModuleType:
+    sys.path.insert(0, str(BENCH))
+    try:
+        return importlib.import_module("as_taken")
+    finally:
+        sys.path.remove(str(BENCH))
+
+
+def _run(obj: str | None, run: str = "bare frames") -> dict:
+    row = {"run": run, "size": "612x512", "views": 36, "error": "stopped"}
+    return row if obj is None else {"object": obj} | row
+
+
+def test_a_run_replaces_only_the_same_objects() -> None:
+    bench = _as_taken()
+    bunny, armadillo = _run("bunny"), _run("armadillo")
+    assert bench._key(bunny) != bench._key(armadillo)
+    assert bench._key(bunny) == bench._key(_run("bunny"))
+    assert bench._key(bunny) != bench._key(_run("bunny", "manifest and true masks"))
+    assert bench._key(_run(None)) != bench._key(bunny)  # a stored run that names no object
+
+
+def test_rows_name_the_object_only_in_a_table_of_several() -> None:
+    bench = _as_taken()
+    assert bench._row(_run("bunny"), named=True)[0] == "bunny, bare frames"
+    assert bench._row(_run("bunny"), named=False)[0] == "bare frames"
+    row = bench._row(_run("bunny"), named=False)
+    assert len(row) == len(bench.COLUMNS) and row[3] == "failed: stopped"
+
+
+def test_the_object_is_the_mesh_files_stem_or_the_shape() -> None:
+    bench = _as_taken()
+    assert bench._object(argparse.Namespace(mesh=Path("models/bunny.ply"), shape="blob")) == "bunny"
+    assert bench._object(argparse.Namespace(mesh=None, shape="knot")) == "knot"
