@@ -85,7 +85,7 @@ BENCHMARKS: dict[str, tuple[str, str, str | None]] = {
     "as_taken_stanford_pathtraced": (
         "Path-traced Stanford models on a table as taken: 36 frames of 612x512, no manifest, masks or poses",
         f"{PY} bench/as_taken.py --sizes 612x512 --mesh ../shared/data/models/MODEL --mesh-up y "
-        "--renderer mitsuba --reference --results as_taken_stanford_pathtraced --append, for the bunny and the armadillo",
+        "--renderer mitsuba --reference --results as_taken_stanford_pathtraced --append, for the bunny, armadillo and dragon",
         "the same frames with their manifest (true poses) and true masks",
     ),
     "subdivision": ("Visibility and subdivision", f"{PY} bench/subdivision.py", None),
