@@ -149,9 +149,17 @@ COLUMNS = ["input", "frames", "views", "registered", "working size", "vertices",
            "normal error median deg", "max dist (diag)", "> 2 % diag", "max dist near table", "mask IoU"]
 
 
+def _stored_runs(document: dict) -> list[dict]:
+    """A result file's runs, each naming its object: a run stored without one is of the file's own
+    (its options' mesh or shape), so that ``--append`` replaces it like any other."""
+    options = document.get("options", {})
+    own = Path(options["mesh"]).stem if options.get("mesh") else options.get("shape", "blob")
+    return [{"object": own} | run for run in document["runs"]]
+
+
 def _key(run: dict) -> tuple:
     """What a new run replaces in the result file: the run of the same object, input, size and views."""
-    return run.get("object"), run["run"], run["size"], run["views"]
+    return run["object"], run["run"], run["size"], run["views"]
 
 
 def _row(r: dict, *, named: bool) -> list:
@@ -194,7 +202,7 @@ def main() -> int:
     args = p.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     earlier = RESULTS / f"{args.results}.json"
-    runs = json.loads(earlier.read_text())["runs"] if args.append and earlier.exists() else []
+    runs = _stored_runs(json.loads(earlier.read_text())) if args.append and earlier.exists() else []
     for size in args.sizes:
         capture = _capture(size, args.views, args.work, args)
         tag = f"{_object(args)}_{args.renderer}_{size}_{args.views}v"
@@ -210,7 +218,7 @@ def main() -> int:
             runs = [r for r in runs if _key(r) != _key(row)] + [row]
             print(json.dumps(runs[-1], default=str), flush=True)
     columns = COLUMNS
-    objects = sorted({str(r.get("object")) for r in runs})
+    objects = sorted({r["object"] for r in runs})
     rows = [_row(r, named=len(objects) > 1) for r in runs]
     print(" | ".join(columns))
     for row in rows:
@@ -231,7 +239,7 @@ def main() -> int:
     peer = "the same frames with their manifest (true poses) and true masks" if referenced else None
     out = write_results(args.results, title="Captures as people take them", tables=[tab], peer=peer,
                         data={"options": vars(args) | {"work": str(args.work), "mesh": args.mesh and str(args.mesh)},
-                                           "runs": runs})
+                              "runs": runs})
     print(f"wrote {out}")
     return 0
 

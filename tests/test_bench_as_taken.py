@@ -30,7 +30,16 @@ def test_a_run_replaces_only_the_same_objects() -> None:
     assert bench._key(bunny) != bench._key(armadillo)
     assert bench._key(bunny) == bench._key(_run("bunny"))
     assert bench._key(bunny) != bench._key(_run("bunny", "manifest and true masks"))
-    assert bench._key(_run(None)) != bench._key(bunny)  # a stored run that names no object
+
+
+def test_a_stored_run_without_an_object_is_the_files_own() -> None:
+    bench = _as_taken()
+    blob = bench._stored_runs({"options": {"shape": "blob", "mesh": None}, "runs": [_run(None)]})
+    assert [r["object"] for r in blob] == ["blob"] and bench._key(blob[0]) == bench._key(_run("blob"))
+    bunny = bench._stored_runs({"options": {"shape": "blob", "mesh": "models/bunny.ply"}, "runs": [_run(None)]})
+    assert bunny[0]["object"] == "bunny"
+    kept = bench._stored_runs({"options": {"shape": "blob"}, "runs": [_run("armadillo")]})
+    assert kept[0]["object"] == "armadillo"  # a run naming its object keeps it
 
 
 def test_rows_name_the_object_only_in_a_table_of_several() -> None:
