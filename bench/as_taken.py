@@ -15,11 +15,12 @@ The meshes are compared with the object alone, after a similarity fitted from th
 camera centres to the true ones (``pmvir evaluate --align``): accuracy of the initial surface
 and of the refined mesh, completeness, the median normal error, the largest vertex distance and
 the share of vertices farther than 2 % of the diagonal, the largest distance of the vertices
-within 2 % of the diagonal above the table (the table left in the mesh), and the masks' IoU
-against the true ones. Prints a table and writes bench/results/as_taken.json (``--results NAME``:
-NAME.json; ``--append`` keeps its runs, a new one replacing the run of the same object, input, size and views;
-a run with ``--set`` options names them beside its input); ``--reuse`` measures again only the runs
-without a finished result in ``--work``.
+within 2 % of the diagonal above the table (table left in the mesh, or a web across the gaps
+at the object's base), and the masks' IoU against the true ones. Prints a table and writes
+bench/results/as_taken.json (``--results NAME``: NAME.json; ``--append`` keeps its runs, a new one
+replacing the run of the same object, input, size and views; a run with ``--set`` options names
+them beside its input); ``--reuse`` measures again only the runs without a finished result in
+``--work``.
 
     .venv/bin/python bench/as_taken.py [--sizes 2448x2048] [--views 36] [--shape blob | --mesh FILE [--mesh-up y]]
         [--renderer builtin]
