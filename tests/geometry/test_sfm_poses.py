@@ -35,7 +35,7 @@ from pmvir.config import SfmOptions
 from pmvir.decode import decode_frame
 from pmvir.errors import ReconstructionError, ShapeError
 from pmvir.evaluate import SurfaceQuery
-from pmvir.geometry.sfm import inputs, poses
+from pmvir.geometry.sfm import colmap, inputs, poses
 from pmvir.geometry.sfm.align import umeyama
 from pmvir.geometry.sfm.inputs import sift_image
 from pmvir.geometry.sfm.matching import fundamental_matrix, sampson_error
@@ -385,6 +385,26 @@ def test_denoised_runs_where_views_are_left_out(sfm_views: dict, tmp_path: Path)
     assert not options.guided_matching and poses._denoised_options(options).guided_matching
     assert off.num_registered == 34 and not list((tmp_path / "b").glob("denoised*"))
     assert all(not e["step"].startswith("denoised") for e in off.extras)
+
+
+def test_a_single_model_is_completed_once_with_the_mappers_threshold(monkeypatch: pytest.MonkeyPatch) -> None:
+    """_join_models: several models are first grown with every absolute pose of PNP_MIN_INLIERS inliers
+    (kept when two joined), then the largest alone with the mapper's register_min_inliers; a single model
+    has no second one to confirm its poses, so only that last pass is made (the first would be thrown away)."""
+    calls: list[tuple[int, int]] = []
+
+    def grow(ranked: list, run: Any, *, min_inliers: int) -> tuple[Any, bool]:
+        calls.append((len(ranked), min_inliers))
+        return ranked[0], False
+
+    monkeypatch.setattr(colmap, "_grow_and_join", grow)
+    options = SfmOptions()
+    run = colmap._Workspace(Path("db"), Path("images"), Path("sparse"), [], options, set(), [])
+    assert colmap._join_models(["only"], run) == "only"  # type: ignore[list-item]
+    assert calls == [(1, options.register_min_inliers)]
+    calls.clear()
+    assert colmap._join_models(["largest", "other"], run) == "largest"  # type: ignore[list-item]
+    assert calls == [(2, colmap.PNP_MIN_INLIERS), (1, options.register_min_inliers)]
 
 
 def _fake_model(registered: int, n: int = 6) -> SparseModel:

@@ -462,11 +462,12 @@ def _join_models(ranked: list[pycolmap.Reconstruction], run: _Workspace) -> pyco
     First with every absolute pose of ``PNP_MIN_INLIERS`` or more inliers (:func:`_grow_and_join`);
     when that joins no two models, its poses had no second model to confirm them, and the
     largest model is completed again with only the poses that reach the mapper's own
-    ``options.register_min_inliers``.
+    ``options.register_min_inliers``; a single model is completed so at once.
     """
-    rec, joined = _grow_and_join(ranked, run, min_inliers=PNP_MIN_INLIERS)
-    if joined:
-        return rec
+    if len(ranked) > 1:  # (one model: nothing to join, no second model to confirm its poses)
+        rec, joined = _grow_and_join(ranked, run, min_inliers=PNP_MIN_INLIERS)
+        if joined:
+            return rec
     return _grow_and_join(ranked[:1], run, min_inliers=run.options.register_min_inliers)[0]
 
 
