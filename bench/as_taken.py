@@ -9,7 +9,8 @@ folder is reconstructed with ``pmvir reconstruct FOLDER`` and the default option
 ``/usr/bin/time -v`` (the run's peak resident memory): pmvir infers the manifest, estimates the
 intrinsics and poses by SfM and finds the object itself. With ``--reference`` the same frames
 run again as the lab prepares them: the capture's manifest (true intrinsics and poses) and the
-true masks.
+true masks; ``--reference-only`` makes that run alone (with ``--append`` the bare-frames runs in the
+result file stay).
 
 The meshes are compared with the object alone, after a similarity fitted from the estimated
 camera centres to the true ones (``pmvir evaluate --align``): accuracy of the initial surface
@@ -24,7 +25,7 @@ them beside its input); ``--reuse`` measures again only the runs without a finis
 
     .venv/bin/python bench/as_taken.py [--sizes 2448x2048] [--views 36] [--shape blob | --mesh FILE [--mesh-up y]]
         [--renderer builtin]
-        [--spp 32] [--reference] [--work DIR] [--reuse] [--set KEY=VALUE ...] [--results NAME] [--append]
+        [--spp 32] [--reference | --reference-only] [--work DIR] [--reuse] [--set KEY=VALUE ...] [--results NAME] [--append]
 """
 
 from __future__ import annotations
@@ -66,6 +67,13 @@ def _capture(size: str, views: int, work: Path, args: argparse.Namespace) -> Pat
                         "--size", size, "--lighting", "envmap", "--renderer", args.renderer, "--spp", str(args.spp),
                         "--seed", str(SEED), "--out", str(cap), "--force", "--quiet"], check=True)
     return cap
+
+
+def _inputs(args: argparse.Namespace) -> list[str]:
+    """The runs made of each capture, in order: the bare frames (not with ``--reference-only``), and the
+    manifest with the true masks (``--reference`` or ``--reference-only``)."""
+    bare = [] if args.reference_only else ["bare frames"]
+    return bare + (["manifest and true masks"] if args.reference or args.reference_only else [])
 
 
 def _object(args: argparse.Namespace) -> str:
@@ -196,6 +204,9 @@ def main() -> int:
                    "views)")
     p.add_argument("--reference", action="store_true",
                    help="also reconstruct each capture with its manifest (true poses) and the true masks")
+    p.add_argument("--reference-only", action="store_true",
+                   help="reconstruct each capture only with its manifest and the true masks (with --append, the "
+                   "bare-frames runs already in the result file stay)")
     p.add_argument("--work", type=Path, default=Path("/tmp/pmvir-as-taken"), help="captures and results")
     p.add_argument("--reuse", action="store_true", help="keep the finished results found in --work")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -207,9 +218,8 @@ def main() -> int:
     for size in args.sizes:
         capture = _capture(size, args.views, args.work, args)
         tag = f"{_object(args)}_{args.renderer}_{size}_{args.views}v"
-        sources = [("bare frames", _bare_frames(capture, args.work / f"frames_{tag}"))]
-        if args.reference:
-            sources.append(("manifest and true masks", _with_true_masks(capture, args.work / f"masked_{tag}")))
+        sources = [(kind, _bare_frames(capture, args.work / f"frames_{tag}") if kind == "bare frames" else
+                    _with_true_masks(capture, args.work / f"masked_{tag}")) for kind in _inputs(args)]
         for kind, source in sources:
             # runs with other options in folders of their own, so that --reuse never takes one for another
             options = "_" + hashlib.sha1(" ".join(args.set).encode()).hexdigest()[:8] if args.set else ""

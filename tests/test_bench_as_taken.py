@@ -54,3 +54,12 @@ def test_the_object_is_the_mesh_files_stem_or_the_shape() -> None:
     bench = _as_taken()
     assert bench._object(argparse.Namespace(mesh=Path("models/bunny.ply"), shape="blob")) == "bunny"
     assert bench._object(argparse.Namespace(mesh=None, shape="knot")) == "knot"
+
+
+def test_reference_only_makes_the_reference_run_alone() -> None:
+    bench = _as_taken()
+    runs = {(r, o): bench._inputs(argparse.Namespace(reference=r, reference_only=o))
+            for r in (False, True) for o in (False, True)}
+    assert runs[(False, False)] == ["bare frames"]
+    assert runs[(True, False)] == ["bare frames", "manifest and true masks"]
+    assert runs[(False, True)] == runs[(True, True)] == ["manifest and true masks"]
