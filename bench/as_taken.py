@@ -25,7 +25,8 @@ them beside its input); ``--reuse`` measures again only the runs without a finis
 
     .venv/bin/python bench/as_taken.py [--sizes 2448x2048] [--views 36] [--shape blob | --mesh FILE [--mesh-up y]]
         [--renderer builtin]
-        [--spp 32] [--reference | --reference-only] [--work DIR] [--reuse] [--set KEY=VALUE ...] [--results NAME] [--append]
+        [--spp 32] [--reference | --reference-only] [--work DIR] [--reuse] [--set KEY=VALUE ...]
+        [--results NAME] [--append]
 """
 
 from __future__ import annotations
@@ -71,9 +72,10 @@ def _capture(size: str, views: int, work: Path, args: argparse.Namespace) -> Pat
 
 def _inputs(args: argparse.Namespace) -> list[str]:
     """The runs made of each capture, in order: the bare frames (not with ``--reference-only``), and the
-    manifest with the true masks (``--reference`` or ``--reference-only``)."""
-    bare = [] if args.reference_only else ["bare frames"]
-    return bare + (["manifest and true masks"] if args.reference or args.reference_only else [])
+    manifest with the true masks (``--reference`` or ``--reference-only``, which exclude each other)."""
+    if args.reference_only:
+        return ["manifest and true masks"]
+    return ["bare frames"] + (["manifest and true masks"] if args.reference else [])
 
 
 def _object(args: argparse.Namespace) -> str:
@@ -202,11 +204,12 @@ def main() -> int:
     p.add_argument("--append", action="store_true",
                    help="keep the runs already in the result file (a new run replaces one of the same object, input, size and "
                    "views)")
-    p.add_argument("--reference", action="store_true",
-                   help="also reconstruct each capture with its manifest (true poses) and the true masks")
-    p.add_argument("--reference-only", action="store_true",
-                   help="reconstruct each capture only with its manifest and the true masks (with --append, the "
-                   "bare-frames runs already in the result file stay)")
+    which = p.add_mutually_exclusive_group()
+    which.add_argument("--reference", action="store_true",
+                       help="also reconstruct each capture with its manifest (true poses) and the true masks")
+    which.add_argument("--reference-only", action="store_true",
+                       help="reconstruct each capture only with its manifest and the true masks (with --append, "
+                       "the bare-frames runs already in the result file stay)")
     p.add_argument("--work", type=Path, default=Path("/tmp/pmvir-as-taken"), help="captures and results")
     p.add_argument("--reuse", action="store_true", help="keep the finished results found in --work")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

@@ -12,8 +12,9 @@ alone: accuracy and completeness (pmvir.evaluate, GT diagonals), the median norm
 angle between each vertex's normal and the true surface's, degrees), the largest vertex distance and
 the share of vertices farther than 2 % of the diagonal, the largest distance of the vertices within
 2 % of the diagonal above the table (table left in the mesh, or a web across the gaps at the
-object's base), the masks' IoU against the true ones (no-mask runs) and the time. Prints a table and writes bench/results/nomask.json (the initial
-surface) or bench/results/nomask_refine.json (``--stop-after refine``: the refined mesh);
+object's base), the masks' IoU against the true ones (no-mask runs) and the time. Prints a table
+and writes bench/results/nomask.json (the initial surface) or bench/results/nomask_refine.json
+(``--stop-after refine``: the refined mesh);
 ``--results NAME``: bench/results/NAME.json. ``--set KEY=VALUE`` passes an option to every
 reconstruction (e.g. ``geometry.isolate.see_past=false``); the no-mask rows then read
 ``none, see_past=false`` and stand beside those with the defaults in one table (``--append``).
